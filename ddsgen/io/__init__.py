@@ -1,0 +1,1 @@
+"""Files: EXR and PNG images, the JSON Lines manifest, atomic writes, scan-folder readers."""

@@ -1,0 +1,308 @@
+"""Sensor presets: load, validate, resolve and save the YAML that describes a depth sensor.
+
+A preset is flat YAML; every key carries its unit in its name or in :data:`FIELDS`.
+Loading checks every field (unknown key with the nearest valid name, wrong type,
+out-of-range value) and raises :class:`~ddsgen.errors.InputError` with one line
+``FILE: KEY: problem``. The resolved preset (defaults filled in) is what
+``render`` writes to ``sensor.yaml`` and what ``fit`` writes back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ddsgen.errors import InputError, where
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PRESET_DIR = PROJECT_ROOT / "presets"
+PATTERN_DIR = PROJECT_ROOT / "pattern_assets"
+
+
+REQUIRED = object()  # marks a key with no default
+
+
+@dataclasses.dataclass(frozen=True)
+class Field:
+    """One preset key: its type, allowed range and meaning (with unit)."""
+
+    kind: type
+    help: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False  # True: value must be > low (not >=)
+    default: Any = REQUIRED
+
+
+# The schema. Order is the order of keys in a written preset.
+FIELDS: dict[str, Field] = {
+    "name": Field(str, "preset name"),
+    "width_px": Field(int, "image width (px)", 8, 16384),
+    "height_px": Field(int, "image height (px)", 8, 16384),
+    "focal_px": Field(float, "focal length f of IR camera and projector (px)", 0, 1e5, low_open=True),
+    "focal_y_px": Field(float, "vertical focal length (px); default = focal_px", 0, 1e5, low_open=True, default=None),
+    "cx_px": Field(float, "principal point x (px); default = (width-1)/2", default=None),
+    "cy_px": Field(float, "principal point y (px); default = (height-1)/2", default=None),
+    "baseline_m": Field(float, "projector-camera baseline b along +x (m)", 0, 2.0, low_open=True),
+    "z_min_m": Field(float, "nearest measurable depth (m)", 0, 1e3, low_open=True),
+    "z_max_m": Field(float, "farthest measurable depth (m)", 0, 1e3, low_open=True),
+    "block_size_px": Field(int, "block-matching window w (px, odd)", 3, 255),
+    "emitted_intensity": Field(float, "emitted intensity eta_c (IR counts * mm^2 per unit of 8-bit pattern value)", 0, 1e20, low_open=True),
+    "shadow_bias_m": Field(float, "shadow-ray bias xi (m)", 0, 1.0),
+    "softargmax_beta": Field(float, "soft-argmax temperature beta (1/ZNCC)", 0, 1e4, low_open=True),
+    "subpixel_level": Field(int, "sub-pixel refinement level n_sub (steps of 2^-n_sub px)", 0, 6),
+    "speckle_shape": Field(float, "multiplicative speckle ~ Gamma(shape, scale): shape", 0, 1e4, low_open=True, default=4.54),
+    "speckle_scale": Field(float, "multiplicative speckle ~ Gamma(shape, scale): scale", 0, 1e3, low_open=True, default=0.196),
+    "read_noise_mean_counts": Field(float, "additive detector noise mean (IR counts)", -1e4, 1e4, default=-0.126),
+    "read_noise_std_counts": Field(float, "additive detector noise std (IR counts)", 0, 1e4, default=10.4),
+    "ambient_counts": Field(float, "ambient IR level added everywhere (IR counts)", 0, 1e6, default=0.0),
+    "ir_bits": Field(int, "IR sensor bit depth (clip and quantise to 2^bits - 1)", 4, 16, default=10),
+    "min_confidence": Field(float, "matcher confidence below which depth is invalid (0..1)", 0, 1, default=0.05),
+    "band_rows": Field(int, "rows per matching band (bounds matcher memory)", 1, 16384, default=64),
+    "pattern": Field(str, "dot pattern: a file in pattern_assets/ or a path (relative to the preset)", default="kinect_like_640.png"),
+    "pattern_psf_px": Field(float, "Gaussian point-spread sigma of a projected dot (px)", 0, 10, low_open=True, default=0.5),
+    "effects": Field(list, "extra physical effects: list of {name: EFFECT, PARAM: value}", default=()),
+    "postprocess": Field(str, "optional post-processing CNN weights file (relative to the preset)", default=None),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics (px)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def matrix(self):
+        import numpy as np
+
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorPreset:
+    """A resolved, validated sensor preset. Build with :func:`load_preset` or :func:`preset_from_dict`."""
+
+    name: str
+    width_px: int
+    height_px: int
+    focal_px: float
+    focal_y_px: float
+    cx_px: float
+    cy_px: float
+    baseline_m: float
+    z_min_m: float
+    z_max_m: float
+    block_size_px: int
+    emitted_intensity: float
+    shadow_bias_m: float
+    softargmax_beta: float
+    subpixel_level: int
+    speckle_shape: float
+    speckle_scale: float
+    read_noise_mean_counts: float
+    read_noise_std_counts: float
+    ambient_counts: float
+    ir_bits: int
+    min_confidence: float
+    band_rows: int
+    pattern: str
+    pattern_psf_px: float
+    effects: tuple
+    postprocess: str | None
+    source: str = ""  # file the preset came from (for messages and relative paths)
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return Intrinsics(self.width_px, self.height_px, self.focal_px, self.focal_y_px, self.cx_px, self.cy_px)
+
+    @property
+    def disparity_min_px(self) -> float:
+        """Smallest disparity f*b/z_max (px)."""
+        return self.focal_px * self.baseline_m / self.z_max_m
+
+    @property
+    def disparity_max_px(self) -> float:
+        """Largest disparity f*b/z_min (px)."""
+        return self.focal_px * self.baseline_m / self.z_min_m
+
+    @property
+    def subpixel_step_px(self) -> float:
+        return 2.0 ** -self.subpixel_level
+
+    def replace(self, **changes) -> "SensorPreset":
+        """A copy with some fields changed, validated again."""
+        data = self.to_dict()
+        data.update(changes)
+        return preset_from_dict(data, source=self.source)
+
+    def to_dict(self) -> dict:
+        """Plain dict in schema order (what :func:`save_preset` writes)."""
+        out = {}
+        for key in FIELDS:
+            value = getattr(self, key)
+            out[key] = [dict(e) for e in value] if key == "effects" else value
+        return out
+
+    def resolve_path(self, relative: str) -> Path:
+        """A path named in the preset: absolute, relative to the preset file, or a shipped asset."""
+        path = Path(relative).expanduser()
+        if path.is_absolute():
+            return path
+        if self.source:
+            candidate = Path(self.source).parent / path
+            if candidate.exists():
+                return candidate
+        asset = PATTERN_DIR / path
+        if asset.exists():
+            return asset
+        return Path(self.source).parent / path if self.source else path
+
+
+def _check_number(source, key: str, field: Field, value):
+    if isinstance(value, str):
+        # YAML 1.1 reads "1.5e6" (no dot in the mantissa sign rule) as a string; accept it.
+        try:
+            value = float(value.strip())
+        except ValueError:
+            pass
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{where(source, key)}expected a number ({field.help}), got {value!r}")
+    if field.kind is int:
+        if isinstance(value, float):
+            if not value.is_integer():
+                raise InputError(f"{where(source, key)}expected an integer ({field.help}), got {value!r}")
+            value = int(value)
+    value = field.kind(value)
+    if not math.isfinite(value):
+        raise InputError(f"{where(source, key)}must be a finite number, got {value!r}")
+    if field.low is not None:
+        if field.low_open and not value > field.low:
+            raise InputError(f"{where(source, key)}must be > {field.low:g}, got {value!r}")
+        if not field.low_open and value < field.low:
+            raise InputError(f"{where(source, key)}must be >= {field.low:g}, got {value!r}")
+    if field.high is not None and value > field.high:
+        raise InputError(f"{where(source, key)}must be <= {field.high:g}, got {value!r}")
+    return value
+
+
+def _check_effects(source, value) -> tuple:
+    if value is None:
+        return ()
+    if not isinstance(value, (list, tuple)):
+        raise InputError(f"{where(source, 'effects')}expected a list of {{name: EFFECT, ...}}, got {value!r}")
+    effects = []
+    for index, entry in enumerate(value):
+        key = f"effects[{index}]"
+        if isinstance(entry, str):
+            entry = {"name": entry}
+        if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
+            raise InputError(f"{where(source, key)}expected {{name: EFFECT, PARAM: value}}, got {entry!r}")
+        for param, number in entry.items():
+            if param == "name":
+                continue
+            if isinstance(number, bool) or not isinstance(number, (int, float)) or not math.isfinite(number):
+                raise InputError(f"{where(source, key + '.' + str(param))}expected a finite number, got {number!r}")
+        effects.append(dict(entry))
+    # The effect library validates names and parameters (imported lazily: it needs torch).
+    try:
+        from ddsgen.sensor.effects import validate_effects
+    except ImportError:
+        return tuple(effects)
+    return tuple(validate_effects(effects, source))
+
+
+def preset_from_dict(data: Any, source: str | Path = "") -> SensorPreset:
+    """Validate a mapping of preset keys and fill in defaults.
+
+    Raises:
+        InputError: one line naming ``source``, the key and the problem.
+    """
+    source = str(source)
+    if not isinstance(data, dict):
+        raise InputError(f"{where(source)}a preset must be a YAML mapping of keys to values, got {type(data).__name__}")
+    for key in data:
+        if key not in FIELDS:
+            near = difflib.get_close_matches(str(key), FIELDS, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            raise InputError(f"{where(source, str(key))}unknown key{hint}")
+    values: dict[str, Any] = {}
+    for key, field in FIELDS.items():
+        if key not in data or (data[key] is None and field.default is not REQUIRED):
+            if field.default is REQUIRED:
+                raise InputError(f"{where(source, key)}missing required key ({field.help})")
+            values[key] = field.default
+            continue
+        value = data[key]
+        if field.kind in (int, float):
+            values[key] = _check_number(source, key, field, value)
+        elif field.kind is str:
+            if not isinstance(value, str) or not value.strip():
+                raise InputError(f"{where(source, key)}expected a non-empty string ({field.help}), got {value!r}")
+            values[key] = value
+        elif key == "effects":
+            values[key] = _check_effects(source, value)
+    width, height = values["width_px"], values["height_px"]
+    if values["focal_y_px"] is None:
+        values["focal_y_px"] = values["focal_px"]
+    if values["cx_px"] is None:
+        values["cx_px"] = (width - 1) / 2.0
+    if values["cy_px"] is None:
+        values["cy_px"] = (height - 1) / 2.0
+    if values["z_min_m"] >= values["z_max_m"]:
+        raise InputError(
+            f"{where(source, 'z_min_m')}must be smaller than z_max_m ({values['z_min_m']} >= {values['z_max_m']})"
+        )
+    block = values["block_size_px"]
+    if block % 2 == 0:
+        raise InputError(f"{where(source, 'block_size_px')}must be odd, got {block}")
+    if block > min(width, height):
+        raise InputError(f"{where(source, 'block_size_px')}must not exceed the image ({block} > {min(width, height)} px)")
+    d_max = values["focal_px"] * values["baseline_m"] / values["z_min_m"]
+    if d_max >= width:
+        raise InputError(
+            f"{where(source, 'z_min_m')}largest disparity f*b/z_min = {d_max:.0f} px is not smaller than the image width {width}"
+        )
+    return SensorPreset(**values, source=source)
+
+
+def load_preset(path: str | Path) -> SensorPreset:
+    """Read and validate a preset YAML file (or a shipped preset name such as ``kinect_v1``)."""
+    path = Path(path)
+    if not path.exists() and (PRESET_DIR / f"{path.name}.yaml").exists() and len(path.parts) == 1:
+        path = PRESET_DIR / f"{path.name}.yaml"
+    if not path.is_file():
+        raise InputError(f"{path}: preset file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"{path}: cannot read preset ({error.__class__.__name__}: {error})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark else ""
+        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+        raise InputError(f"{path}: malformed YAML{at}: {problem}") from None
+    return preset_from_dict(data, source=path)
+
+
+def save_preset(preset: SensorPreset, path: str | Path, comment: str | None = None) -> None:
+    """Write a resolved preset as YAML (loadable by :func:`load_preset`); atomic."""
+    from ddsgen.io.atomic import atomic_write_text
+
+    header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
+    body = yaml.safe_dump(preset.to_dict(), sort_keys=False, default_flow_style=None)
+    atomic_write_text(path, header + body)
