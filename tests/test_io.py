@@ -214,3 +214,217 @@ def test_png8(tmp_path):
     write_png16(tmp_path / "sixteen.png", np.ones((2, 2), np.uint16))
     with pytest.raises(InputError, match="must be 8-bit"):
         read_png8(tmp_path / "sixteen.png")
+
+
+# ---------------------------------------------------------------- manifest
+
+from ddsgen.io.manifest import (  # noqa: E402
+    MANIFEST_SCHEMA,
+    append_record,
+    dumps_record,
+    read_manifest,
+    repair_manifest,
+    sorted_records,
+    validate_record,
+)
+
+
+def pose(angle=0.3, t=(0.1, -0.2, 1.0)) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    m = np.eye(4)
+    m[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    m[:3, 3] = t
+    return m
+
+
+def record(frame=0, **changes) -> dict:
+    rec = {
+        "frame": frame,
+        "depth": f"depth/{int(frame):06d}.png",
+        "depth_exr": f"depth/{int(frame):06d}.exr",
+        "intrinsics": {"width": 640, "height": 480, "fx": 572.41, "fy": 573.57, "cx": 325.26, "cy": 242.05},
+        "depth_scale": 0.001,
+        "world_T_cam": pose(0.1, (0.0, 0.0, 1.5)),
+        "objects": [
+            {
+                "id": 1,
+                "mesh": "shape:box",
+                "class": "box",
+                "cam_T_obj": pose(),
+                "bbox": [10, 20, 30, 40],
+                "visible_fraction": 0.75,
+            }
+        ],
+        "seed": 7,
+    }
+    rec.update(changes)
+    return rec
+
+
+def test_manifest_schema_documented():
+    for key in ("frame", "depth", "intrinsics", "depth_scale", "world_T_cam", "cam_T_obj", "bbox", "seed"):
+        assert key in MANIFEST_SCHEMA
+
+
+def test_manifest_round_trip_and_canonical_bytes(tmp_path):
+    path = tmp_path / "out" / "manifest.jsonl"
+    for frame in (2, 0, 1):
+        append_record(path, record(frame))
+    records = read_manifest(path)
+    assert [r["frame"] for r in records] == [2, 0, 1]
+    assert [r["frame"] for r in sorted_records(records)] == [0, 1, 2]
+    np.testing.assert_allclose(records[0]["objects"][0]["cam_T_obj"], pose())
+    assert records[0]["intrinsics"]["fx"] == 572.41
+    # canonical: same records -> same bytes, whatever the dict order
+    shuffled = dict(reversed(list(record(5).items())))
+    assert dumps_record(shuffled) == dumps_record(record(5))
+    other = tmp_path / "again.jsonl"
+    for frame in (2, 0, 1):
+        append_record(other, record(frame))
+    assert other.read_bytes() == path.read_bytes()
+    assert path.read_bytes().count(b"\n") == 3 and b", " not in path.read_bytes()
+
+
+def test_manifest_crash_truncated_last_line(tmp_path):
+    path = tmp_path / "manifest.jsonl"
+    append_record(path, record(0))
+    append_record(path, record(1))
+    full = path.read_bytes()
+    line = dumps_record(record(2)).encode()
+    path.write_bytes(full + line[: len(line) // 2])  # crash while appending frame 2
+    assert [r["frame"] for r in read_manifest(path)] == [0, 1]
+    append_record(path, record(2))  # repairs, then appends
+    assert [r["frame"] for r in read_manifest(path)] == [0, 1, 2]
+    assert path.read_bytes() == full + line + b"\n"
+
+
+def test_repair_manifest(tmp_path):
+    path = tmp_path / "manifest.jsonl"
+    assert repair_manifest(path) is False  # missing: nothing to do
+    append_record(path, record(0))
+    assert repair_manifest(path) is False
+    good = path.read_bytes()
+    path.write_bytes(good + b'{"frame": 1, "dep')
+    assert repair_manifest(path) is True
+    assert path.read_bytes() == good
+    # a hand-written file whose last complete record lacks the newline keeps it
+    path.write_bytes(good + dumps_record(record(1)).encode())
+    assert [r["frame"] for r in read_manifest(path)] == [0, 1]
+    assert repair_manifest(path) is True and path.read_bytes().endswith(b"}\n")
+    assert [r["frame"] for r in read_manifest(path)] == [0, 1]
+
+
+def test_manifest_corrupt_middle_line(tmp_path):
+    path = tmp_path / "manifest.jsonl"
+    lines = [dumps_record(record(0)), '{"frame": 1, broken', dumps_record(record(2))]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"manifest.jsonl: line 2: not valid JSON"):
+        read_manifest(path)
+
+
+def test_manifest_duplicate_frame_and_missing_file(tmp_path):
+    path = tmp_path / "manifest.jsonl"
+    append_record(path, record(0))
+    append_record(path, record(0))
+    with pytest.raises(InputError, match=r"line 2: frame: duplicate frame 0 \(first on line 1\)"):
+        read_manifest(path)
+    with pytest.raises(InputError, match=r"nope.jsonl: manifest not found"):
+        read_manifest(tmp_path / "nope.jsonl")
+
+
+def reflect(m):
+    m = np.array(m)
+    m[:3, 0] *= -1
+    return m
+
+
+def scaled(m):
+    m = np.array(m)
+    m[:3, :3] *= 1.01
+    return m
+
+
+def bad_last_row(m):
+    m = np.array(m)
+    m[3, 0] = 0.5
+    return m
+
+
+def obj(**changes):
+    o = dict(record()["objects"][0])
+    o.update(changes)
+    return o
+
+
+BAD_RECORDS = [
+    ({"frame": -1}, "frame: must be an int >= 0"),
+    ({"frame": 1.0}, "frame: must be an int"),
+    ({"frame": True}, "frame: must be an int"),
+    ({"depth": "/abs/depth.png"}, "depth: must be a path relative"),
+    ({"depth": ""}, "depth: must be a non-empty relative path"),
+    ({"mask": "C:\\x\\m.png"}, "mask: must be a path relative"),
+    ({"intrinsics": {"width": 640, "height": 480, "fx": 1, "fy": 1, "cx": 1}}, "intrinsics.cy: missing"),
+    ({"intrinsics": {"width": 640.5, "height": 480, "fx": 1, "fy": 1, "cx": 1, "cy": 1}}, "intrinsics.width"),
+    ({"intrinsics": {"width": 640, "height": 480, "fx": -1, "fy": 1, "cx": 1, "cy": 1}}, "intrinsics.fx"),
+    ({"intrinsics": {"width": 640, "height": 480, "fx": float("inf"), "fy": 1, "cx": 1, "cy": 1}}, "intrinsics.fx"),
+    ({"depth_scale": 0}, "depth_scale: must be a finite number > 0"),
+    ({"depth_scale": "0.001"}, "depth_scale"),
+    ({"world_T_cam": None}, "world_T_cam: must be a 4x4 rigid transform, got null"),
+    ({"world_T_cam": np.eye(3)}, "world_T_cam: must be a 4x4 matrix"),
+    ({"world_T_cam": reflect(pose())}, "world_T_cam: rotation determinant"),
+    ({"world_T_cam": scaled(pose())}, "world_T_cam: rotation is not orthonormal"),
+    ({"world_T_cam": bad_last_row(pose())}, "world_T_cam: last row"),
+    ({"world_T_cam": [[1, 0, 0, "a"]] * 4}, "world_T_cam: must be a 4x4 matrix of numbers"),
+    ({"objects": {}}, "objects: must be a list"),
+    ({"objects": [obj(id=0)]}, r"objects\[0\].id: must be an int >= 1"),
+    ({"objects": [obj(), obj()]}, r"objects\[1\].id: duplicate id 1"),
+    ({"objects": [obj(mesh="")]}, r"objects\[0\].mesh"),
+    ({"objects": [obj(**{"class": 3})]}, r"objects\[0\].class"),
+    ({"objects": [obj(cam_T_obj=scaled(pose()))]}, r"objects\[0\].cam_T_obj: rotation is not orthonormal"),
+    ({"objects": [obj(bbox=[1, 2, 3])]}, r"objects\[0\].bbox"),
+    ({"objects": [obj(bbox=[1, -2, 3, 4])]}, r"objects\[0\].bbox"),
+    ({"objects": [obj(bbox=[1, 2.5, 3, 4])]}, r"objects\[0\].bbox"),
+    ({"objects": [obj(visible_fraction=1.5)]}, r"objects\[0\].visible_fraction"),
+    ({"seed": "7"}, "seed: must be an int"),
+]
+
+
+@pytest.mark.parametrize("changes, message", BAD_RECORDS)
+def test_validate_record_rejects(changes, message):
+    with pytest.raises(InputError, match=message):
+        validate_record(record(**changes))
+
+
+@pytest.mark.parametrize("key", ["frame", "depth", "intrinsics", "depth_scale", "world_T_cam", "objects", "seed"])
+def test_validate_record_missing_key(key):
+    rec = record()
+    del rec[key]
+    with pytest.raises(InputError, match=f"{key}: missing"):
+        validate_record(rec)
+    for name in ("bbox", "visible_fraction", "cam_T_obj"):
+        rec = record()
+        del rec["objects"][0][name]
+        with pytest.raises(InputError, match=rf"objects\[0\].{name}: missing"):
+            validate_record(rec)
+
+
+def test_validate_record_accepts_and_non_strict():
+    validate_record(record())
+    validate_record(record(objects=[], extra={"anything": 1}))
+    real = record(world_T_cam=None)
+    del real["seed"]
+    del real["objects"][0]["bbox"], real["objects"][0]["visible_fraction"]
+    validate_record(real, strict=False)
+    with pytest.raises(InputError):
+        validate_record(real)
+
+
+def test_invalid_line_reported_with_file_and_line(tmp_path):
+    path = tmp_path / "manifest.jsonl"
+    append_record(path, record(0))
+    with open(path, "a") as handle:
+        handle.write(dumps_record(record(1, depth_scale=-1)) + "\n")
+    with pytest.raises(InputError, match=r"manifest.jsonl: line 2: depth_scale: must be"):
+        read_manifest(path)
+    with pytest.raises(InputError, match=r"manifest.jsonl: depth_scale"):
+        append_record(path, record(3, depth_scale=-1))
