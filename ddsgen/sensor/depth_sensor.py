@@ -1,0 +1,279 @@
+"""DepthSensor: the differentiable structured-light sensor, from hit geometry to depth.
+
+    geometry (ray cast, constant) -> IR image -> [ir effects] -> block matching
+    -> [disparity effects] -> depth z = f b / d -> [depth effects] -> validity
+    (-> optional post-processing CNN)
+
+Everything in :meth:`DepthSensor.forward` is a torch function of the sensor's
+parameters. Positive parameters are stored as logarithms (baseline, focal length,
+emitted intensity, noise scales, soft-argmax temperature), so a gradient step can
+never make them negative.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ddsgen.preset import Intrinsics, SensorPreset
+from ddsgen.sensor.effects import build_effects
+from ddsgen.sensor.ir import IRNoise, render_ir
+from ddsgen.sensor.matcher import match
+from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
+
+# Fraction of disparity range added to the reference padding, so that fitting the
+# baseline or focal length a little up does not run out of reference pattern.
+_PAD_MARGIN = 1.15
+# Width of the soft validity step around the confidence threshold (confidence units).
+_SOFT_VALIDITY_WIDTH = 0.02
+
+
+@dataclass
+class SensorGeometry:
+    """The ray-cast scene as seen by the sensor (torch, constant w.r.t. the sensor parameters).
+
+    points (H, W, 3) m camera frame; normals (H, W, 3) unit, facing the camera;
+    albedo (H, W); hit (H, W) bool; shadow (H, W) bool (projector cannot see the point);
+    clean_depth (H, W) m (0 where no hit).
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    albedo: torch.Tensor
+    hit: torch.Tensor
+    shadow: torch.Tensor
+    clean_depth: torch.Tensor
+
+    @classmethod
+    def from_hits(cls, hits, device="cpu") -> "SensorGeometry":
+        """From a :class:`ddsgen.raycast.RayHits` (numpy arrays)."""
+
+        def t(a, dtype=torch.float32):
+            return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
+
+        return cls(
+            points=t(hits.points),
+            normals=t(hits.normals),
+            albedo=t(hits.albedo),
+            hit=t(hits.hit, torch.bool),
+            shadow=t(hits.shadow, torch.bool),
+            clean_depth=t(hits.depth),
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.clean_depth.shape)
+
+
+@dataclass
+class SensorOutput:
+    """One simulated frame. All (H, W).
+
+    depth: m, 0 where invalid (differentiable where valid); valid: bool;
+    valid_soft: keep-probability in [0, 1] (differentiable, for validity losses);
+    ir: IR image (counts); disparity: px (0 where invalid); confidence: [0, 1];
+    raw_depth: depth before the validity mask (m, 0 where the disparity is not positive).
+    """
+
+    depth: torch.Tensor
+    valid: torch.Tensor
+    valid_soft: torch.Tensor
+    ir: torch.Tensor
+    disparity: torch.Tensor
+    confidence: torch.Tensor
+    raw_depth: torch.Tensor
+
+
+@functools.lru_cache(maxsize=8)
+def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int) -> PatternField:
+    """The pattern field for one sensor geometry, built once per process."""
+    pattern = load_pattern(pattern_path)
+    geometry = fit_pattern(pattern.shape, width, height, pad_left=pad, margin=margin)
+    return PatternField(pattern, geometry, psf_px=psf_px)
+
+
+@functools.lru_cache(maxsize=8)
+def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int, n_sub: int):
+    field = _pattern_field(pattern_path, psf_px, width, height, pad, margin)
+    return field.reference_phases(width, height, pad, n_sub)
+
+
+def _log_param(value: float) -> nn.Parameter:
+    return nn.Parameter(torch.tensor(math.log(value), dtype=torch.float32))
+
+
+class DepthSensor(nn.Module):
+    """A structured-light depth sensor with differentiable parameters.
+
+    Args:
+        preset: the sensor preset (physics constants, matcher settings, effects).
+        intrinsics: override the preset's intrinsics (e.g. a real scan's); same image size
+            as the geometry passed to :meth:`forward`.
+        device: torch device for the computation.
+
+    Trainable parameters (all ``nn.Parameter``; callers choose which require grad):
+    ``log_emitted_intensity``, ``log_speckle_scale``, ``log_read_noise_std``,
+    ``read_noise_mean``, ``log_ambient``, ``log_beta``, ``log_baseline``,
+    ``log_focal_scale`` (f / f_preset, scales fx and fy together), and the effects'.
+    """
+
+    def __init__(self, preset: SensorPreset, intrinsics: Intrinsics | None = None, device="cpu"):
+        super().__init__()
+        self.preset = preset
+        self.intr = intrinsics or preset.intrinsics
+        self.device_ = torch.device(device)
+        self.log_emitted_intensity = _log_param(preset.emitted_intensity)
+        self.log_speckle_scale = _log_param(preset.speckle_scale)
+        self.log_read_noise_std = _log_param(max(preset.read_noise_std_counts, 1e-6))
+        self.read_noise_mean = nn.Parameter(torch.tensor(float(preset.read_noise_mean_counts)))
+        self.log_ambient = _log_param(max(preset.ambient_counts, 1e-6))
+        self.log_beta = _log_param(preset.softargmax_beta)
+        self.log_baseline = _log_param(preset.baseline_m)
+        self.log_focal_scale = nn.Parameter(torch.tensor(0.0))
+        self.effects = nn.ModuleList(build_effects(preset.effects))
+        self.postprocess: nn.Module | None = None
+        # Reference padding: the largest disparity the matcher may search, plus the window.
+        self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px
+        self.margin = preset.block_size_px + 2
+        self.to(self.device_)
+
+    # ---- physical parameter values -------------------------------------------------
+    @property
+    def emitted_intensity(self) -> torch.Tensor:
+        return self.log_emitted_intensity.exp()
+
+    @property
+    def speckle_scale(self) -> torch.Tensor:
+        return self.log_speckle_scale.exp()
+
+    @property
+    def read_noise_std(self) -> torch.Tensor:
+        return self.log_read_noise_std.exp()
+
+    @property
+    def ambient(self) -> torch.Tensor:
+        return self.log_ambient.exp()
+
+    @property
+    def beta(self) -> torch.Tensor:
+        return self.log_beta.exp()
+
+    @property
+    def baseline(self) -> torch.Tensor:
+        return self.log_baseline.exp()
+
+    @property
+    def focal_scale(self) -> torch.Tensor:
+        return self.log_focal_scale.exp()
+
+    def physical_parameters(self) -> dict[str, float]:
+        """Current values as preset keys (plain floats)."""
+        scale = float(self.focal_scale)
+        return {
+            "emitted_intensity": float(self.emitted_intensity),
+            "speckle_scale": float(self.speckle_scale),
+            "read_noise_std_counts": float(self.read_noise_std),
+            "read_noise_mean_counts": float(self.read_noise_mean),
+            "ambient_counts": float(self.ambient) if float(self.ambient) > 1e-5 else 0.0,
+            "softargmax_beta": float(self.beta),
+            "baseline_m": float(self.baseline),
+            "focal_px": self.preset.focal_px * scale,
+            "focal_y_px": self.preset.focal_y_px * scale,
+        }
+
+    def to_preset(self) -> SensorPreset:
+        """The preset with the current (fitted) parameter and effect values."""
+        return self.preset.replace(**self.physical_parameters(), effects=[e.to_entry() for e in self.effects])
+
+    # ---- cached per-sensor data ---------------------------------------------------------
+    def _pattern_key(self) -> tuple:
+        p = self.preset
+        return (str(p.resolve_path(p.pattern)), p.pattern_psf_px, self.intr.width, self.intr.height, self.pad, self.margin)
+
+    def pattern_field(self) -> PatternField:
+        return _pattern_field(*self._pattern_key()).to(self.device_)
+
+    def reference_phases(self) -> torch.Tensor:
+        """(S, H, W + pad) reference images at infinity, cached once per process and sensor."""
+        return _reference_phases(*self._pattern_key(), self.preset.subpixel_level).to(self.device_)
+
+    def draw_noise(self, seed) -> IRNoise:
+        """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator."""
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        return IRNoise.draw(self.intr.height, self.intr.width, self.preset.speckle_shape, rng, self.device_)
+
+    # ---- the pipeline ---------------------------------------------------------------------
+    def forward(self, geometry: SensorGeometry, seed=0, noise: IRNoise | None = None) -> SensorOutput:
+        """Simulate one frame.
+
+        Args:
+            geometry: ray-cast geometry of shape (H, W) = (intrinsics.height, intrinsics.width).
+            seed: seed of the frame's IR noise (ignored when ``noise`` is given).
+            noise: pre-drawn unit noise (to reuse the same draws across calls, e.g. in fitting).
+        """
+        p, intr = self.preset, self.intr
+        if geometry.shape != (intr.height, intr.width):
+            raise ValueError(f"geometry is {geometry.shape}, sensor expects {(intr.height, intr.width)}")
+        if noise is None:
+            noise = self.draw_noise(seed)
+        fx = intr.fx * self.focal_scale
+        fy = intr.fy * self.focal_scale
+        baseline = self.baseline
+        lit = (geometry.hit & ~geometry.shadow).float()
+        ir, signal = render_ir(
+            geometry.points, geometry.normals, geometry.albedo, lit, self.pattern_field(),
+            fx, fy, intr.cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
+            self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits,
+        )  # fmt: skip
+        ctx = {
+            "geometry": geometry, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,
+            "baseline": baseline, "ir_max": 2.0**p.ir_bits - 1.0, "noise": noise,
+        }  # fmt: skip
+        for effect in self.effects:
+            if effect.stage == "ir":
+                ir = effect(ir, ctx)
+
+        # Disparity search range from the current geometry (plain floats: the range is discrete).
+        fb = float((fx * baseline).detach())
+        d_min = max(fb / p.z_max_m, 0.0)
+        d_max = min(fb / p.z_min_m, float(self.pad - p.block_size_px))
+        result = match(
+            ir, self.reference_phases(), self.pad, d_min, d_max, p.block_size_px, self.beta,
+            p.subpixel_level, p.band_rows, p.min_confidence,
+        )  # fmt: skip
+        disparity = result.disparity
+        for effect in self.effects:
+            if effect.stage == "disparity":
+                disparity = effect(disparity, ctx)
+
+        positive = disparity > 1e-3
+        safe = torch.where(positive, disparity, torch.ones_like(disparity))
+        raw_depth = torch.where(positive, fx * baseline / safe, torch.zeros_like(disparity))
+        ctx["raw_depth"] = raw_depth
+        for effect in self.effects:
+            if effect.stage == "depth":
+                raw_depth = effect(raw_depth, ctx)
+
+        keep = torch.sigmoid((result.confidence - p.min_confidence) / _SOFT_VALIDITY_WIDTH) * lit
+        for effect in self.effects:
+            if effect.stage == "validity":
+                keep = keep * effect(raw_depth, ctx)
+        in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
+        valid = result.valid & geometry.hit & ~geometry.shadow & in_range & (keep > 0.5)
+        depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
+        if self.postprocess is not None:
+            depth, valid = self.postprocess(depth, valid, geometry, ctx)
+        return SensorOutput(
+            depth=depth,
+            valid=valid,
+            valid_soft=keep * in_range.float(),
+            ir=ir,
+            disparity=torch.where(valid, disparity, torch.zeros_like(disparity)),
+            confidence=result.confidence,
+            raw_depth=raw_depth,
+        )

@@ -1,0 +1,92 @@
+"""The Effect protocol: a small differentiable module with named physical parameters.
+
+An effect acts at one stage of the sensor pipeline (see
+:class:`~ddsgen.sensor.depth_sensor.DepthSensor`):
+
+* ``"ir"``        — (H, W) IR image in counts -> IR image (before matching)
+* ``"disparity"`` — (H, W) disparity in px -> disparity (after matching)
+* ``"depth"``     — (H, W) depth in m -> depth
+* ``"validity"``  — returns an (H, W) keep-probability in [0, 1] that multiplies validity
+
+Each parameter has a neutral value (the effect then leaves the sensor unchanged) and a
+physical range; it is stored unconstrained and mapped into its range by a sigmoid (or
+kept raw when unbounded), so gradient steps can never leave the physical range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class EffectParam:
+    """One physical parameter of an effect."""
+
+    neutral: float  # value that makes the effect a no-op
+    low: float  # physical range (inclusive)
+    high: float
+    unit: str
+    help: str
+    typical: float | None = None  # a realistic strength, used as a fitting start
+
+
+class Effect(nn.Module):
+    """Base class. Subclasses set the class attributes and implement :meth:`forward`."""
+
+    name: ClassVar[str]
+    stage: ClassVar[str]  # "ir" | "disparity" | "depth" | "validity"
+    description: ClassVar[str]  # one sentence a sensor engineer understands
+    signature: ClassVar[str]  # the residual pattern it produces
+    axis: ClassVar[str]  # the residual axis where its signature shows (e.g. "depth", "radius")
+    params: ClassVar[dict[str, EffectParam]]
+
+    def __init__(self, **values: float):
+        super().__init__()
+        unknown = set(values) - set(self.params)
+        if unknown:
+            raise KeyError(f"unknown parameter(s) {sorted(unknown)} for effect {self.name!r}")
+        self.raw = nn.ParameterDict()
+        for key, spec in self.params.items():
+            value = float(values.get(key, spec.neutral))
+            self.raw[key] = nn.Parameter(torch.tensor(self._to_raw(spec, value), dtype=torch.float32))
+
+    @staticmethod
+    def _bounded(spec: EffectParam) -> bool:
+        return math.isfinite(spec.low) and math.isfinite(spec.high)
+
+    @classmethod
+    def _to_raw(cls, spec: EffectParam, value: float) -> float:
+        if not cls._bounded(spec):
+            return value
+        eps = 1e-6
+        t = min(max((value - spec.low) / (spec.high - spec.low), eps), 1 - eps)
+        return math.log(t / (1 - t))
+
+    def value(self, key: str) -> torch.Tensor:
+        """The physical value of parameter ``key`` (0-d tensor, differentiable)."""
+        spec = self.params[key]
+        raw = self.raw[key]
+        if not self._bounded(spec):
+            return raw
+        return spec.low + (spec.high - spec.low) * torch.sigmoid(raw)
+
+    def values(self) -> dict[str, float]:
+        """Current physical parameter values (plain floats), e.g. for a written preset."""
+        return {key: float(self.value(key).detach()) for key in self.params}
+
+    def set_values(self, **values: float) -> None:
+        with torch.no_grad():
+            for key, value in values.items():
+                self.raw[key].copy_(torch.tensor(self._to_raw(self.params[key], float(value))))
+
+    def to_entry(self) -> dict:
+        """The preset ``effects:`` entry for this effect."""
+        return {"name": self.name, **{k: round(v, 9) for k, v in self.values().items()}}
+
+    def forward(self, x: torch.Tensor, ctx: dict) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError

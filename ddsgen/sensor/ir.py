@@ -1,0 +1,118 @@
+"""IR image formation: what the IR camera captures when the projector lights the scene.
+
+    signal = albedo * eta_c * Pi(proj(P)) * max(0, n.l) / ||P - t_p||_mm^2 * (1 - S)
+    I      = quantise(clip(signal * speckle + ambient + read_noise))
+
+with the projector a pinhole of the camera's intrinsics at t_p = (+b, 0, 0) in the
+camera frame (DESIGN.md §2), so a hit point P = (X, Y, Z) lands on projector pixel
+u_p = fx (X - b) / Z + cx, v_p = fy Y / Z + cy. Sampling the pattern field there is
+bilinear, so the image is differentiable in b and f. Noise constants follow Landau
+et al. 2016 (Kinect V1): speckle ~ Gamma(shape, scale) multiplicative, read noise
+~ N(mean, std) additive, in IR counts.
+
+Noise draws come from a numpy Generator seeded per frame, as unit-scale samples
+(Gamma(shape, 1), N(0, 1)) that are then scaled by the (differentiable) noise
+parameters: bit-identical on any worker, and reparameterised for gradients.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ddsgen.sensor.pattern import PatternField
+
+
+@dataclass
+class IRNoise:
+    """Unit-scale noise draws for one frame (constants w.r.t. the sensor parameters).
+
+    speckle_unit: (H, W) ~ Gamma(shape, 1); read_unit: (H, W) ~ N(0, 1).
+    """
+
+    speckle_unit: torch.Tensor
+    read_unit: torch.Tensor
+
+    @classmethod
+    def draw(cls, height: int, width: int, speckle_shape: float, rng: np.random.Generator, device="cpu") -> "IRNoise":
+        speckle = rng.gamma(speckle_shape, 1.0, size=(height, width)).astype(np.float32)
+        read = rng.standard_normal(size=(height, width)).astype(np.float32)
+        return cls(torch.from_numpy(speckle).to(device), torch.from_numpy(read).to(device))
+
+
+def straight_through_round(x: torch.Tensor) -> torch.Tensor:
+    """round(x) forward, identity gradient (the sensor's ADC)."""
+    return x + (torch.round(x) - x).detach()
+
+
+def projector_coordinates(points: torch.Tensor, fx, fy, cx, cy, baseline) -> tuple[torch.Tensor, torch.Tensor]:
+    """Projector pixel (u_p, v_p) of camera-frame points; projector at (+b, 0, 0), same orientation.
+
+    Args:
+        points: (H, W, 3) metres, camera frame; z > 0 where valid (z is clamped to avoid 1/0).
+        fx, fy, cx, cy: intrinsics (px), floats or 0-d tensors.
+        baseline: b (m), float or 0-d tensor.
+
+    Returns:
+        u_p, v_p: (H, W) projector pixel coordinates.
+    """
+    x, y, z = points.unbind(-1)
+    z = z.clamp_min(1e-6)
+    return fx * (x - baseline) / z + cx, fy * y / z + cy
+
+
+def render_ir(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    albedo: torch.Tensor,
+    lit: torch.Tensor,
+    field: PatternField,
+    fx,
+    fy,
+    cx,
+    cy,
+    baseline,
+    emitted_intensity,
+    ambient,
+    speckle_scale,
+    read_noise_mean,
+    read_noise_std,
+    noise: IRNoise | None,
+    ir_bits: int = 10,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Simulate the IR camera image.
+
+    Args:
+        points: (H, W, 3) hit points (m, camera frame).
+        normals: (H, W, 3) unit normals facing the camera.
+        albedo: (H, W) IR reflectance in [0, 1].
+        lit: (H, W) float {0, 1}: 1 where there is a hit that the projector sees (1 - shadow).
+        field: the projector's pattern field.
+        fx, fy, cx, cy, baseline: camera/projector geometry (px, m); tensors for gradients.
+        emitted_intensity: eta_c (counts * mm^2 per 8-bit pattern unit).
+        ambient: ambient IR level (counts), added to every pixel.
+        speckle_scale, read_noise_mean, read_noise_std: noise parameters (counts).
+        noise: unit noise draws, or None for the noise-free image.
+        ir_bits: ADC bit depth; the image is clipped to [0, 2^bits - 1] and rounded
+            (straight-through) when ``noise`` is given.
+
+    Returns:
+        ir: (H, W) IR image in counts.
+        clean_signal: (H, W) the noise-free projector signal (counts, before ambient), for
+            effects and diagnostics.
+    """
+    u_p, v_p = projector_coordinates(points, fx, fy, cx, cy, baseline)
+    pattern = field.sample(u_p, v_p)
+    to_projector = torch.stack([baseline - points[..., 0], -points[..., 1], -points[..., 2]], dim=-1)
+    distance_m = torch.linalg.vector_norm(to_projector, dim=-1).clamp_min(1e-6)
+    cos_incidence = ((normals * to_projector).sum(-1) / distance_m).clamp_min(0.0)
+    distance_mm = distance_m * 1000.0
+    signal = albedo * emitted_intensity * pattern * cos_incidence / distance_mm**2 * lit
+    if noise is None:
+        return signal + ambient, signal
+    # Speckle is a property of the coherent laser light only; ambient light is incoherent.
+    ir = signal * (noise.speckle_unit * speckle_scale) + ambient + read_noise_mean + read_noise_std * noise.read_unit
+    ir = straight_through_round(ir.clamp(0.0, 2.0**ir_bits - 1.0))
+    return ir, signal
