@@ -1,0 +1,281 @@
+"""Render a dataset: frames over a process pool (or a Dask cluster), resumable, reproducible.
+
+Frame i depends only on (seed, i): its scene, camera and IR noise are drawn from
+``numpy.random.default_rng([seed, i, stream])``, and every worker computes with one
+torch thread, so the same seed gives byte-identical files whatever the number of
+workers. Each frame's files are written atomically, and its manifest record is
+appended only after they are complete; when the run finishes the manifest is
+rewritten in frame order (atomically), so finished datasets compare byte for byte.
+Re-running into the same folder skips frames that already have a record.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import multiprocessing
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ddsgen.errors import InputError
+from ddsgen.io.atomic import atomic_write_text
+from ddsgen.io.manifest import append_record, read_manifest, repair_manifest, sorted_records
+from ddsgen.preset import SensorPreset, load_preset, save_preset
+from ddsgen.scene.scenelist import SceneList, load_scene_list
+
+MANIFEST = "manifest.jsonl"
+RUN_FILE = "run.json"
+DEPTH_SCALE = 0.001  # metres per PNG unit (millimetres)
+
+# Random streams of a frame: rng([seed, frame, STREAM]).
+NOISE_STREAM = 1
+
+
+@dataclass(frozen=True)
+class RenderJob:
+    """Everything a worker needs to render frames (picklable)."""
+
+    preset_path: str
+    scenes_path: str | None
+    out: str
+    seed: int
+
+
+@dataclass
+class RenderSummary:
+    frames_total: int
+    frames_rendered: int
+    frames_skipped: int
+    seconds: float
+    out: str
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames_rendered / self.seconds if self.seconds > 0 else float("nan")
+
+
+def frame_paths(frame: int) -> dict[str, str]:
+    """Relative paths of a frame's files (DESIGN.md §3)."""
+    name = f"{frame:06d}"
+    return {
+        "depth": f"depth/{name}.png",
+        "depth_exr": f"depth/{name}.exr",
+        "clean": f"clean/{name}.exr",
+        "ir": f"ir/{name}.png",
+        "mask": f"mask/{name}.png",
+    }
+
+
+# ---- per-process state: built once per worker, not per frame ---------------------------
+_WORKER: dict = {}
+
+
+def _worker_state(job: RenderJob):
+    if _WORKER.get("job") != job:
+        import torch
+
+        from ddsgen.cache import configure_torch_compile_cache
+        from ddsgen.sensor.depth_sensor import DepthSensor
+
+        configure_torch_compile_cache()
+        # One intra-op thread per worker: parallelism comes from workers, and results do not
+        # depend on how a reduction was split over threads.
+        torch.set_num_threads(1)
+        preset = load_preset(job.preset_path)
+        _WORKER.clear()
+        _WORKER.update(
+            job=job,
+            preset=preset,
+            scenes=load_scene_list(job.scenes_path),
+            sensor=DepthSensor(preset).eval(),
+        )
+    return _WORKER
+
+
+def render_frame(job: RenderJob, frame: int) -> dict:
+    """Render frame ``frame`` and write its files; return its manifest record."""
+    import torch
+
+    from ddsgen.io.exr import write_exr
+    from ddsgen.io.png import write_depth_png, write_png8, write_png16
+    from ddsgen.raycast import cast, object_labels
+    from ddsgen.scene.sampling import sample_frame
+    from ddsgen.sensor.depth_sensor import SensorGeometry
+
+    state = _worker_state(job)
+    preset: SensorPreset = state["preset"]
+    intrinsics = preset.intrinsics
+    scene = sample_frame(state["scenes"], frame, job.seed)
+    hits = cast(scene, intrinsics, preset.baseline_m, preset.shadow_bias_m)
+    with torch.no_grad():
+        output = state["sensor"](SensorGeometry.from_hits(hits), seed=[job.seed, frame, NOISE_STREAM])
+    depth = output.depth.numpy().astype(np.float32)
+    ir = output.ir.numpy()
+
+    out = Path(job.out)
+    paths = frame_paths(frame)
+    write_exr(out / paths["depth_exr"], depth)
+    write_depth_png(out / paths["depth"], depth, DEPTH_SCALE)
+    write_exr(out / paths["clean"], hits.depth.astype(np.float32))
+    write_png8(out / paths["ir"], ir, max_value=2.0**preset.ir_bits - 1.0)
+    write_png16(out / paths["mask"], hits.instance.astype(np.uint16))
+    return {
+        "frame": frame,
+        **paths,
+        "intrinsics": intrinsics.as_dict(),
+        "depth_scale": DEPTH_SCALE,
+        "world_T_cam": np.asarray(scene.world_T_cam, dtype=float).tolist(),
+        "objects": object_labels(scene, hits, intrinsics),
+        "seed": job.seed,
+        "valid_fraction": round(float((depth > 0).mean()), 6),
+    }
+
+
+def _render_batch(job: RenderJob, frames: list[int]) -> list[dict]:
+    return [render_frame(job, f) for f in frames]
+
+
+# ---- the run ----------------------------------------------------------------------------
+def _file_digest(path: str | None) -> str:
+    if path is None:
+        return "built-in"
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def _run_identity(preset: SensorPreset, scenes_path: str | None, seed: int) -> dict:
+    """What must match for a resume to continue an earlier run into the same folder."""
+    preset_text = json.dumps(preset.to_dict(), sort_keys=True)
+    return {
+        "seed": seed,
+        "preset_sha": hashlib.sha256(preset_text.encode()).hexdigest()[:16],
+        "scenes": str(Path(scenes_path).resolve()) if scenes_path else "built-in",
+        "scenes_sha": _file_digest(scenes_path),
+    }
+
+
+def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, seed: int) -> set[int]:
+    """Create (or re-open) the output folder; return the frames already finished."""
+    identity = _run_identity(preset, scenes_path, seed)
+    run_file = out / RUN_FILE
+    if run_file.exists():
+        try:
+            previous = json.loads(run_file.read_text())
+        except (OSError, json.JSONDecodeError):
+            raise InputError(f"{run_file}: unreadable run description; use a new --out folder") from None
+        if previous != identity:
+            changed = ", ".join(k for k in identity if previous.get(k) != identity[k])
+            raise InputError(
+                f"{out}: holds a run with different settings ({changed} changed); use a new --out folder to render these"
+            )
+    elif out.exists() and any(out.iterdir()):
+        raise InputError(f"{out}: folder exists and is not a ddsgen render; use a new --out folder")
+    out.mkdir(parents=True, exist_ok=True)
+    save_preset(preset, out / "sensor.yaml", comment=f"resolved from {preset.source}")
+    atomic_write_text(run_file, json.dumps(identity, indent=1, sort_keys=True) + "\n")
+    manifest = out / MANIFEST
+    if not manifest.exists():
+        return set()
+    repair_manifest(manifest)
+    return {int(r["frame"]) for r in read_manifest(manifest)}
+
+
+def finalise_manifest(out: Path) -> None:
+    """Rewrite the manifest in frame order (atomic), one record per frame."""
+    manifest = out / MANIFEST
+    records = {int(r["frame"]): r for r in read_manifest(manifest)}
+    lines = "".join(json.dumps(r, sort_keys=True, separators=(",", ":")) + "\n" for r in sorted_records(records.values()))
+    atomic_write_text(manifest, lines)
+
+
+def render_dataset(
+    preset_path: str,
+    scenes_path: str | None,
+    n: int,
+    out: str,
+    workers: int = 1,
+    seed: int = 0,
+    scheduler: str | None = None,
+    progress: bool = True,
+    batch_size: int = 1,
+) -> RenderSummary:
+    """Render frames 0..n-1 into ``out`` (skipping finished ones).
+
+    Args:
+        preset_path: sensor preset file or shipped name.
+        scenes_path: scene list YAML, or None for the built-in default.
+        n: number of frames in the dataset.
+        out: output folder.
+        workers: local worker processes (1 = in this process).
+        seed: dataset seed.
+        scheduler: address of a Dask scheduler (``tcp://host:port``) to run on instead.
+        progress: show a tqdm progress bar.
+        batch_size: frames per task.
+
+    Raises:
+        InputError: bad preset, scene list, arguments or output folder -- before anything is written.
+    """
+    from tqdm import tqdm
+
+    if n < 0:
+        raise InputError(f"-n: must be >= 0, got {n}")
+    if workers < 1:
+        raise InputError(f"--workers: must be >= 1, got {workers}")
+    preset = load_preset(preset_path)
+    scene_list: SceneList = load_scene_list(scenes_path)  # validates and loads every mesh now
+    del scene_list
+    out_dir = Path(out)
+    done = prepare_output(out_dir, preset, scenes_path, seed)
+    todo = [f for f in range(n) if f not in done]
+    job = RenderJob(str(Path(preset.source).resolve()), str(Path(scenes_path).resolve()) if scenes_path else None,
+                    str(out_dir.resolve()), seed)  # fmt: skip
+    manifest = out_dir / MANIFEST
+    batches = [todo[i : i + batch_size] for i in range(0, len(todo), batch_size)]
+    start = time.perf_counter()
+    bar = tqdm(total=n, initial=n - len(todo), unit="frame", desc="render", disable=not progress, dynamic_ncols=True)
+    try:
+        if scheduler:
+            from ddsgen.distributed import run_on_dask
+
+            results = run_on_dask(scheduler, _render_batch, job, batches)
+        elif workers == 1:
+            results = (_render_batch(job, b) for b in batches)
+        else:
+            results = _run_in_pool(job, batches, workers)
+        for records in results:
+            for record in records:
+                append_record(manifest, record)
+            bar.update(len(records))
+    finally:
+        bar.close()
+    finalise_manifest(out_dir)
+    return RenderSummary(n, len(todo), n - len(todo), time.perf_counter() - start, str(out_dir))
+
+
+def _run_in_pool(job: RenderJob, batches: list[list[int]], workers: int):
+    """Yield batch results as they complete, keeping at most 2 batches per worker in flight."""
+    context = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        pending: set[cf.Future] = set()
+        queue = iter(batches)
+        try:
+            for batch in queue:
+                pending.add(pool.submit(_render_batch, job, batch))
+                if len(pending) >= 2 * workers:
+                    finished, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                    for future in finished:
+                        yield future.result()
+            for future in cf.as_completed(pending):
+                yield future.result()
+        except BaseException:
+            for future in pending:
+                future.cancel()
+            raise
+
+
+def default_workers() -> int:
+    return max(1, min(os.cpu_count() or 1, 8))
