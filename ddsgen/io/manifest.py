@@ -311,7 +311,9 @@ def read_manifest(path: str | Path, validate: bool = True, strict: bool = True) 
         frame = record.get("frame")
         if _is_int(frame):
             if frame in first_line:
-                raise InputError(f"{path}: line {number}: frame: duplicate frame {frame} (first on line {first_line[frame]})")
+                raise InputError(
+                    f"{path}: line {number}: frame: duplicate frame {frame} (first on line {first_line[frame]})"
+                )
             first_line[frame] = number
         records.append(record)
     return records
