@@ -385,6 +385,7 @@ BAD_RECORDS = [
     ({"objects": [obj(bbox=[1, -2, 3, 4])]}, r"objects\[0\].bbox"),
     ({"objects": [obj(bbox=[1, 2.5, 3, 4])]}, r"objects\[0\].bbox"),
     ({"objects": [obj(visible_fraction=1.5)]}, r"objects\[0\].visible_fraction"),
+    ({"objects": [obj(mesh_scale=0)]}, r"objects\[0\].mesh_scale: must be a finite number > 0"),
     ({"seed": "7"}, "seed: must be an int"),
 ]
 

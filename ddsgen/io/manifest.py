@@ -40,6 +40,8 @@ One JSON object per line; keys (units: metres, pixels; poses are 4x4 row-major n
                       cam_T_obj         4x4 rigid transform, object -> camera coordinates (m)
                       bbox              [x, y, w, h] ints >= 0 (px, of the visible part)
                       visible_fraction  number in [0, 1]
+                      mesh_scale        optional, finite number > 0: metres per mesh file unit (default 1;
+                                        0.001 for millimetre models such as BOP's)
                     }
   seed              int, the run's seed (frame i's randomness comes from (seed, i))
 
@@ -152,6 +154,8 @@ def _validate_object(prefix, key, obj, strict):
         bbox = obj["bbox"]
         if not isinstance(bbox, list | tuple) or len(bbox) != 4 or not all(_is_int(v) and v >= 0 for v in bbox):
             _fail(prefix, f"{key}.bbox", f"must be [x, y, w, h] of ints >= 0, got {bbox!r}")
+    if "mesh_scale" in obj:
+        _positive_number(prefix, f"{key}.mesh_scale", obj["mesh_scale"])
     if "visible_fraction" in obj:
         frac = obj["visible_fraction"]
         if not _is_number(frac) or not 0.0 <= float(frac) <= 1.0:
