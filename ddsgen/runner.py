@@ -24,7 +24,7 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_write_text
-from ddsgen.io.manifest import append_record, read_manifest, repair_manifest, sorted_records
+from ddsgen.io.manifest import append_record, dumps_record, read_manifest, repair_manifest, sorted_records
 from ddsgen.preset import SensorPreset, load_preset, save_preset
 from ddsgen.scene.scenelist import SceneList, load_scene_list
 
@@ -187,8 +187,7 @@ def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, see
 def finalise_manifest(out: Path) -> None:
     """Rewrite the manifest in frame order (atomic), one record per frame."""
     manifest = out / MANIFEST
-    records = {int(r["frame"]): r for r in read_manifest(manifest)}
-    lines = "".join(json.dumps(r, sort_keys=True, separators=(",", ":")) + "\n" for r in sorted_records(records.values()))
+    lines = "".join(dumps_record(r) + "\n" for r in sorted_records(read_manifest(manifest)))
     atomic_write_text(manifest, lines)
 
 
