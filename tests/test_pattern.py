@@ -23,6 +23,10 @@ def test_generated_pattern_is_kinect_like_and_unambiguous_within_the_disparity_r
     assert stats["second_best_zncc_max"] <= 0.75  # every window has a clear best match
     # Tiles repeat (like the real device) only beyond the disparity range:
     assert np.array_equal(image[:50, 10:120], image[:50, 140:250])
+    # Like the real pattern, ordinary dots never touch, not even diagonally.
+    dots = (image == image[image > 0].min()).astype(np.uint8)
+    neighbours = cv2.filter2D(dots, -1, np.ones((3, 3), np.float32), borderType=cv2.BORDER_CONSTANT)
+    assert (neighbours[dots > 0] == 1).mean() > 0.99  # (tile seams may break the rule)
     # Centre markers are brighter than ordinary dots.
     assert image.max() == 255 and np.median(image[image > 0]) < 255
 

@@ -74,6 +74,27 @@ def row_ambiguity(pattern: np.ndarray, block: int, max_shift: int) -> np.ndarray
     return worst
 
 
+def _place_dots(tile: np.ndarray, region: np.ndarray, density: float, rng: np.random.Generator) -> None:
+    """Add 1-px dots inside ``region`` until it holds ``density`` lit pixels, in place.
+
+    Like the real Kinect pattern, dots never touch (not even diagonally): candidates
+    are visited in random order and kept only if their 3x3 neighbourhood is dark
+    (random sequential adsorption), which spreads the dots evenly (blue noise).
+    """
+    height, width = tile.shape
+    target = int(round(density * region.sum())) - int(tile[region].astype(bool).sum())
+    padded = np.zeros((height + 2, width + 2), bool)
+    padded[1:-1, 1:-1] = tile > 0
+    for flat in rng.permutation(np.flatnonzero(region)):
+        if target <= 0:
+            break
+        y, x = divmod(int(flat), width)
+        if not padded[y : y + 3, x : x + 3].any():
+            padded[y + 1, x + 1] = True
+            tile[y, x] = 1
+            target -= 1
+
+
 def generate_pattern(
     width: int,
     height: int,
@@ -100,13 +121,16 @@ def generate_pattern(
 
     Returns:
         (height, width) uint8: 0 background, DOT_VALUE dots, MARKER_VALUE markers.
+        Dots are 1 px and never touch (as in the real pattern); tile seams are ignored
+        by that rule, which only matters for tile-edge pixels.
     """
     cols, rows = tiles
     tile_w, tile_h = math.ceil(width / cols), math.ceil(height / rows)
     if tile_w <= max_shift + block:
         raise ValueError(f"tile width {tile_w} px must exceed max_shift + block = {max_shift + block} px")
     rng = np.random.default_rng(seed)
-    tile = (rng.random((tile_h, tile_w)) < density).astype(np.uint8)
+    tile = np.zeros((tile_h, tile_w), np.uint8)
+    _place_dots(tile, np.ones_like(tile, bool), density, rng)
     # Repair windows that are ambiguous within the tile (wrapped so tile seams are repaired too).
     reach = max_shift + block
     for _ in range(repair_rounds):
@@ -117,7 +141,8 @@ def generate_pattern(
             break
         # Re-draw the dots under the centres of bad windows (a small neighbourhood).
         grow = cv2.dilate(bad.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-        tile[grow] = (rng.random(int(grow.sum())) < density).astype(np.uint8)
+        tile[grow] = 0
+        _place_dots(tile, grow, density, rng)
     tile = tile * DOT_VALUE
     full = np.tile(tile, (rows, cols))[:height, :width].copy()
     for r in range(rows):
