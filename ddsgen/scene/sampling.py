@@ -1,0 +1,307 @@
+"""Sample one frame's scene: which objects, where they rest, where the camera is.
+
+World frame: z up, the ground plane is z = 0, the clutter is dropped around the
+origin, an optional back wall stands at y = +distance facing -y. The camera pose
+``world_T_cam`` has OpenCV axes (x right, y down, z forward) and looks at the clutter.
+
+Randomness of frame ``i`` comes only from ``(seed, i)`` (and the scene list):
+
+* the scene (template) a frame uses is ``scene_list.scene_for_frame(i)``, no randomness;
+* the object layout is shared by the frames of one block (``frames`` consecutive frames,
+  like one BOP scene seen from several views) and drawn from
+  ``default_rng([seed, block_start, 1])``;
+* the camera pose is drawn from ``default_rng([seed, i])``.
+
+So any worker can build frame ``i`` alone, in any order, and get the same scene.
+
+Objects are dropped without interpenetration: each rests on the ground in a stable
+pose of its convex hull (or upright, as modelled) with its lowest point at z = 0 and a
+random yaw; its footprint (the 2-D convex hull of its vertices seen from above) must
+keep ``min_gap`` from every footprint already placed (separating-axis test) and from
+the wall, else the position is redrawn (``max_tries`` times, then the object is left
+out). Objects that extend only upwards from disjoint convex footprints cannot touch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import numpy as np
+
+from ddsgen.scene import shapes
+from ddsgen.scene.scenelist import ObjectSpec, SceneList, SceneSpec
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+@dataclasses.dataclass
+class PlacedObject:
+    """A mesh placed in the world. ``id`` >= 1 for objects (instance mask value), 0 for background."""
+
+    id: int
+    class_name: str
+    mesh_ref: str  # file path, "shape:NAME(params)", or "plane:WxH" for background
+    mesh: object  # trimesh.Trimesh, object frame, metres
+    world_T_obj: np.ndarray  # (4, 4) float64
+    albedo: float
+    mesh_scale: float = 1.0  # file units -> metres (what a reader of mesh_ref must apply)
+
+
+@dataclasses.dataclass
+class FrameScene:
+    """Everything the ray caster needs for one frame."""
+
+    objects: list[PlacedObject]
+    background: list[PlacedObject]
+    world_T_cam: np.ndarray  # (4, 4) float64, OpenCV camera axes
+    frame_index: int
+    seed: int
+    scene_name: str = ""
+    scene_index: int = 0
+
+    @property
+    def cam_T_world(self) -> np.ndarray:
+        return invert_pose(self.world_T_cam)
+
+    def cam_T_obj(self, placed: PlacedObject) -> np.ndarray:
+        return self.cam_T_world @ placed.world_T_obj
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    return T
+
+
+def _translation(xyz) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = xyz
+    return T
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Resting poses and footprints (cached per process, per mesh)
+
+
+@dataclasses.dataclass(frozen=True)
+class _RestPose:
+    rotation: np.ndarray  # (4, 4) rotation only
+    offset: np.ndarray  # (3,) subtract after rotation: xy centre of the footprint box, lowest z
+    footprint: np.ndarray  # (K, 2) convex polygon, counter-clockwise, centred (after offset)
+
+
+def _convex_polygon(points: np.ndarray) -> np.ndarray:
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(points)
+    return points[hull.vertices]  # counter-clockwise in 2-D
+
+
+@functools.lru_cache(maxsize=256)
+def _rest_poses(mesh_ref: str, scale: float, rest: str) -> tuple[tuple[_RestPose, ...], np.ndarray]:
+    """Resting poses of a mesh and their probabilities."""
+    import trimesh
+
+    from ddsgen.scene.scenelist import load_mesh
+
+    mesh = load_mesh(mesh_ref, scale)
+    hull = mesh.convex_hull
+    if rest == "upright":
+        rotations, probs = np.eye(4)[None], np.ones(1)
+    else:
+        center = mesh.center_mass if (mesh.is_watertight and mesh.volume > 0) else hull.center_mass
+        rotations, probs = trimesh.poses.compute_stable_poses(mesh, center_mass=center)
+        keep = probs > 1e-3  # tiny-probability facets (e.g. the rim of a tessellated cylinder) are not useful
+        if np.any(keep):
+            rotations, probs = rotations[keep], probs[keep]
+        probs = probs / probs.sum()
+    poses = []
+    for T in rotations:
+        R = np.eye(4)
+        R[:3, :3] = T[:3, :3]
+        vertices = hull.vertices @ R[:3, :3].T
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        offset = np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
+        footprint = _convex_polygon(vertices[:, :2] - offset[:2])
+        poses.append(_RestPose(rotation=R, offset=offset, footprint=footprint))
+    return tuple(poses), np.asarray(probs, dtype=np.float64)
+
+
+def _polygon_axes(polygon: np.ndarray) -> np.ndarray:
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals[length[:, 0] > 1e-12] / length[length[:, 0] > 1e-12]
+
+
+def polygons_separated(a: np.ndarray, b: np.ndarray, gap: float = 0.0) -> bool:
+    """True if convex polygons ``a`` (K, 2) and ``b`` (M, 2) are at least ``gap`` apart along some edge normal.
+
+    (Separating-axis theorem; a separation of ``gap`` along an axis implies a distance >= ``gap``.)
+    """
+    axes = np.concatenate([_polygon_axes(a), _polygon_axes(b)])
+    pa, pb = a @ axes.T, b @ axes.T  # (K, A), (M, A)
+    separation = np.maximum(pb.min(axis=0) - pa.max(axis=0), pa.min(axis=0) - pb.max(axis=0))
+    return bool(np.any(separation >= gap))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Layout (shared by the frames of one block) and camera (per frame)
+
+
+def _uniform(rng: np.random.Generator, lo_hi) -> float:
+    lo, hi = lo_hi
+    return float(lo) if lo == hi else float(rng.uniform(lo, hi))
+
+
+def _pick(rng: np.random.Generator, pool: tuple[ObjectSpec, ...], unique: bool, used: set[int]) -> int | None:
+    weights = np.array([0.0 if (unique and i in used) else o.weight for i, o in enumerate(pool)])
+    if weights.sum() <= 0:
+        return None
+    return int(rng.choice(len(pool), p=weights / weights.sum()))
+
+
+@functools.lru_cache(maxsize=8)
+def _layout(scene: SceneSpec, seed: int, block_start: int):
+    """(objects, background, target-box) of one block; cached per process (pure function of its arguments)."""
+    rng = np.random.default_rng([seed, block_start, 1])
+    clutter = scene.clutter
+    count = int(rng.integers(clutter.count[0], clutter.count[1] + 1))
+    half = np.asarray(clutter.area) / 2.0
+    wall_y = scene.wall.distance if scene.wall is not None else math.inf
+    placed: list[tuple[PlacedObject, np.ndarray]] = []
+    used: set[int] = set()
+    for _ in range(count):
+        index = _pick(rng, scene.objects, clutter.unique, used)
+        if index is None:
+            break
+        spec = scene.objects[index]
+        poses, probs = _rest_poses(spec.mesh_ref, spec.scale, spec.rest)
+        pose = poses[int(rng.choice(len(poses), p=probs))] if len(poses) > 1 else poses[0]
+        yaw = float(rng.uniform(0.0, 2.0 * math.pi))
+        c, s = math.cos(yaw), math.sin(yaw)
+        footprint = pose.footprint @ np.array([[c, s], [-s, c]])  # rotate rows by yaw
+        albedo = _uniform(rng, spec.albedo)
+        position = None
+        for _try in range(clutter.max_tries):
+            xy = rng.uniform(-half, half)
+            world_polygon = footprint + xy
+            if world_polygon[:, 1].max() > wall_y - clutter.min_gap:
+                continue
+            if all(polygons_separated(world_polygon, other, clutter.min_gap) for _, other in placed):
+                position = xy
+                break
+        if position is None:
+            continue  # no room: leave this one out
+        used.add(index)
+        world_T_obj = (
+            _translation([position[0], position[1], 0.0]) @ _rot_z(yaw) @ _translation(-pose.offset) @ pose.rotation
+        )
+        obj = PlacedObject(
+            id=len(placed) + 1,
+            class_name=spec.class_name,
+            mesh_ref=spec.mesh_ref,
+            mesh=spec.mesh(),
+            world_T_obj=world_T_obj,
+            albedo=albedo,
+            mesh_scale=spec.scale,
+        )
+        placed.append((obj, world_polygon))
+
+    background = []
+    if scene.ground is not None:
+        sx, sy = scene.ground.size
+        background.append(
+            PlacedObject(0, "ground", f"plane:{sx:g}x{sy:g}", shapes.plane_mesh(sx, sy), np.eye(4),
+                         _uniform(rng, scene.ground.albedo))
+        )
+    if scene.wall is not None:
+        wall = scene.wall
+        # plane in x-y (normal +z) -> rotate +90 deg about x: (x, y, 0) -> (x, 0, y), normal -> -y
+        T = np.eye(4)
+        T[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+        T[:3, 3] = [0.0, wall.distance, wall.height / 2.0]
+        background.append(
+            PlacedObject(0, "wall", f"plane:{wall.width:g}x{wall.height:g}", shapes.plane_mesh(wall.width, wall.height),
+                         T, _uniform(rng, wall.albedo))
+        )
+
+    objects = [obj for obj, _ in placed]
+    if objects:
+        corners = np.concatenate([_world_bounds(o) for o in objects])
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        target = (lo + hi) / 2.0
+    else:
+        target = np.zeros(3)
+    return tuple(objects), tuple(background), target
+
+
+def _world_bounds(obj: PlacedObject) -> np.ndarray:
+    lo, hi = obj.mesh.bounds
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return corners @ obj.world_T_obj[:3, :3].T + obj.world_T_obj[:3, 3]
+
+
+def look_at(eye, target, up=UP, roll: float = 0.0) -> np.ndarray:
+    """``world_T_cam`` with OpenCV axes: z towards ``target``, x right, y down (image), rolled by ``roll`` rad."""
+    eye, target = np.asarray(eye, dtype=float), np.asarray(target, dtype=float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:  # looking straight along up: pick any right vector
+        x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    if roll:
+        c, s = math.cos(roll), math.sin(roll)
+        x, y = c * x + s * y, -s * x + c * y
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
+
+
+def sample_camera(scene: SceneSpec, target: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A camera pose around ``target`` following the scene's camera rule."""
+    cam = scene.camera
+    look = np.asarray(target, dtype=float) + rng.uniform(-cam.look_at_jitter, cam.look_at_jitter, size=3)
+    distance = _uniform(rng, cam.distance)
+    elevation = math.radians(_uniform(rng, cam.elevation_deg))
+    azimuth = math.radians(_uniform(rng, cam.azimuth_deg))
+    roll = math.radians(_uniform(rng, cam.roll_deg))
+    direction = np.array(
+        [math.cos(elevation) * math.sin(azimuth), -math.cos(elevation) * math.cos(azimuth), math.sin(elevation)]
+    )
+    return look_at(look + distance * direction, look, roll=roll)
+
+
+def sample_frame(scene_list: SceneList, frame_index: int, seed: int) -> FrameScene:
+    """The scene of frame ``frame_index``: a pure function of ``(scene_list, frame_index, seed)``."""
+    frame_index, seed = int(frame_index), int(seed)
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    scene_index, block_start = scene_list.scene_for_frame(frame_index)
+    scene = scene_list.scenes[scene_index]
+    objects, background, target = _layout(scene, seed, block_start)
+    world_T_cam = sample_camera(scene, target, np.random.default_rng([seed, frame_index]))
+    copy = lambda p: dataclasses.replace(p, world_T_obj=p.world_T_obj.copy())  # noqa: E731
+    return FrameScene(
+        objects=[copy(o) for o in objects],
+        background=[copy(b) for b in background],
+        world_T_cam=world_T_cam,
+        frame_index=frame_index,
+        seed=seed,
+        scene_name=scene.name,
+        scene_index=scene_index,
+    )

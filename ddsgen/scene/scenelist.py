@@ -1,0 +1,559 @@
+"""Scene lists: YAML files that say what to put in front of the sensor.
+
+A scene list holds one or more *scenes*. A scene is an object pool (meshes from
+files or built-in procedural shapes), a ground plane, an optional back wall, a
+clutter rule (how many objects are dropped on the ground, where) and a camera rule
+(distance, elevation, azimuth, look-at jitter). Frames cycle through the scenes in
+blocks: scene 0 for its ``frames`` frames, then scene 1, ..., then scene 0 again. The
+frames of one block share one object layout and see it from different camera poses
+(like a BOP scene); see :func:`ddsgen.scene.sampling.sample_frame`.
+
+Schema (sizes in metres, angles in degrees; ``[lo, hi]`` = uniform range, a single
+number means a fixed value)::
+
+    description: free text                 # optional
+    scenes:
+      - name: tabletop                     # optional, default scene<i>
+        frames: 4                          # frames per layout (block length), default 1
+        objects:                           # the pool, at least one
+          - shape: box                     # built-in: box cylinder sphere capsule cone torus mug l_bracket
+            size: [0.12, 0.08, 0.06]       # the shape's sizes (m), defaults per shape
+            class: box                     # default: shape name / file stem
+            albedo: [0.3, 0.8]             # IR reflectance 0..1, fixed or range (per placed object)
+            weight: 1.0                    # relative probability of being picked, default 1
+            rest: stable                   # stable (random stable pose) | upright (as modelled), default stable
+          - mesh: models/obj_000001.ply    # OBJ/PLY/STL/GLB, relative to this file
+            scale: 0.001                   # file units -> metres (0.001 for millimetre models)
+            class: ape
+        clutter:
+          count: [3, 6]                    # objects per layout (integers), default [3, 6]
+          area: [0.5, 0.5]                 # x, y extent of the drop area centred on the origin (m)
+          min_gap: 0.005                   # minimum footprint gap (m), default 0.005
+          max_tries: 100                   # placement attempts per object before it is left out
+          unique: false                    # true: each pool entry at most once per layout
+        ground: {size: [5, 5], albedo: [0.4, 0.7]}   # or `ground: null` for none
+        wall: {distance: 0.6, width: 4, height: 2, albedo: 0.6}   # optional back wall at y = +distance
+        camera:
+          distance: [0.8, 1.8]             # camera to look-at point (m)
+          elevation_deg: [25, 70]          # above the ground plane, 0..89
+          azimuth_deg: [-180, 180]         # 0 = camera on the -y side looking towards +y (the wall)
+          roll_deg: [0, 0]                 # rotation about the optical axis
+          look_at_jitter: 0.05             # uniform +- jitter of the look-at point per axis (m)
+
+Every problem raises :class:`~ddsgen.errors.InputError` with one line
+``FILE: KEY: problem`` where KEY is a path such as ``scenes[0].objects[2].scale``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ddsgen.errors import InputError, where
+from ddsgen.scene import shapes
+
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
+DEFAULT_SOURCE = "<built-in default scene list>"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Specs (plain, picklable: they travel to worker processes; meshes are loaded and cached per process)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectSpec:
+    """One entry of a scene's object pool."""
+
+    class_name: str
+    mesh_ref: str  # absolute file path, or "shape:NAME(params)"
+    scale: float = 1.0  # file units -> metres (1 for shapes)
+    albedo: tuple[float, float] = (0.5, 0.5)  # uniform range
+    weight: float = 1.0
+    rest: str = "stable"  # "stable" | "upright"
+
+    @property
+    def is_shape(self) -> bool:
+        return self.mesh_ref.startswith("shape:")
+
+    def mesh(self):
+        """The mesh in metres, object frame (cached per process)."""
+        return load_mesh(self.mesh_ref, self.scale)
+
+
+@dataclasses.dataclass(frozen=True)
+class ClutterSpec:
+    count: tuple[int, int] = (3, 6)
+    area: tuple[float, float] = (0.5, 0.5)
+    min_gap: float = 0.005
+    max_tries: int = 100
+    unique: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class PlaneSpec:
+    size: tuple[float, float] = (5.0, 5.0)
+    albedo: tuple[float, float] = (0.4, 0.7)
+
+
+@dataclasses.dataclass(frozen=True)
+class WallSpec:
+    distance: float = 0.6  # y of the wall plane (m); the wall faces -y
+    width: float = 4.0
+    height: float = 2.0
+    albedo: tuple[float, float] = (0.5, 0.8)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    distance: tuple[float, float] = (0.8, 1.8)
+    elevation_deg: tuple[float, float] = (25.0, 70.0)
+    azimuth_deg: tuple[float, float] = (-180.0, 180.0)
+    roll_deg: tuple[float, float] = (0.0, 0.0)
+    look_at_jitter: float = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    name: str
+    frames: int
+    objects: tuple[ObjectSpec, ...]
+    clutter: ClutterSpec
+    ground: PlaneSpec | None
+    wall: WallSpec | None
+    camera: CameraSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneList:
+    """A validated scene list. ``source`` is the file it came from (or the built-in marker)."""
+
+    scenes: tuple[SceneSpec, ...]
+    source: str = DEFAULT_SOURCE
+    description: str = ""
+
+    @property
+    def cycle_length(self) -> int:
+        return sum(s.frames for s in self.scenes)
+
+    def scene_for_frame(self, frame_index: int) -> tuple[int, int]:
+        """``(scene index, first frame of the block)`` for frame ``frame_index`` (deterministic, no randomness)."""
+        if frame_index < 0:
+            raise ValueError(f"frame_index must be >= 0, got {frame_index}")
+        cycle = self.cycle_length
+        base = (frame_index // cycle) * cycle
+        offset = frame_index - base
+        for index, scene in enumerate(self.scenes):
+            if offset < scene.frames:
+                return index, base
+            offset -= scene.frames
+            base += scene.frames
+        raise AssertionError("unreachable")
+
+    def block_start(self, frame_index: int) -> int:
+        """First frame of the block (shared layout) that frame ``frame_index`` belongs to."""
+        scene_index, base = self.scene_for_frame(frame_index)
+        return base
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Mesh loading (cached per process)
+
+_MESH_CACHE: dict[tuple[str, float], Any] = {}
+
+
+def _load_mesh_file(path: str, scale: float, source: str = "", key: str | None = None):
+    """Load a mesh file with trimesh; InputError naming the file on any problem."""
+    import trimesh
+
+    label = f"{where(source, key)}{path}: " if source else f"{path}: "
+    if not os.path.isfile(path):
+        raise InputError(f"{label}mesh file not found")
+    suffix = Path(path).suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise InputError(f"{label}not a mesh file (expected one of {', '.join(MESH_SUFFIXES)})")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as error:  # trimesh raises many kinds of errors on garbage
+        first = str(error).splitlines()[0] if str(error) else ""
+        raise InputError(f"{label}cannot read mesh ({error.__class__.__name__}: {first})") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise InputError(f"{label}not a triangle mesh (trimesh read a {type(loaded).__name__})")
+    faces = np.asarray(loaded.faces)
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    if faces.ndim != 2 or len(faces) == 0:
+        raise InputError(f"{label}mesh has no faces")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(f"{label}mesh has non-finite vertex coordinates")
+    mesh = trimesh.Trimesh(vertices=vertices * scale, faces=faces, process=False)
+    # Drop degenerate triangles (zero area): they only confuse normals.
+    area_ok = mesh.area_faces > 0
+    if not np.any(area_ok):
+        raise InputError(f"{label}mesh has no faces with non-zero area")
+    if not np.all(area_ok):
+        mesh.update_faces(area_ok)
+        mesh.remove_unreferenced_vertices()
+    return mesh
+
+
+def load_mesh(mesh_ref: str, scale: float = 1.0, source: str = "", key: str | None = None):
+    """The mesh of a reference (``shape:...`` or a file path), in metres; cached per process."""
+    cache_key = (mesh_ref, float(scale))
+    mesh = _MESH_CACHE.get(cache_key)
+    if mesh is None:
+        if mesh_ref.startswith("shape:"):
+            mesh = shapes.mesh_from_ref(mesh_ref)
+            if scale != 1.0:
+                mesh.apply_scale(scale)
+        else:
+            mesh = _load_mesh_file(mesh_ref, scale, source, key)
+        mesh.vertices.flags.writeable = False
+        _MESH_CACHE[cache_key] = mesh
+    return mesh
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Validation helpers (all raise InputError("FILE: KEY: problem"))
+
+
+def _check_keys(source, key: str, data: Any, allowed, what: str) -> dict:
+    if not isinstance(data, dict):
+        raise InputError(f"{where(source, key)}expected a mapping ({what}), got {_describe(data)}")
+    for name in data:
+        if not isinstance(name, str) or name not in allowed:
+            near = difflib.get_close_matches(str(name), list(allowed), n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else f" (valid keys: {', '.join(allowed)})"
+            sub = f"{key}.{name}" if key else str(name)
+            raise InputError(f"{where(source, sub)}unknown key{hint}")
+    return data
+
+
+def _describe(value: Any) -> str:
+    if value is None:
+        return "nothing (null)"
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _number(source, key: str, value: Any, *, low=None, high=None, low_open=False, integer=False, what="") -> float:
+    if isinstance(value, str):
+        try:
+            value = float(value.strip())  # YAML 1.1 reads 1e-3 as a string
+        except ValueError:
+            pass
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        kind = "an integer" if integer else "a number"
+        raise InputError(f"{where(source, key)}expected {kind}{' (' + what + ')' if what else ''}, got {_describe(value)}")
+    if not math.isfinite(value):
+        raise InputError(f"{where(source, key)}must be a finite number, got {value!r}")
+    if integer:
+        if isinstance(value, float) and not value.is_integer():
+            raise InputError(f"{where(source, key)}expected an integer, got {value!r}")
+        value = int(value)
+    else:
+        value = float(value)
+    if low is not None:
+        if low_open and not value > low:
+            raise InputError(f"{where(source, key)}must be > {low:g}, got {value!r}")
+        if not low_open and value < low:
+            raise InputError(f"{where(source, key)}must be >= {low:g}, got {value!r}")
+    if high is not None and value > high:
+        raise InputError(f"{where(source, key)}must be <= {high:g}, got {value!r}")
+    return value
+
+
+def _range(source, key: str, value: Any, **limits) -> tuple:
+    """A fixed number or a [lo, hi] list -> (lo, hi)."""
+    if isinstance(value, (list, tuple)):
+        if len(value) != 2:
+            raise InputError(f"{where(source, key)}expected a number or a range [lo, hi], got {_describe(value)}")
+        lo = _number(source, f"{key}[0]", value[0], **limits)
+        hi = _number(source, f"{key}[1]", value[1], **limits)
+        if lo > hi:
+            raise InputError(f"{where(source, key)}range [lo, hi] must have lo <= hi, got {_describe(list(value))}")
+        return (lo, hi)
+    number = _number(source, key, value, **limits)
+    return (number, number)
+
+
+def _vector(source, key: str, value: Any, length: int, **limits) -> tuple[float, ...]:
+    if length == 1 and not isinstance(value, (list, tuple)):
+        return (_number(source, key, value, **limits),)
+    if not isinstance(value, (list, tuple)) or len(value) != length:
+        raise InputError(f"{where(source, key)}expected a list of {length} numbers, got {_describe(value)}")
+    return tuple(_number(source, f"{key}[{i}]", v, **limits) for i, v in enumerate(value))
+
+
+def _size2(source, key: str, value: Any) -> tuple[float, float]:
+    """A square size (one number) or [x, y]."""
+    if isinstance(value, (list, tuple)):
+        return _vector(source, key, value, 2, low=0, low_open=True, high=1e4)
+    size = _number(source, key, value, low=0, low_open=True, high=1e4)
+    return (size, size)
+
+
+def _text(source, key: str, value: Any) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{where(source, key)}expected a non-empty string, got {_describe(value)}")
+    return value.strip()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Sections
+
+OBJECT_KEYS_COMMON = ("class", "albedo", "weight", "rest")
+
+
+def _resolve_mesh_path(source: str, key: str, value: Any, base_dir: Path | None) -> str:
+    text = _text(source, key, value)
+    path = Path(text).expanduser()
+    candidates = [path] if path.is_absolute() else []
+    if not path.is_absolute():
+        if base_dir is not None:
+            candidates.append(base_dir / path)
+        candidates.append(Path.cwd() / path)
+    for candidate in candidates:
+        if candidate.is_file():
+            return os.path.abspath(candidate)
+    tried = candidates[0] if candidates else path
+    raise InputError(f"{where(source, key)}{text}: mesh file not found (looked at {tried})")
+
+
+def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
+    if isinstance(data, str) and data in shapes.SHAPES:
+        data = {"shape": data}
+    if not isinstance(data, dict):
+        raise InputError(f"{where(source, key)}expected a mapping with `shape:` or `mesh:`, got {_describe(data)}")
+    if ("shape" in data) == ("mesh" in data):
+        raise InputError(f"{where(source, key)}give exactly one of `shape:` (built-in) or `mesh:` (a file)")
+    if "shape" in data:
+        name = data["shape"]
+        if not isinstance(name, str) or name not in shapes.SHAPES:
+            near = difflib.get_close_matches(str(name), list(shapes.SHAPES), n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else f" (built-in: {', '.join(shapes.SHAPES)})"
+            raise InputError(f"{where(source, key + '.shape')}unknown shape {name!r}{hint}")
+        schema = shapes.shape_params(name)
+        _check_keys(source, key, data, ("shape", *schema, *OBJECT_KEYS_COMMON), f"a {name}")
+        params = {}
+        for param, spec in schema.items():
+            if param in data and data[param] is not None:
+                params[param] = _vector(source, f"{key}.{param}", data[param], spec.length, low=0, low_open=True, high=100)
+            else:
+                params[param] = spec.default
+        problem = shapes.check_shape_params(name, params)
+        if problem:
+            raise InputError(f"{where(source, key)}{name}: {problem}")
+        mesh_ref = shapes.shape_ref(name, params)
+        scale = 1.0
+        default_class = name
+    else:
+        _check_keys(source, key, data, ("mesh", "scale", *OBJECT_KEYS_COMMON), "a mesh file entry")
+        mesh_ref = _resolve_mesh_path(source, f"{key}.mesh", data["mesh"], base_dir)
+        scale = _number(source, f"{key}.scale", data.get("scale", 1.0), low=0, low_open=True, high=1e6)
+        default_class = Path(mesh_ref).stem
+        mesh = load_mesh(mesh_ref, scale, source, f"{key}.mesh")  # validate now (and warm the cache)
+        extent = float(np.max(mesh.extents))
+        if not 1e-3 <= extent <= 20.0:
+            raise InputError(
+                f"{where(source, key + '.scale')}{data['mesh']}: object is {extent:.4g} m across after scale {scale:g};"
+                " expected 1 mm..20 m (millimetre models need scale: 0.001)"
+            )
+    class_name = _text(source, f"{key}.class", data["class"]) if "class" in data else default_class
+    albedo = _range(source, f"{key}.albedo", data.get("albedo", 0.6), low=0, high=1)
+    weight = _number(source, f"{key}.weight", data.get("weight", 1.0), low=0, low_open=True, high=1e6)
+    rest = data.get("rest", "stable")
+    if rest not in ("stable", "upright"):
+        raise InputError(f"{where(source, key + '.rest')}expected 'stable' or 'upright', got {_describe(rest)}")
+    return ObjectSpec(class_name=class_name, mesh_ref=mesh_ref, scale=scale, albedo=albedo, weight=weight, rest=rest)
+
+
+def _clutter(source, key: str, data: Any, pool_size: int) -> ClutterSpec:
+    if data is None:
+        data = {}
+    _check_keys(source, key, data, ("count", "area", "min_gap", "max_tries", "unique"), "the clutter rule")
+    default = ClutterSpec()
+    count = _range(source, f"{key}.count", data.get("count", list(default.count)), low=0, high=1000, integer=True)
+    area = _size2(source, f"{key}.area", data.get("area", list(default.area)))
+    min_gap = _number(source, f"{key}.min_gap", data.get("min_gap", default.min_gap), low=0, high=10)
+    max_tries = _number(source, f"{key}.max_tries", data.get("max_tries", default.max_tries), low=1, high=100000, integer=True)
+    unique = data.get("unique", default.unique)
+    if not isinstance(unique, bool):
+        raise InputError(f"{where(source, key + '.unique')}expected true or false, got {_describe(unique)}")
+    if unique and count[1] > pool_size:
+        raise InputError(
+            f"{where(source, key + '.count')}at most {count[1]} unique objects asked for but the pool holds {pool_size}"
+        )
+    return ClutterSpec(count=count, area=area, min_gap=min_gap, max_tries=max_tries, unique=unique)
+
+
+def _plane(source, key: str, data: Any) -> PlaneSpec | None:
+    if data is None:
+        return None
+    default = PlaneSpec()
+    _check_keys(source, key, data, ("size", "albedo"), "the ground plane")
+    size = _size2(source, f"{key}.size", data.get("size", list(default.size)))
+    albedo = _range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1)
+    return PlaneSpec(size=size, albedo=albedo)
+
+
+def _wall(source, key: str, data: Any) -> WallSpec | None:
+    if data is None or data is False:
+        return None
+    if data is True:
+        data = {}
+    default = WallSpec()
+    _check_keys(source, key, data, ("distance", "width", "height", "albedo"), "the back wall")
+    return WallSpec(
+        distance=_number(source, f"{key}.distance", data.get("distance", default.distance), low=0, low_open=True, high=1e3),
+        width=_number(source, f"{key}.width", data.get("width", default.width), low=0, low_open=True, high=1e4),
+        height=_number(source, f"{key}.height", data.get("height", default.height), low=0, low_open=True, high=1e4),
+        albedo=_range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1),
+    )
+
+
+def _camera(source, key: str, data: Any, has_wall: bool) -> CameraSpec:
+    if data is None:
+        data = {}
+    default = CameraSpec()
+    _check_keys(
+        source, key, data, ("distance", "elevation_deg", "azimuth_deg", "roll_deg", "look_at_jitter"), "the camera rule"
+    )
+    camera = CameraSpec(
+        distance=_range(source, f"{key}.distance", data.get("distance", list(default.distance)), low=0.01, high=1e3),
+        elevation_deg=_range(
+            source, f"{key}.elevation_deg", data.get("elevation_deg", list(default.elevation_deg)), low=0.0, high=89.0
+        ),
+        azimuth_deg=_range(
+            source, f"{key}.azimuth_deg", data.get("azimuth_deg", list(default.azimuth_deg)), low=-360.0, high=360.0
+        ),
+        roll_deg=_range(source, f"{key}.roll_deg", data.get("roll_deg", list(default.roll_deg)), low=-180.0, high=180.0),
+        look_at_jitter=_number(
+            source, f"{key}.look_at_jitter", data.get("look_at_jitter", default.look_at_jitter), low=0, high=10
+        ),
+    )
+    if has_wall and (camera.azimuth_deg[0] < -90.0 or camera.azimuth_deg[1] > 90.0):
+        raise InputError(
+            f"{where(source, key + '.azimuth_deg')}must lie within [-90, 90] when the scene has a wall"
+            f" (the wall stands at +y behind the clutter; 0 = camera facing it), got {list(camera.azimuth_deg)}"
+        )
+    return camera
+
+
+SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "wall", "camera")
+
+
+def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> SceneSpec:
+    _check_keys(source, key, data, SCENE_KEYS, "a scene")
+    name = _text(source, f"{key}.name", data["name"]) if "name" in data else f"scene{index}"
+    frames = _number(source, f"{key}.frames", data.get("frames", 1), low=1, high=10**9, integer=True)
+    pool = data.get("objects")
+    if pool is None:
+        raise InputError(f"{where(source, key + '.objects')}missing: a scene needs a pool of at least one object")
+    if not isinstance(pool, list) or not pool:
+        raise InputError(f"{where(source, key + '.objects')}expected a non-empty list of objects, got {_describe(pool)}")
+    objects = tuple(_object(source, f"{key}.objects[{i}]", entry, base_dir) for i, entry in enumerate(pool))
+    wall = _wall(source, f"{key}.wall", data.get("wall"))
+    return SceneSpec(
+        name=name,
+        frames=frames,
+        objects=objects,
+        clutter=_clutter(source, f"{key}.clutter", data.get("clutter"), len(objects)),
+        ground=_plane(source, f"{key}.ground", data.get("ground", {})),
+        wall=wall,
+        camera=_camera(source, f"{key}.camera", data.get("camera"), wall is not None),
+    )
+
+
+def scene_list_from_dict(data: Any, source: str | Path = "", base_dir: str | Path | None = None) -> SceneList:
+    """Validate a parsed scene list; relative mesh paths are resolved against ``base_dir``."""
+    source = str(source)
+    base = Path(base_dir) if base_dir is not None else None
+    if not isinstance(data, dict):
+        raise InputError(f"{where(source)}a scene list must be a YAML mapping with `scenes:`, got {_describe(data)}")
+    _check_keys(source, "", data, ("scenes", "description"), "a scene list")
+    if "scenes" not in data:
+        raise InputError(f"{where(source, 'scenes')}missing: a scene list needs `scenes:` with at least one scene")
+    scenes = data["scenes"]
+    if not isinstance(scenes, list) or not scenes:
+        raise InputError(f"{where(source, 'scenes')}expected a non-empty list of scenes, got {_describe(scenes)}")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise InputError(f"{where(source, 'description')}expected text, got {_describe(description)}")
+    specs = tuple(_scene(source, f"scenes[{i}]", scene, base, i) for i, scene in enumerate(scenes))
+    return SceneList(scenes=specs, source=source, description=description)
+
+
+def default_scene_list_dict() -> dict:
+    """The built-in default scene list as plain data (what ``scenes/default.yaml`` mirrors)."""
+    pool = [
+        {"shape": "box", "size": [0.12, 0.08, 0.06], "class": "box", "albedo": [0.3, 0.8]},
+        {"shape": "box", "size": [0.2, 0.15, 0.1], "class": "carton", "albedo": [0.4, 0.8]},
+        {"shape": "cylinder", "radius": 0.04, "height": 0.12, "class": "can", "albedo": [0.3, 0.9]},
+        {"shape": "sphere", "radius": 0.05, "class": "ball", "albedo": [0.3, 0.9]},
+        {"shape": "capsule", "radius": 0.03, "height": 0.14, "class": "capsule", "albedo": [0.3, 0.8]},
+        {"shape": "cone", "radius": 0.05, "height": 0.12, "class": "cone", "albedo": [0.3, 0.8], "rest": "upright"},
+        {"shape": "torus", "major_radius": 0.06, "minor_radius": 0.02, "class": "ring", "albedo": [0.3, 0.8]},
+        {"shape": "mug", "radius": 0.04, "height": 0.1, "wall": 0.006, "handle": 0.035, "class": "mug",
+         "albedo": [0.4, 0.9], "rest": "upright"},
+        {"shape": "l_bracket", "length": 0.14, "width": 0.06, "height": 0.1, "thickness": 0.015,
+         "class": "bracket", "albedo": [0.2, 0.7]},
+    ]
+    return {
+        "description": "built-in default: procedural shapes dropped on a floor, Kinect-range camera (0.6-2.5 m)",
+        "scenes": [
+            {
+                "name": "tabletop",
+                "frames": 4,
+                "objects": pool,
+                "clutter": {"count": [3, 7], "area": [0.6, 0.6], "min_gap": 0.005},
+                "ground": {"size": [5.0, 5.0], "albedo": [0.4, 0.7]},
+                "camera": {"distance": [0.8, 1.8], "elevation_deg": [30, 70], "azimuth_deg": [-180, 180],
+                           "look_at_jitter": 0.05},
+            },
+            {
+                "name": "against_wall",
+                "frames": 4,
+                "objects": pool,
+                "clutter": {"count": [2, 5], "area": [0.6, 0.4], "min_gap": 0.005},
+                "ground": {"size": [5.0, 5.0], "albedo": [0.4, 0.7]},
+                "wall": {"distance": 0.45, "width": 4.0, "height": 2.0, "albedo": [0.5, 0.8]},
+                "camera": {"distance": [0.9, 2.0], "elevation_deg": [15, 45], "azimuth_deg": [-50, 50],
+                           "look_at_jitter": 0.05},
+            },
+        ],
+    }
+
+
+_DEFAULT: SceneList | None = None
+
+
+def load_scene_list(path: str | Path | None) -> SceneList:
+    """Read and validate a scene list YAML file; ``None`` gives the built-in default (no files needed)."""
+    global _DEFAULT
+    if path is None:
+        if _DEFAULT is None:
+            _DEFAULT = scene_list_from_dict(default_scene_list_dict(), source=DEFAULT_SOURCE)
+        return _DEFAULT
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: scene list file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"{path}: cannot read scene list ({error.__class__.__name__}: {error})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark else ""
+        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+        raise InputError(f"{path}: malformed YAML{at}: {problem}") from None
+    if data is None:
+        raise InputError(f"{path}: scene list is empty (expected `scenes:` with at least one scene)")
+    return scene_list_from_dict(data, source=path, base_dir=path.parent)
