@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import weakref
 
 import numpy as np
 
@@ -36,6 +37,7 @@ class RayHits:
     hit: np.ndarray  # bool (H, W)
     shadow: np.ndarray  # bool (H, W): hit point not seen by the projector at (+b, 0, 0)
     albedo: np.ndarray  # float32 (H, W): IR reflectance of the hit surface, 0 where no hit
+    coverage: dict = dataclasses.field(default_factory=dict)  # object id -> pixels it covers when cast alone
 
 
 @functools.lru_cache(maxsize=8)
@@ -67,20 +69,40 @@ def _camera_vertices(placed, cam_T_world: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces)
 
 
-def _build_scene(meshes):
-    """An Embree scene with one geometry per (vertices, faces); geometry id = list index."""
+@dataclasses.dataclass
+class _MeshBVH:
+    mesh_ref: "weakref.ref"
+    fingerprint: tuple
+    embree: object  # EmbreeScene with the mesh in its own object frame
+    hull: np.ndarray  # (K, 3) float64 convex-hull vertices (for image boxes)
+
+
+_BVH_CACHE: dict[int, _MeshBVH] = {}
+
+
+def _mesh_bvh(mesh) -> _MeshBVH:
+    """Embree BVH of a mesh in its object frame, built once per process per mesh object."""
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
-    scene = rtcore_scene.EmbreeScene()
-    for vertices, faces in meshes:
-        TriangleMesh(scene, vertices, faces)
-    return scene
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(norm, 1e-30)
+    vertices = np.asarray(mesh.vertices)
+    faces = np.asarray(mesh.faces)
+    fingerprint = (vertices.shape, faces.shape, float(vertices[::97].sum()), int(faces[::97].sum()))
+    entry = _BVH_CACHE.get(id(mesh))
+    if entry is not None and entry.mesh_ref() is mesh and entry.fingerprint == fingerprint:
+        return entry
+    if len(_BVH_CACHE) > 256:
+        for key in [k for k, e in _BVH_CACHE.items() if e.mesh_ref() is None]:
+            del _BVH_CACHE[key]
+    embree = rtcore_scene.EmbreeScene()
+    TriangleMesh(embree, np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.int32))
+    try:
+        hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
+    except Exception:  # degenerate (flat) meshes: all vertices do
+        hull = np.asarray(vertices, dtype=np.float64)
+    entry = _MeshBVH(weakref.ref(mesh), fingerprint, embree, hull)
+    _BVH_CACHE[id(mesh)] = entry
+    return entry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,19 +214,20 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
     directions = ray_directions(intrinsics).reshape(-1, 3)
     n_rays = directions.shape[0]
 
-    polygons: list[tuple[int, _Polygon]] = []  # (index into placed, polygon)
-    meshes: list[tuple[np.ndarray, np.ndarray]] = []
-    mesh_owner: list[int] = []
+    polygons: list[tuple[int, _Polygon]] = []  # (index into placed, polygon in the camera frame)
+    meshes: list[tuple[int, np.ndarray, _MeshBVH, tuple | None]] = []  # (index, cam_T_obj, BVH, image box)
     for k, p in enumerate(placed):
-        vertices, faces = _camera_vertices(p, cam_T_world)
-        polygon = _as_polygon(vertices, faces) if p.id == 0 else None
-        if polygon is not None:
-            polygons.append((k, polygon))
-        else:
-            meshes.append((vertices, faces))
-            mesh_owner.append(k)
+        cam_T_obj = cam_T_world @ np.asarray(p.world_T_obj, dtype=np.float64)
+        if p.id == 0 and len(p.mesh.faces) <= 64:
+            polygon = _as_polygon(*_camera_vertices(p, cam_T_world))
+            if polygon is not None:
+                polygons.append((k, polygon))
+                continue
+        bvh = _mesh_bvh(p.mesh)
+        hull = bvh.hull @ cam_T_obj[:3, :3].T + cam_T_obj[:3, 3]
+        meshes.append((k, cam_T_obj, bvh, _image_box(hull, intrinsics)))
 
-    # --- primary rays: nearest of the analytic polygons and the Embree scene
+    # --- primary rays: nearest of the analytic polygons and the meshes
     xs = (np.arange(width, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
     ys = (np.arange(height, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
     best_t = np.full((height, width), np.inf, dtype=np.float32)
@@ -215,42 +238,38 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         best_t = np.minimum(best_t, t)
     best_t, owner = best_t.reshape(-1), owner.reshape(-1)
     # Normals: a plane seen from the origin shows one side (n . x = c, t > 0 -> sign(n . d) = sign(c)).
-    table = np.zeros((len(placed) + 1, 3), dtype=np.float32)  # row -1 (last) = no hit
+    table = np.zeros((len(placed) + 1, 3), dtype=np.float32)  # last row: no hit (owner -1)
     for k, polygon in polygons:
         table[k] = -polygon.normal if polygon.offset > 0 else polygon.normal
-    mesh_hits = normals_of_mesh_hits = None
-    embree = None
-    mesh_hits = None
-    boxes = [_image_box(vertices, intrinsics) for vertices, _ in meshes]
-    if meshes:
-        # Only rays inside some mesh's projected box can hit it (exact, conservative cull).
-        candidates = np.zeros((height, width), dtype=bool)
-        for box in boxes:
-            if box is None:
-                candidates[:] = True
-                break
-            u0, v0, u1, v1 = box
-            iu0, iv0 = max(int(np.ceil(u0)), 0), max(int(np.ceil(v0)), 0)
-            iu1, iv1 = min(int(np.floor(u1)), width - 1), min(int(np.floor(v1)), height - 1)
-            if iu0 <= iu1 and iv0 <= iv1:
-                candidates[iv0 : iv1 + 1, iu0 : iu1 + 1] = True
-        rays = np.flatnonzero(candidates)
-        if len(rays):
-            embree = _build_scene(meshes)
-            d = directions[rays]
-            result = embree.run(np.zeros_like(d), d, output=1)
-            geom = result["geomID"]
-            closer = np.flatnonzero((geom >= 0) & (result["tfar"] < best_t[rays]))
-            mesh_hits = rays[closer]
-            best_t[mesh_hits] = result["tfar"][closer]
-            owner[mesh_hits] = np.asarray(mesh_owner, dtype=np.int32)[geom[closer]]
-            n = result["Ng"][closer]
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(1e-30))
-            flip = np.einsum("ij,ij->i", n, d[closer]) > 0
-            n[flip] *= -1.0
+    is_mesh = np.zeros(len(placed) + 1, dtype=bool)
+    mesh_normals = np.zeros((n_rays, 3), dtype=np.float32) if meshes else None
+    coverage: dict[int, int] = {}
+    for k, cam_T_obj, bvh, box in meshes:
+        # Rays go into the object frame (rotation only: t stays the depth); only rays in its image box can hit it.
+        is_mesh[k] = True
+        rays = _rays_in_box(box, width, height)
+        if rays is None or not len(rays):
+            coverage[placed[k].id] = 0
+            continue
+        R = cam_T_obj[:3, :3].astype(np.float32)
+        origin = (-(cam_T_obj[:3, :3].T @ cam_T_obj[:3, 3])).astype(np.float32)
+        d = directions[rays]
+        result = bvh.embree.run(np.broadcast_to(origin, d.shape).copy(), d @ R, output=1)
+        geom = result["geomID"]
+        if placed[k].id > 0:
+            coverage[placed[k].id] = int(np.count_nonzero(geom >= 0))
+        closer = np.flatnonzero((geom >= 0) & (result["tfar"] < best_t[rays]))
+        index = rays[closer]
+        best_t[index] = result["tfar"][closer]
+        owner[index] = k
+        n = result["Ng"][closer] @ R.T
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(1e-30))
+        n[np.einsum("ij,ij->i", n, d[closer]) > 0] *= -1.0
+        mesh_normals[index] = n
     normals = table[owner]
-    if mesh_hits is not None:
-        normals[mesh_hits] = n
+    if meshes:
+        from_mesh = is_mesh[owner]
+        normals[from_mesh] = mesh_normals[from_mesh]
 
     hit = owner >= 0
     depth = np.where(hit, best_t, np.float32(0.0))
@@ -268,33 +287,36 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
     blocked = normals[:, 0] * np.float32(baseline_m) - np.einsum("ij,ij->i", normals, points) <= 0.0
     for _, polygon in polygons:
         blocked |= _segment_blocked_by_polygon(polygon, start, projector)
-    if embree is not None:
+    if meshes:
         # The segment S -> projector projects onto image row v_S, columns u >= u_S (a half-line), so it can only
         # meet a mesh whose projected box spans that row to the right of u_S (exact, conservative cull).
         with np.errstate(divide="ignore", invalid="ignore"):
             inv_z = np.float32(1.0) / start[:, 2]
             u_s = start[:, 0] * inv_z * np.float32(intrinsics.fx) + np.float32(intrinsics.cx)
             v_s = start[:, 1] * inv_z * np.float32(intrinsics.fy) + np.float32(intrinsics.cy)
-        maybe = np.zeros(n_rays, dtype=bool)
-        for box in boxes:
+        open_rays = hit & ~blocked
+        no_cull = open_rays & ~(start[:, 2] > 0)  # start at/behind the camera plane (or nan): no cull
+        for k, cam_T_obj, bvh, box in meshes:
             if box is None:
-                maybe[:] = True
-                break
-            u0, v0, u1, v1 = box
-            maybe |= (v_s >= v0 - 1.0) & (v_s <= v1 + 1.0) & (u_s <= u1 + 1.0)
-        maybe |= ~(start[:, 2] > 0)  # start behind the camera plane (or nan): no cull
-        todo = np.flatnonzero(maybe & hit & ~blocked)
-        if len(todo):
+                todo = np.flatnonzero(open_rays)
+            else:
+                u0, v0, u1, v1 = box
+                todo = np.flatnonzero(
+                    (open_rays & (v_s >= v0 - 1.0) & (v_s <= v1 + 1.0) & (u_s <= u1 + 1.0)) | no_cull
+                )
+            if not len(todo):
+                continue
+            R = cam_T_obj[:3, :3].astype(np.float32)
             s = start[todo]
-            occluded = embree.run(
-                s,
-                projector.astype(np.float32)[None, :] - s,
+            occluded = bvh.embree.run(
+                np.ascontiguousarray((s - cam_T_obj[:3, 3].astype(np.float32)) @ R),
+                np.ascontiguousarray((projector.astype(np.float32)[None, :] - s) @ R),
                 dists=np.full(len(todo), 1.0 - 1e-6, dtype=np.float32),
                 query="OCCLUDED",
             )
             blocked[todo] |= occluded >= 0
+            open_rays[todo] &= ~(occluded >= 0)
     shadow = blocked & hit
-    normals[~hit] = 0.0
 
     shape2, shape3 = (height, width), (height, width, 3)
     return RayHits(
@@ -305,6 +327,7 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         hit=hit.reshape(shape2),
         shadow=shadow.reshape(shape2),
         albedo=albedo.reshape(shape2),
+        coverage=coverage,
     )
 
 
@@ -319,34 +342,32 @@ def _image_box(vertices_cam: np.ndarray, intrinsics: Intrinsics):
     return float(u.min()) - 0.5, float(v.min()) - 0.5, float(u.max()) + 0.5, float(v.max()) + 0.5
 
 
-def _projected_box(vertices_cam: np.ndarray, intrinsics: Intrinsics) -> tuple[int, int, int, int] | None:
-    """Pixel box (u0, v0, u1, v1) inclusive that contains the object's projection, or None if not in view."""
-    width, height = int(intrinsics.width), int(intrinsics.height)
-    z = vertices_cam[:, 2]
-    if np.all(z <= 1e-6):
-        return None
-    if np.any(z <= 1e-6):  # straddles the camera plane: be safe, use the whole image
-        return 0, 0, width - 1, height - 1
-    u = intrinsics.fx * vertices_cam[:, 0] / z + intrinsics.cx
-    v = intrinsics.fy * vertices_cam[:, 1] / z + intrinsics.cy
-    u0, u1 = int(np.floor(u.min())) - 1, int(np.ceil(u.max())) + 1
-    v0, v1 = int(np.floor(v.min())) - 1, int(np.ceil(v.max())) + 1
-    u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, width - 1), min(v1, height - 1)
-    if u0 > u1 or v0 > v1:
-        return None
-    return u0, v0, u1, v1
+def _rays_in_box(box, width: int, height: int) -> np.ndarray | None:
+    """Flat indices of the pixels whose centres lie in a continuous box (all pixels for None)."""
+    if box is None:
+        return np.arange(width * height)
+    u0, v0, u1, v1 = box
+    iu0, iv0 = max(int(np.ceil(u0)), 0), max(int(np.ceil(v0)), 0)
+    iu1, iv1 = min(int(np.floor(u1)), width - 1), min(int(np.floor(v1)), height - 1)
+    if iu0 > iu1 or iv0 > iv1:
+        return np.empty(0, dtype=np.int64)
+    cols = np.arange(iu0, iu1 + 1)
+    rows = np.arange(iv0, iv1 + 1)
+    return (rows[:, None] * width + cols[None, :]).reshape(-1)
 
 
 def _alone_pixel_count(placed, cam_T_world: np.ndarray, intrinsics: Intrinsics) -> int:
     """Pixels the object covers when ray-cast alone (only rays inside its projected box are cast)."""
-    vertices, faces = _camera_vertices(placed, cam_T_world)
-    box = _projected_box(vertices, intrinsics)
-    if box is None:
+    cam_T_obj = cam_T_world @ np.asarray(placed.world_T_obj, dtype=np.float64)
+    bvh = _mesh_bvh(placed.mesh)
+    box = _image_box(bvh.hull @ cam_T_obj[:3, :3].T + cam_T_obj[:3, 3], intrinsics)
+    rays = _rays_in_box(box, int(intrinsics.width), int(intrinsics.height))
+    if not len(rays):
         return 0
-    u0, v0, u1, v1 = box
-    directions = np.ascontiguousarray(ray_directions(intrinsics)[v0 : v1 + 1, u0 : u1 + 1].reshape(-1, 3))
-    embree = _build_scene([(vertices, faces)])
-    geom = embree.run(np.zeros_like(directions), directions, query="OCCLUDED")  # any hit, no distance needed
+    R = cam_T_obj[:3, :3].astype(np.float32)
+    d = ray_directions(intrinsics).reshape(-1, 3)[rays] @ R
+    origin = (-(cam_T_obj[:3, :3].T @ cam_T_obj[:3, 3])).astype(np.float32)
+    geom = bvh.embree.run(np.broadcast_to(origin, d.shape).copy(), d, query="OCCLUDED")  # any hit will do
     return int(np.count_nonzero(geom >= 0))
 
 
@@ -359,20 +380,41 @@ def object_labels(scene, hits: RayHits, intrinsics: Intrinsics) -> list[dict]:
     object would cover alone (0 when it is out of view).
     """
     cam_T_world = np.linalg.inv(np.asarray(scene.world_T_cam, dtype=np.float64))
-    instance = hits.instance
+    instance = np.asarray(hits.instance)
+    width = instance.shape[1]
+    # one pass over the object pixels: per id, the pixel count and the min / max row and column
+    flat = np.flatnonzero(instance.reshape(-1))
+    ids = instance.reshape(-1)[flat]
+    order = np.argsort(ids, kind="stable")
+    flat, ids = flat[order], ids[order]
+    present, first, counts = np.unique(ids, return_index=True, return_counts=True)
+    rows, cols = flat // width, flat % width
+    stats = {}
+    if len(present):
+        stats = dict(
+            zip(
+                present.tolist(),
+                zip(
+                    counts.tolist(),
+                    np.minimum.reduceat(cols, first).tolist(),
+                    np.minimum.reduceat(rows, first).tolist(),
+                    np.maximum.reduceat(cols, first).tolist(),
+                    np.maximum.reduceat(rows, first).tolist(),
+                ),
+            )
+        )
     labels = []
-    present = set(np.unique(instance).tolist())
     for placed in sorted(scene.objects, key=lambda o: o.id):
         visible = 0
         bbox = [0, 0, 0, 0]
-        if placed.id in present:
-            rows, cols = np.nonzero(instance == placed.id)
-            visible = len(rows)
-            x0, y0 = int(cols.min()), int(rows.min())
-            bbox = [x0, y0, int(cols.max()) - x0 + 1, int(rows.max()) - y0 + 1]
+        if placed.id in stats:
+            visible, x0, y0, x1, y1 = stats[placed.id]
+            bbox = [int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1)]
         fraction = 0.0
         if visible:
-            alone = _alone_pixel_count(placed, cam_T_world, intrinsics)
+            alone = hits.coverage.get(placed.id) if hits.coverage else None
+            if alone is None:
+                alone = _alone_pixel_count(placed, cam_T_world, intrinsics)
             fraction = min(1.0, visible / alone) if alone else 1.0
         cam_T_obj = cam_T_world @ placed.world_T_obj
         labels.append(
