@@ -1,4 +1,16 @@
-"""The library of effects (each registers itself under its preset name)."""
+"""The library of effects (each registers itself under its preset name).
+
+Every effect is a differentiable torch module (or a soft relaxation of a discrete rule)
+acting at one stage of :class:`~ddsgen.sensor.depth_sensor.DepthSensor`; with its
+parameters at their ``neutral`` values it leaves the sensor's output unchanged. The
+``axis`` of an effect names the residual axis of ``ddsgen diagnose`` along which its
+signature shows: ``depth``, ``incidence``, ``radius``, ``row``, ``column``,
+``edge_distance`` or ``signal``.
+
+Validity effects return a keep-probability in [0, 1]; the sensor multiplies it into its
+soft validity and keeps a pixel when the product exceeds 0.5, so each rule below drops a
+pixel once its keep-probability falls under 0.5 and is differentiable around that point.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +18,69 @@ import torch
 
 from ddsgen.sensor.effects import register
 from ddsgen.sensor.effects.base import Effect, EffectParam
+from ddsgen.sensor.effects.features import (
+    cached,
+    edge_distance,
+    incidence_angle_deg,
+    local_signal,
+    normalised_coordinates,
+)
+
+
+def bilinear_sample(image: torch.Tensor, us: torch.Tensor, vs: torch.Tensor) -> torch.Tensor:
+    """Sample ``image`` (H, W) at pixel coordinates (us, vs) (each (H, W)), bilinear, border-clamped.
+
+    Differentiable in the image and in the coordinates. Exact at integer coordinates (a zero
+    displacement returns the image bit for bit, which keeps neutral effects neutral).
+    """
+    h, w = image.shape
+    us = us.clamp(0.0, w - 1.0)
+    vs = vs.clamp(0.0, h - 1.0)
+    u0 = us.detach().floor().clamp(max=w - 2)
+    v0 = vs.detach().floor().clamp(max=h - 2)
+    fu = us - u0
+    fv = vs - v0
+    u0, v0 = u0.long(), v0.long()
+    flat = image.reshape(-1)
+    top = flat[v0 * w + u0] * (1 - fu) + flat[v0 * w + u0 + 1] * fu
+    bottom = flat[(v0 + 1) * w + u0] * (1 - fu) + flat[(v0 + 1) * w + u0 + 1] * fu
+    return top * (1 - fv) + bottom * fv
+
+
+@register
+class LensDistortion(Effect):
+    """Uncalibrated radial distortion of the IR camera (Brown model, k1 and k2)."""
+
+    name = "lens_distortion"
+    stage = "ir"
+    description = (
+        "The IR camera lens bends rays radially (uncorrected k1, k2 distortion), so dots near the "
+        "image corners land off their calibrated positions and the matcher reads a wrong disparity there."
+    )
+    signature = (
+        "depth bias that is zero at the image centre, grows like r^3 towards the corners and like z^2 "
+        "with depth, with opposite signs left and right of the principal point; more dropout in the corners"
+    )
+    axis = "radius"
+    params = {
+        "k1": EffectParam(0.0, -0.1, 0.1, "1", "radial distortion coefficient of r^2", typical=-0.006),
+        "k2": EffectParam(0.0, -0.1, 0.1, "1", "radial distortion coefficient of r^4", typical=0.0),
+    }
+
+    def displacement(self, height: int, width: int, ctx: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(du, dv) (H, W) px: pixel (u, v) of the distorted image shows the ideal image at (u + du, v + dv)."""
+        x, y = normalised_coordinates(height, width, ctx["fx"], ctx["fy"], ctx["cx"], ctx["cy"], self.raw["k1"].device)
+        r2 = x * x + y * y
+        radial = self.value("k1") * r2 + self.value("k2") * r2 * r2
+        return x * ctx["fx"] * radial, y * ctx["fy"] * radial
+
+    def forward(self, ir: torch.Tensor, ctx: dict) -> torch.Tensor:
+        """ir (H, W) counts -> the same image seen through the distorting lens."""
+        h, w = ir.shape
+        du, dv = self.displacement(h, w, ctx)
+        u = torch.arange(w, dtype=ir.dtype, device=ir.device).reshape(1, w)
+        v = torch.arange(h, dtype=ir.dtype, device=ir.device).reshape(h, 1)
+        return bilinear_sample(ir, u + du, v + dv)
 
 
 @register
@@ -26,3 +101,118 @@ class DisparityOffset(Effect):
 
     def forward(self, disparity: torch.Tensor, ctx: dict) -> torch.Tensor:
         return disparity + self.value("offset_px")
+
+
+@register
+class DepthScale(Effect):
+    """Depth is scaled by (1 + epsilon): a mis-calibrated depth conversion (e.g. f*b of the firmware)."""
+
+    name = "depth_scale"
+    stage = "depth"
+    description = (
+        "The sensor converts disparity to depth with a slightly wrong focal-length-times-baseline "
+        "constant, so every depth is off by the same percentage."
+    )
+    signature = "depth bias proportional to z (a constant relative error), independent of angle and image position"
+    axis = "depth"
+    params = {
+        "scale_error": EffectParam(0.0, -0.1, 0.1, "1", "relative depth error epsilon: z' = (1 + epsilon) z", typical=0.01),
+    }
+
+    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
+        return depth * (1.0 + self.value("scale_error"))
+
+
+@register
+class GrazingDropout(Effect):
+    """No usable return from surfaces seen beyond an incidence angle (soft ramp of 3 degrees)."""
+
+    name = "grazing_dropout"
+    stage = "validity"
+    description = (
+        "Surfaces seen at a grazing angle smear the projected dots and return too little light, "
+        "so the sensor reports no depth beyond a maximum incidence angle."
+    )
+    signature = "missing depth on steeply tilted surfaces (floor far away, object sides), none on surfaces facing the camera"
+    axis = "incidence"
+    RAMP_DEG = 3.0  # keep-probability falls from 1 to 0 between angle_deg and angle_deg + RAMP_DEG
+    params = {
+        "angle_deg": EffectParam(
+            90.0, 30.0, 95.0, "deg", "incidence angle (normal vs. viewing ray) where returns start to fail", typical=72.0
+        ),
+    }
+
+    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
+        g = ctx["geometry"]
+        theta = cached(ctx, "incidence_deg", lambda: incidence_angle_deg(g.points, g.normals))
+        return 1.0 - ((theta - self.value("angle_deg")) / self.RAMP_DEG).clamp(0.0, 1.0)
+
+
+@register
+class EdgeDropout(Effect):
+    """The matcher fails in a band of ``width_px`` px on either side of depth discontinuities."""
+
+    name = "edge_dropout"
+    stage = "validity"
+    description = (
+        "Matching windows that straddle an object boundary see two depths at once and the sensor "
+        "rejects them, leaving a band of missing depth along every depth discontinuity."
+    )
+    signature = "missing depth within a few pixels of depth edges (object silhouettes), full coverage elsewhere"
+    axis = "edge_distance"
+    params = {
+        "width_px": EffectParam(0.0, 0.0, 20.0, "px", "width of the failed band on each side of a depth edge", typical=3.0),
+    }
+
+    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
+        dist = cached(ctx, "edge_distance", lambda: edge_distance(ctx["geometry"].clean_depth))
+        # Soft band: keep = 0 inside (dist < w - 1), 1 outside (dist > w), linear in between.
+        return 1.0 - (self.value("width_px") - dist).clamp(0.0, 1.0)
+
+
+@register
+class LowSignalDropout(Effect):
+    """Matching fails where the local projected signal falls below a threshold (dark or distant surfaces)."""
+
+    name = "low_signal_dropout"
+    stage = "validity"
+    description = (
+        "On dark or distant surfaces the projected dots are too faint for the sensor's detector, "
+        "which reports no depth where the local dot signal falls below a threshold."
+    )
+    signature = "missing depth on low-albedo objects and far surfaces, growing as the IR signal falls"
+    axis = "signal"
+    SHARPNESS = 4.0  # keep = 1 / (1 + (threshold / signal)^SHARPNESS), computed as a sigmoid of the log ratio
+    params = {
+        "threshold_counts": EffectParam(
+            0.0, 0.0, 20.0, "IR counts", "local mean dot signal (9x9 window) below which depth is dropped", typical=1.5
+        ),
+    }
+
+    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
+        level = cached(ctx, "local_signal", lambda: local_signal(ctx["signal"]))
+        log_ratio = torch.log(level.clamp_min(1e-12)) - torch.log(self.value("threshold_counts").clamp_min(1e-12))
+        return torch.sigmoid(self.SHARPNESS * log_ratio)
+
+
+def describe_library() -> list[dict]:
+    """The library as plain data (name, stage, description, signature, axis, params) for reports and --help."""
+    from ddsgen.sensor.effects import REGISTRY
+
+    out = []
+    for name, cls in sorted(REGISTRY.items()):
+        out.append(
+            {
+                "name": name,
+                "stage": cls.stage,
+                "description": cls.description,
+                "signature": cls.signature,
+                "axis": cls.axis,
+                "params": {
+                    k: {"neutral": p.neutral, "low": p.low, "high": p.high, "unit": p.unit, "typical": p.typical, "help": p.help}
+                    for k, p in cls.params.items()
+                },
+            }
+        )
+    return out
+
