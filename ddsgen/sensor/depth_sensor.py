@@ -208,13 +208,17 @@ class DepthSensor(nn.Module):
         return IRNoise.draw(self.intr.height, self.intr.width, self.preset.speckle_shape, rng, self.device_)
 
     # ---- the pipeline ---------------------------------------------------------------------
-    def forward(self, geometry: SensorGeometry, seed=0, noise: IRNoise | None = None) -> SensorOutput:
+    def forward(
+        self, geometry: SensorGeometry, seed=0, noise: IRNoise | None = None, quantise: bool = True
+    ) -> SensorOutput:
         """Simulate one frame.
 
         Args:
             geometry: ray-cast geometry of shape (H, W) = (intrinsics.height, intrinsics.width).
             seed: seed of the frame's IR noise (ignored when ``noise`` is given).
             noise: pre-drawn unit noise (to reuse the same draws across calls, e.g. in fitting).
+            quantise: quantise IR counts and disparity like the device (straight-through
+                gradients). False gives the smooth function, for finite-difference checks.
         """
         p, intr = self.preset, self.intr
         if geometry.shape != (intr.height, intr.width):
@@ -228,7 +232,7 @@ class DepthSensor(nn.Module):
         ir, signal = render_ir(
             geometry.points, geometry.normals, geometry.albedo, lit, self.pattern_field(),
             fx, fy, intr.cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
-            self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits,
+            self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
         )  # fmt: skip
         ctx = {
             "geometry": geometry, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,
@@ -244,7 +248,7 @@ class DepthSensor(nn.Module):
         d_max = min(fb / p.z_min_m, float(self.pad - p.block_size_px))
         result = match(
             ir, self.reference_phases(), self.pad, d_min, d_max, p.block_size_px, self.beta,
-            p.subpixel_level, p.band_rows, p.min_confidence,
+            p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise,
         )  # fmt: skip
         disparity = result.disparity
         for effect in self.effects:

@@ -81,6 +81,7 @@ def render_ir(
     read_noise_std,
     noise: IRNoise | None,
     ir_bits: int = 10,
+    quantise: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Simulate the IR camera image.
 
@@ -95,8 +96,9 @@ def render_ir(
         ambient: ambient IR level (counts), added to every pixel.
         speckle_scale, read_noise_mean, read_noise_std: noise parameters (counts).
         noise: unit noise draws, or None for the noise-free image.
-        ir_bits: ADC bit depth; the image is clipped to [0, 2^bits - 1] and rounded
-            (straight-through) when ``noise`` is given.
+        ir_bits: ADC bit depth; the image is clipped to [0, 2^bits - 1] and, if ``quantise``,
+            rounded to whole counts (straight-through gradient) when ``noise`` is given.
+        quantise: round to whole counts (False only for finite-difference gradient checks).
 
     Returns:
         ir: (H, W) IR image in counts.
@@ -114,5 +116,7 @@ def render_ir(
         return signal + ambient, signal
     # Speckle is a property of the coherent laser light only; ambient light is incoherent.
     ir = signal * (noise.speckle_unit * speckle_scale) + ambient + read_noise_mean + read_noise_std * noise.read_unit
-    ir = straight_through_round(ir.clamp(0.0, 2.0**ir_bits - 1.0))
+    ir = ir.clamp(0.0, 2.0**ir_bits - 1.0)
+    if quantise:
+        ir = straight_through_round(ir)
     return ir, signal

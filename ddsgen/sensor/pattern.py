@@ -29,7 +29,7 @@ import torch.nn.functional as F
 
 from ddsgen.errors import InputError
 
-DOT_VALUE = 180  # 8-bit value of an ordinary dot
+DOT_VALUE = 220  # 8-bit value of an ordinary dot
 MARKER_VALUE = 255  # 8-bit value of a tile's centre marker (brighter, 3x3 px)
 
 
@@ -198,13 +198,22 @@ def fit_pattern(pattern_shape: tuple[int, int], width: int, height: int, pad_lef
     return PatternGeometry(centre_u - scale * (pw - 1) / 2.0, centre_v - scale * (ph - 1) / 2.0, scale)
 
 
+def _psf_peak(sigma_x: float, sigma_y: float, box_x: int, box_y: int) -> float:
+    """Peak of a unit box of box_x x box_y raster pixels blurred by a Gaussian (raster px)."""
+    dot = np.zeros((8 * box_y + 1, 8 * box_x + 1), np.float32)
+    cy, cx = dot.shape[0] // 2, dot.shape[1] // 2
+    dot[cy - box_y // 2 : cy - box_y // 2 + box_y, cx - box_x // 2 : cx - box_x // 2 + box_x] = 1.0
+    return float(cv2.GaussianBlur(dot, (0, 0), sigmaX=sigma_x, sigmaY=sigma_y).max())
+
+
 class PatternField:
     """The projected pattern as a continuous, differentiable intensity field.
 
     Built once per sensor. Each pattern pixel is a square dot of one projector pixel
     (times ``geometry.scale``) convolved with a Gaussian point-spread function of
-    sigma ``psf_px`` projector pixels, rendered on a raster super-sampled ``supersample``
-    times in x and ``supersample // 2`` in y, then sampled bilinearly.
+    sigma ``psf_px`` projector pixels (normalised so a lone dot's peak keeps its value),
+    rendered on a raster super-sampled ``supersample`` times in x and ``supersample // 2``
+    in y, then sampled bilinearly.
 
     Args:
         pattern: (Hp, Wp) float32 pattern image in 8-bit units.
@@ -233,7 +242,10 @@ class PatternField:
         inside_r = (row >= 0) & (row < ph)
         raster = np.zeros((out_h, out_w), np.float32)
         raster[np.ix_(inside_r, inside_c)] = pattern[np.ix_(row[inside_r], col[inside_c])]
-        raster = cv2.GaussianBlur(raster, (0, 0), sigmaX=psf_px * self.sx, sigmaY=psf_px * self.sy)
+        blurred = cv2.GaussianBlur(raster, (0, 0), sigmaX=psf_px * self.sx, sigmaY=psf_px * self.sy)
+        # The PSF spreads a dot without dimming it: a lone dot's peak keeps its pattern value
+        # (the IR counts of a dot centred on a pixel, as in Landau et al.'s binary-dot model).
+        raster = blurred * np.float32(1.0 / _psf_peak(psf_px * self.sx, psf_px * self.sy, self.sx, self.sy))
         self.raster = torch.from_numpy(raster)  # (Hs, Ws), 8-bit units
         self.extent_u = (self.origin_u, self.origin_u + out_w / self.sx)
         self.extent_v = (self.origin_v, self.origin_v + out_h / self.sy)
