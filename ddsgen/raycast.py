@@ -1,18 +1,21 @@
 """Ray casting with Embree (embreex): clean depth, hit points, normals, instance ids, projector shadow.
 
-Geometry is transformed into the camera frame once per frame (float64 -> float32),
-so every primary ray starts at the origin and float32 precision is spent where the
-scene is. Primary rays use the *unnormalised* directions ``K^-1 [u, v, 1]`` (z = 1),
-so Embree's hit distance ``t`` is the depth z itself. Pixel centres are at integer
-``(u, v)`` (OpenCV).
+Primary rays use the *unnormalised* directions ``K^-1 [u, v, 1]`` (z = 1), so the hit
+parameter ``t`` is the depth z itself. Pixel centres are at integer ``(u, v)`` (OpenCV).
 
-Projector shadow: from each hit point P (camera frame), offset by the shadow bias
-``xi`` along the camera-facing normal, one occlusion ray towards the projector centre
-``(+b, 0, 0)``, capped just before the projector. ``shadow`` is True where that ray is
-blocked or where the surface faces away from the projector (n . (t_p - P) <= 0).
+* Planar convex background pieces (ground, walls) are intersected analytically
+  (vectorised numpy); a BVH holding the huge ground triangles slows every ray.
+* Every other mesh has one Embree BVH in its own object frame, built once per process
+  and cached; rays are rotated into the object frame (t is unchanged).
+* Exact image-space culls: a mesh can only be hit by rays inside its projected box, and
+  a shadow segment S -> projector (+b, 0, 0) projects onto image row v_S for u >= u_S, so it
+  can only meet a mesh whose box spans that row to the right of u_S.
 
-Everything is vectorised: one ``run`` call for all primary rays, one occlusion call for
-all shadow rays. Embree releases the GIL inside ``run``.
+Projector shadow: from each hit point P (camera frame), offset by the shadow bias ``xi``
+along the camera-facing normal, one occlusion ray towards the projector centre, capped
+just before it. ``shadow`` is True where that ray is blocked or where the surface faces
+away from the projector (n . (t_p - P) <= 0). No per-pixel Python loops.
+(embreex's ``run`` does not release the GIL in this build: threads do not help.)
 """
 
 from __future__ import annotations

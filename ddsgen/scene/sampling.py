@@ -151,6 +151,11 @@ def polygons_separated(a: np.ndarray, b: np.ndarray, gap: float = 0.0) -> bool:
 
     (Separating-axis theorem; a separation of ``gap`` along an axis implies a distance >= ``gap``.)
     """
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    ra = np.sqrt(((a - ca) ** 2).sum(axis=1).max())
+    rb = np.sqrt(((b - cb) ** 2).sum(axis=1).max())
+    if np.hypot(*(ca - cb)) >= ra + rb + gap:
+        return True  # bounding circles apart: separated along the line of centres
     axes = np.concatenate([_polygon_axes(a), _polygon_axes(b)])
     pa, pb = a @ axes.T, b @ axes.T  # (K, A), (M, A)
     separation = np.maximum(pb.min(axis=0) - pa.max(axis=0), pa.min(axis=0) - pb.max(axis=0))
