@@ -172,11 +172,15 @@ def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, see
             raise InputError(
                 f"{out}: holds a run with different settings ({changed} changed); use a new --out folder to render these"
             )
-    elif out.exists() and any(out.iterdir()):
-        raise InputError(f"{out}: folder exists and is not a ddsgen render; use a new --out folder")
-    out.mkdir(parents=True, exist_ok=True)
-    save_preset(preset, out / "sensor.yaml", comment=f"resolved from {preset.source}")
-    atomic_write_text(run_file, json.dumps(identity, indent=1, sort_keys=True) + "\n")
+    elif out.exists() and (not out.is_dir() or any(out.iterdir())):
+        what = "folder exists and is not a ddsgen render" if out.is_dir() else "exists and is not a folder"
+        raise InputError(f"{out}: {what}; use a new --out folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        save_preset(preset, out / "sensor.yaml", comment=f"resolved from {preset.source}")
+        atomic_write_text(run_file, json.dumps(identity, indent=1, sort_keys=True) + "\n")
+    except OSError as error:
+        raise InputError(f"{out}: cannot write the output folder ({_os_reason(error)})") from None
     manifest = out / MANIFEST
     if not manifest.exists():
         return set()
@@ -184,11 +188,44 @@ def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, see
     return {int(r["frame"]) for r in read_manifest(manifest)}
 
 
+def _os_reason(error: OSError) -> str:
+    """One-line reason of an OSError (also one re-raised from a worker process)."""
+    reason = error.strerror or str(error) or type(error).__name__
+    name = getattr(error, "filename", None)
+    return f"{reason}: {name}" if name else reason
+
+
+def remove_stale_temporaries(out: Path) -> int:
+    """Delete temporary files that a killed process left behind (``.NAME.XXXX.tmp.EXT``, see io/atomic.py).
+
+    Call only when no process is writing into ``out`` (the end of a run). Returns how many were removed.
+    """
+    removed = 0
+    for folder in [out, *(p for p in out.iterdir() if p.is_dir())] if out.is_dir() else []:
+        for path in folder.glob(".*.tmp*"):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+                removed += 1
+    return removed
+
+
 def finalise_manifest(out: Path) -> None:
-    """Rewrite the manifest in frame order (atomic), one record per frame."""
+    """Rewrite the manifest in frame order (atomic), one record per frame; drop stale temporary files."""
+    remove_stale_temporaries(out)
     manifest = out / MANIFEST
     lines = "".join(dumps_record(r) + "\n" for r in sorted_records(read_manifest(manifest)))
     atomic_write_text(manifest, lines)
+
+
+def check_sensor_assets(preset: SensorPreset) -> None:
+    """Load the preset's dot pattern and fit it to the sensor now, so a missing or unusable pattern
+    file is an :class:`InputError` before anything is written (the workers would fail later)."""
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    try:
+        DepthSensor(preset).pattern_field()
+    except InputError as error:
+        raise InputError(f"{preset.source}: pattern: {error}") from None
 
 
 def render_dataset(
@@ -227,6 +264,7 @@ def render_dataset(
     preset = load_preset(preset_path)
     scene_list: SceneList = load_scene_list(scenes_path)  # validates and loads every mesh now
     del scene_list
+    check_sensor_assets(preset)
     out_dir = Path(out)
     done = prepare_output(out_dir, preset, scenes_path, seed)
     todo = [f for f in range(n) if f not in done]
@@ -236,6 +274,7 @@ def render_dataset(
     batches = [todo[i : i + batch_size] for i in range(0, len(todo), batch_size)]
     start = time.perf_counter()
     bar = tqdm(total=n, initial=n - len(todo), unit="frame", desc="render", disable=not progress, dynamic_ncols=True)
+    appended: set[int] = set()
     try:
         if scheduler:
             from ddsgen.distributed import run_on_dask
@@ -247,11 +286,20 @@ def render_dataset(
             results = _run_in_pool(job, batches, workers)
         for records in results:
             for record in records:
+                if int(record["frame"]) in appended:  # a re-run task (e.g. after a worker died): keep one record
+                    continue
                 append_record(manifest, record)
+                appended.add(int(record["frame"]))
             bar.update(len(records))
+        finalise_manifest(out_dir)
+    except OSError as error:
+        # Disk full, folder made read-only, ...: frames already in the manifest are complete and stay valid.
+        raise InputError(
+            f"{out_dir}: cannot write ({_os_reason(error)}); {len(done) + len(appended)} of {n} frames are complete, "
+            f"re-run the same command to resume"
+        ) from None
     finally:
         bar.close()
-    finalise_manifest(out_dir)
     return RenderSummary(n, len(todo), n - len(todo), time.perf_counter() - start, str(out_dir))
 
 
