@@ -1,0 +1,1 @@
+"""Studies of a sensor preset's behaviour against published measurements of real devices."""

@@ -1,0 +1,607 @@
+"""The noise study of the paper (Planche & Singh 2021, Fig. S4): a flat surface at distance z, tilted by alpha.
+
+Set-up (camera frame = world frame, OpenCV axes): a large flat rectangle through the point (0, 0, z) on the
+optical axis, rotated by alpha about the camera's vertical (y) axis, so its right side recedes
+(Z = z + X tan alpha) and the incidence angle at the image centre is alpha. Each (z, alpha) is ray cast
+once (:func:`ddsgen.raycast.cast`, Embree) and its geometry reused for K frames that differ only in the
+sensor's noise seed; every frame goes through the full :class:`~ddsgen.sensor.depth_sensor.DepthSensor`
+(IR image, block matching, depth).
+
+Measured per (z, alpha), over the valid pixels of a region of interest (the central half of the rows and
+columns, restricted to where the true depth is within +-10 % of z, so tilted planes are measured near z):
+
+* ``bias_m``: mean of (depth - true depth);
+* ``rms_m``: root mean square of (depth - true depth);
+* ``std_m``: axial noise as Nguyen, Izadi & Lovell (2012) measure it: per frame, fit a plane to the measured
+  depths (1/Z is linear in the pixel coordinates for a plane, so the fit is exact; fitted on the inliers
+  within max(5 robust sigma, 3 quantisation steps)), then the root mean square of the residuals of *all*
+  valid pixels, pooled over the K frames;
+* ``valid_fraction``: valid pixels / region pixels, over the K frames;
+* ``step_m``: the quantisation step: the spacing of the distinct depth values the sensor output near z
+  (:func:`lattice_step`).
+
+Published curves (DESIGN.md, shared/data/README.md): :func:`nguyen_sigma`, :func:`khoshelham_sigma`;
+the disparity quantisation step is z^2 / (2^n_sub f b) (:func:`quantisation_step`; the device's 1/8 px
+gives z^2 / (8 f b)). :func:`real_quantisation` reads the real Kinect depth values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from ddsgen.errors import InputError
+from ddsgen.preset import PROJECT_ROOT, Intrinsics, SensorPreset
+
+DEFAULT_Z = "0.5:4.0:0.25"
+DEFAULT_ANGLES = "0,15,30,45,60,75"
+DEFAULT_ALBEDO = 0.8  # IR reflectance of the board (a matte white-ish target)
+ROI_DEPTH_TOLERANCE = 0.10  # region of interest: |true depth - z| <= 10 % of z
+SHARED_DATA = PROJECT_ROOT.parent / "shared" / "data"
+LINEMOD_DEPTH = SHARED_DATA / "linemod_bop" / "test" / "000006" / "depth" / "000000.png"
+DISTREAL_MM = SHARED_DATA / "kinect_v1_landau_simulator_data" / "distReal_mm.txt"
+JSON_KEYS = ("z", "angle_deg", "rms_m", "std_m", "bias_m", "valid_fraction", "step_m")
+
+
+# ------------------------------------------------------------------------------------------------ published models
+
+
+def nguyen_sigma(z, angle_deg=None):
+    """Nguyen, Izadi & Lovell 2012 axial noise of a Kinect V1 (m).
+
+    ``angle_deg=None``: the 10-60 deg curve 0.0012 + 0.0019 (z - 0.4)^2. With an angle theta (deg), plus the
+    angle term 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2 (theta in radians).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    sigma = 0.0012 + 0.0019 * (z - 0.4) ** 2
+    if angle_deg is not None:
+        theta = np.radians(np.asarray(angle_deg, dtype=np.float64))
+        sigma = sigma + 0.0001 / np.sqrt(z) * theta**2 / (np.pi / 2 - theta) ** 2
+    return sigma
+
+
+def khoshelham_sigma(z):
+    """Khoshelham & Oude Elberink 2012 random depth error of a Kinect V1, ~1.425e-3 z^2 (m)."""
+    return 1.425e-3 * np.asarray(z, dtype=np.float64) ** 2
+
+
+def quantisation_step(z, focal_px: float, baseline_m: float, subpixel_level: int):
+    """Depth step of one disparity quantum 2^-n px at depth z: z^2 / (2^n f b) (m)."""
+    return np.asarray(z, dtype=np.float64) ** 2 / (2.0**subpixel_level * focal_px * baseline_m)
+
+
+# ------------------------------------------------------------------------------------------------ grid parsing
+
+
+def parse_grid(text: str, option: str, low: float, high: float, low_open: bool = False) -> list[float]:
+    """Parse ``START:STOP:STEP`` (inclusive of STOP when it falls on the grid) or ``A,B,C`` into sorted floats.
+
+    Raises:
+        InputError: ``OPTION: problem`` on malformed text or values outside [low, high] (or (low, high]).
+    """
+    raw = str(text).strip()
+    shown = repr(text)
+    if not raw:
+        raise InputError(f"{option}: expected START:STOP:STEP or a comma-separated list, got {shown}")
+    if ":" in raw:
+        parts = raw.split(":")
+        if len(parts) != 3:
+            raise InputError(f"{option}: expected START:STOP:STEP (three numbers), got {shown}")
+        try:
+            start, stop, step = (float(p) for p in parts)
+        except ValueError:
+            raise InputError(f"{option}: expected START:STOP:STEP with numbers, got {shown}") from None
+        if not all(math.isfinite(v) for v in (start, stop, step)):
+            raise InputError(f"{option}: START:STOP:STEP must be finite numbers, got {shown}")
+        if step <= 0:
+            raise InputError(f"{option}: STEP must be > 0, got {shown}")
+        if stop < start:
+            raise InputError(f"{option}: STOP must not be smaller than START, got {shown}")
+        count = int(math.floor((stop - start) / step + 1e-9)) + 1
+        if count > 1000:
+            raise InputError(f"{option}: {count} values is too many (at most 1000), got {shown}")
+        values = [round(start + i * step, 9) for i in range(count)]
+    else:
+        values = []
+        for item in raw.split(","):
+            try:
+                value = float(item)
+            except ValueError:
+                raise InputError(f"{option}: {item.strip()!r} is not a number (in {shown})") from None
+            if not math.isfinite(value):
+                raise InputError(f"{option}: values must be finite, got {shown}")
+            values.append(value)
+    for value in values:
+        below = value <= low if low_open else value < low
+        if below or value > high:
+            bracket = "(" if low_open else "["
+            raise InputError(f"{option}: {value:g} is outside {bracket}{low:g}, {high:g}]")
+    return sorted(set(values))
+
+
+# ------------------------------------------------------------------------------------------------ set-up
+
+
+def plane_scene(z: float, angle_deg: float, albedo: float = DEFAULT_ALBEDO):
+    """A :class:`~ddsgen.scene.sampling.FrameScene` with one flat rectangle at distance z, tilted by alpha.
+
+    The rectangle passes through (0, 0, z) (camera frame = world frame), with in-plane x axis
+    (cos a, 0, sin a) and normal (-sin a, 0, cos a): rotated by ``angle_deg`` about the vertical axis, the
+    right side receding. It extends 3 z along its x axis on the far side and, on the near side, at most to
+    where it comes within 0.25 z of the camera, and far enough vertically to fill the field of view.
+    """
+    import trimesh
+
+    from ddsgen.scene.sampling import FrameScene, PlacedObject
+
+    a = math.radians(angle_deg)
+    sin_a, cos_a = math.sin(a), math.cos(a)
+    far = 3.0 * z
+    near = min(3.0 * z, 0.75 * z / sin_a) if sin_a > 1e-9 else 3.0 * z
+    half_y = 0.6 * (z + far * sin_a) + 0.5 * z
+    vertices = np.array([[-near, -half_y, 0.0], [far, -half_y, 0.0], [far, half_y, 0.0], [-near, half_y, 0.0]])
+    mesh = trimesh.Trimesh(vertices=vertices, faces=np.array([[0, 1, 2], [0, 2, 3]]), process=False)
+    world_T_obj = np.eye(4)
+    world_T_obj[:3, 0] = [cos_a, 0.0, sin_a]
+    world_T_obj[:3, 1] = [0.0, 1.0, 0.0]
+    world_T_obj[:3, 2] = [-sin_a, 0.0, cos_a]
+    world_T_obj[:3, 3] = [0.0, 0.0, z]
+    board = PlacedObject(1, "board", f"plane:{near + far:g}x{2 * half_y:g}", mesh, world_T_obj, float(albedo))
+    return FrameScene(objects=[board], background=[], world_T_cam=np.eye(4), frame_index=0, seed=0,
+                      scene_name=f"plane z={z:g} angle={angle_deg:g}")  # fmt: skip
+
+
+def study_intrinsics(preset: SensorPreset, rows: int | None = None) -> Intrinsics:
+    """The preset's intrinsics, or a centred crop of ``rows`` image rows (same focal length and columns).
+
+    A crop sees exactly the central rows of the full sensor: the rows are matched independently and the
+    pattern is centred on the image, so a crop is the same physics on fewer pixels (used by the tests).
+    """
+    intr = preset.intrinsics
+    if rows is None or rows >= intr.height:
+        return intr
+    if rows < 2 * preset.block_size_px or (intr.height - rows) % 2:
+        raise InputError(
+            f"--rows: must be >= {2 * preset.block_size_px} and leave an even number of rows "
+            f"({intr.height} - rows), got {rows}"
+        )
+    top = (intr.height - rows) // 2
+    return Intrinsics(intr.width, rows, intr.fx, intr.fy, intr.cx, intr.cy - top)
+
+
+def region_of_interest(clean_depth: np.ndarray, usable: np.ndarray, z: float) -> np.ndarray:
+    """(H, W) bool: the central half of rows and columns, where the true depth is within 10 % of z."""
+    height, width = clean_depth.shape
+    roi = np.zeros((height, width), bool)
+    roi[height // 4 : height - height // 4, width // 4 : width - width // 4] = True
+    return roi & usable & (np.abs(clean_depth - z) <= ROI_DEPTH_TOLERANCE * z)
+
+
+# ------------------------------------------------------------------------------------------------ measurements
+
+
+def plane_residuals(u: np.ndarray, v: np.ndarray, depth: np.ndarray, inlier_floor_m: float = 0.0) -> np.ndarray:
+    """Depth minus the plane fitted to (u, v, depth); NaN-free, same length as ``depth``.
+
+    A plane's inverse depth is linear in the pixel coordinates, so 1/Z = a u + b v + c is fitted by least
+    squares, first on all points, then again on the inliers within max(5 robust sigma, ``inlier_floor_m``)
+    (mismatches must not tilt the reference plane; they still count in the residuals returned).
+    """
+    design = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
+    inverse = 1.0 / depth.astype(np.float64)
+    keep = np.ones(len(depth), bool)
+    residual = np.zeros(len(depth))
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(design[keep], inverse[keep], rcond=None)
+        residual = depth - 1.0 / (design @ coef)
+        centre = np.median(residual[keep])
+        robust_sigma = 1.4826 * np.median(np.abs(residual[keep] - centre))
+        keep = np.abs(residual - centre) <= max(5.0 * robust_sigma, inlier_floor_m)
+        if keep.sum() < 3:
+            break
+    return residual
+
+
+def _gap_free_mean(diffs: np.ndarray, resolution: float) -> float:
+    """Mean of consecutive differences, leaving out gaps (> 1.5 x their median + the values' resolution)."""
+    return float(diffs[diffs <= 1.5 * np.median(diffs) + resolution].mean())
+
+
+def lattice_step(values: np.ndarray, z: float, tolerance: float = 0.05, resolution: float = 0.0) -> float | None:
+    """Spacing of the distinct depth values near z (m), or None when fewer than two are found.
+
+    Distinct values (rounded to 1 um) within ``tolerance`` * z of z; consecutive differences larger than 1.5
+    times their median plus ``resolution`` (the rounding unit of the values, e.g. 1 mm for 16-bit PNG
+    millimetres, whose steps alternate e.g. 1, 2, 1, 2 mm) are gaps (values nobody output), not steps, and are
+    left out; the step is the mean of the rest.
+    """
+    values = np.unique(np.round(np.asarray(values, dtype=np.float64), 6))
+    near = values[np.abs(values - z) <= tolerance * z]
+    if len(near) < 2:
+        return None
+    diffs = np.diff(near)
+    return _gap_free_mean(diffs, resolution)
+
+
+def local_steps(values: np.ndarray, resolution: float = 0.0, window: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """(depths, steps): the gap-free mean step of each run of ``window`` consecutive distinct values."""
+    values = np.unique(np.asarray(values, dtype=np.float64))
+    if len(values) < window + 1:
+        return np.zeros(0), np.zeros(0)
+    diffs = np.lib.stride_tricks.sliding_window_view(np.diff(values), window)
+    centres = np.lib.stride_tricks.sliding_window_view(values, window + 1).mean(axis=1)
+    steps = np.array([_gap_free_mean(d, resolution) for d in diffs])
+    return centres, steps
+
+
+@dataclasses.dataclass
+class NoisePoint:
+    """The measurements at one (z, alpha). Lengths in metres. ``None`` where nothing valid was measured."""
+
+    z: float
+    angle_deg: float
+    rms_m: float | None
+    std_m: float | None
+    bias_m: float | None
+    valid_fraction: float
+    step_m: float | None
+    roi_pixels: int = 0  # region pixels per frame
+    frames: int = 0
+    outlier_fraction: float | None = None  # valid pixels whose plane residual exceeds 5 robust sigma / 3 steps
+    inlier_std_m: float | None = None  # like std_m, without the outliers (the noise of the correct matches)
+
+    def as_json(self) -> dict:
+        """Exactly the ``noise.json`` keys."""
+        return {key: getattr(self, key) for key in JSON_KEYS}
+
+
+class _Accumulator:
+    """Pools the per-frame statistics of one (z, alpha)."""
+
+    def __init__(self, clean_depth: np.ndarray, roi: np.ndarray, step_floor_m: float):
+        self.v, self.u = (a.astype(np.float64) for a in np.nonzero(roi))
+        self.roi = roi
+        self.truth = clean_depth[roi].astype(np.float64)
+        self.step_floor_m = step_floor_m
+        self.frames = 0
+        self.n_valid = 0
+        self.err_sum = 0.0
+        self.err_sq = 0.0
+        self.res_sq = 0.0
+        self.res_n = 0
+        self.outliers = 0
+        self.inlier_sq = 0.0
+        self.inlier_n = 0
+        self.values: list[np.ndarray] = []
+
+    def add(self, depth: np.ndarray, valid: np.ndarray) -> None:
+        self.frames += 1
+        d = depth[self.roi].astype(np.float64)
+        ok = valid[self.roi] & (d > 0)
+        if not ok.any():
+            return
+        d_ok = d[ok]
+        error = d_ok - self.truth[ok]
+        self.n_valid += int(ok.sum())
+        self.err_sum += float(error.sum())
+        self.err_sq += float((error**2).sum())
+        self.values.append(d_ok.astype(np.float32))
+        if ok.sum() >= 10:
+            residual = plane_residuals(self.u[ok], self.v[ok], d_ok, inlier_floor_m=3.0 * self.step_floor_m)
+            self.res_sq += float((residual**2).sum())
+            self.res_n += len(residual)
+            centre = np.median(residual)
+            sigma = 1.4826 * np.median(np.abs(residual - centre))
+            inlier = np.abs(residual - centre) <= max(5.0 * sigma, 3.0 * self.step_floor_m)
+            self.outliers += int((~inlier).sum())
+            self.inlier_sq += float((residual[inlier] ** 2).sum())
+            self.inlier_n += int(inlier.sum())
+
+    def result(self, z: float, angle_deg: float) -> NoisePoint:
+        n_roi = int(self.roi.sum())
+        total = n_roi * self.frames
+        valid_fraction = self.n_valid / total if total else 0.0
+        if self.n_valid == 0:
+            return NoisePoint(z, angle_deg, None, None, None, valid_fraction, None, n_roi, self.frames)
+        values = np.concatenate(self.values)
+        return NoisePoint(
+            z=z,
+            angle_deg=angle_deg,
+            rms_m=math.sqrt(self.err_sq / self.n_valid),
+            std_m=math.sqrt(self.res_sq / self.res_n) if self.res_n else None,
+            bias_m=self.err_sum / self.n_valid,
+            valid_fraction=valid_fraction,
+            step_m=lattice_step(values, z),
+            roi_pixels=n_roi,
+            frames=self.frames,
+            outlier_fraction=self.outliers / self.res_n if self.res_n else None,
+            inlier_std_m=math.sqrt(self.inlier_sq / self.inlier_n) if self.inlier_n else None,
+        )
+
+
+def frame_seed(seed: int, z: float, angle_deg: float, frame: int) -> list[int]:
+    """The noise seed of frame k at (z, alpha): independent of the rest of the grid."""
+    return [int(seed), int(round(z * 10000)), int(round(angle_deg * 10000)), int(frame)]
+
+
+def run_noise_study(
+    preset: SensorPreset,
+    zs: Iterable[float],
+    angles_deg: Iterable[float],
+    frames: int = 4,
+    seed: int = 0,
+    rows: int | None = None,
+    albedo: float = DEFAULT_ALBEDO,
+    on_frame: Callable[[], None] | None = None,
+) -> list[NoisePoint]:
+    """Render and measure every (z, alpha) of the grid; K = ``frames`` noise seeds each.
+
+    Args:
+        preset: the sensor.
+        zs: plane distances (m); angles_deg: tilts about the vertical axis (deg, 0 <= alpha < 90).
+        frames: frames (noise seeds) per point.
+        seed: study seed; frame k of (z, alpha) uses :func:`frame_seed`.
+        rows: render only a centred crop of this many rows (None: the full image).
+        albedo: IR reflectance of the board.
+        on_frame: called after every simulated frame (progress).
+
+    Returns:
+        One :class:`NoisePoint` per (z, alpha), z-major.
+    """
+    import torch
+
+    from ddsgen.raycast import cast
+    from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry
+
+    if frames < 1:
+        raise InputError(f"--frames: must be >= 1, got {frames}")
+    intr = study_intrinsics(preset, rows)
+    sensor = DepthSensor(preset, intrinsics=intr).eval()
+    points = []
+    for z in zs:
+        step_floor = float(quantisation_step(z, intr.fx, preset.baseline_m, preset.subpixel_level))
+        for angle in angles_deg:
+            hits = cast(plane_scene(z, angle, albedo), intr, preset.baseline_m, preset.shadow_bias_m)
+            geometry = SensorGeometry.from_hits(hits)
+            roi = region_of_interest(hits.depth, hits.hit & ~hits.shadow, z)
+            acc = _Accumulator(hits.depth, roi, step_floor)
+            for k in range(frames):
+                with torch.no_grad():
+                    out = sensor(geometry, seed=frame_seed(seed, z, angle, k))
+                acc.add(out.depth.numpy(), out.valid.numpy())
+                if on_frame is not None:
+                    on_frame()
+            points.append(acc.result(float(z), float(angle)))
+    return points
+
+
+# ------------------------------------------------------------------------------------------------ real data
+
+
+@dataclasses.dataclass
+class RealQuantisation:
+    """Distinct depth values of real Kinect V1 output (m), for the quantisation check."""
+
+    linemod: np.ndarray | None  # distinct values of the real LineMOD frame (OpenNI, whole mm)
+    distreal: np.ndarray | None  # the values a real Kinect for Windows can output (Landau et al.)
+    messages: list[str]
+
+    def step_at(self, z: float) -> dict[str, float | None]:
+        out = {}
+        for name in ("linemod", "distreal"):
+            values = getattr(self, name)
+            out[name] = lattice_step(values, z, resolution=1e-3) if values is not None else None
+        return out
+
+
+def real_quantisation(linemod_png: Path | str | None = LINEMOD_DEPTH, distreal_txt: Path | str | None = DISTREAL_MM):
+    """Read the real depth values; a missing file gives None and a message (the check is then skipped)."""
+    import cv2
+
+    messages = []
+    linemod = distreal = None
+    if linemod_png is not None and Path(linemod_png).is_file():
+        image = cv2.imread(str(linemod_png), cv2.IMREAD_UNCHANGED)
+        if image is None or image.dtype != np.uint16:
+            messages.append(f"{linemod_png}: not a 16-bit depth PNG; LineMOD quantisation check skipped")
+        else:
+            linemod = np.unique(image[image > 0]).astype(np.float64) / 1000.0
+    else:
+        messages.append(f"{linemod_png}: not found; LineMOD quantisation check skipped")
+    if distreal_txt is not None and Path(distreal_txt).is_file():
+        try:
+            distreal = np.unique(np.loadtxt(distreal_txt, dtype=np.float64)) / 1000.0
+        except ValueError as error:
+            messages.append(f"{distreal_txt}: unreadable ({error}); real value-list check skipped")
+    else:
+        messages.append(f"{distreal_txt}: not found; real Kinect value-list check skipped")
+    return RealQuantisation(linemod, distreal, messages)
+
+
+# ------------------------------------------------------------------------------------------------ outputs
+
+
+def write_noise_json(points: list[NoisePoint], path: Path | str) -> None:
+    """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...]}``, atomically."""
+    from ddsgen.io.atomic import atomic_write_text
+
+    atomic_write_text(path, json.dumps({"points": [p.as_json() for p in points]}, indent=1) + "\n")
+
+
+def _mm(value: float | None, digits: int = 2) -> str:
+    return "n/a" if value is None else f"{1000 * value:.{digits}f}"
+
+
+def noise_table(points: list[NoisePoint]) -> str:
+    """A Markdown table of the measurements beside the Nguyen curve (ratios std/Nguyen and rms/Nguyen).
+
+    "Nguyen" is the 10-60 deg curve 0.0012 + 0.0019 (z - 0.4)^2; "Nguyen+angle" adds the angle term.
+    """
+    lines = [
+        "| z (m) | α (°) | std (mm) | rms (mm) | bias (mm) | valid | outliers | inlier std (mm) | Nguyen (mm) "
+        "| Nguyen+angle (mm) | std/Nguyen | rms/Nguyen | inlier std/Nguyen | step (mm) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for p in points:
+        base = float(nguyen_sigma(p.z))
+        full = float(nguyen_sigma(p.z, p.angle_deg))
+        ratio = "n/a" if p.std_m is None else f"{p.std_m / base:.2f}"
+        ratio_rms = "n/a" if p.rms_m is None else f"{p.rms_m / base:.2f}"
+        ratio_inlier = "n/a" if p.inlier_std_m is None else f"{p.inlier_std_m / base:.2f}"
+        outliers = "n/a" if p.outlier_fraction is None else f"{100 * p.outlier_fraction:.2f}%"
+        lines.append(
+            f"| {p.z:g} | {p.angle_deg:g} | {_mm(p.std_m)} | {_mm(p.rms_m)} | {_mm(p.bias_m)} | "
+            f"{p.valid_fraction:.3f} | {outliers} | {_mm(p.inlier_std_m)} | {1000 * base:.2f} | {1000 * full:.2f} | "
+            f"{ratio} | {ratio_rms} | {ratio_inlier} | {_mm(p.step_m)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def quantisation_table(points: list[NoisePoint], preset: SensorPreset, real: RealQuantisation,
+                       at=(1.0, 2.0)) -> str:  # fmt: skip
+    """Markdown: the quantisation step at ``at`` (m): simulated, preset formula, device formula, real data."""
+    f, b, n = preset.focal_px, preset.baseline_m, preset.subpixel_level
+    lines = [
+        f"| z (m) | simulated (mm) | z²/(2^{n}·f·b) (mm) | z²/(8·f·b) (mm) | real LineMOD frame (mm) "
+        "| real distReal list (mm) | simulated / LineMOD | simulated / distReal |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for z in at:
+        sims = [p.step_m for p in points if abs(p.z - z) < 1e-9 and p.step_m is not None]
+        sim = float(np.median(sims)) if sims else None
+        real_steps = real.step_at(z)
+        ratios = []
+        for name in ("linemod", "distreal"):
+            r = real_steps[name]
+            ratios.append("n/a" if sim is None or r is None else f"{sim / r:.2f}")
+        lines.append(
+            f"| {z:g} | {_mm(sim)} | {1000 * float(quantisation_step(z, f, b, n)):.2f} | "
+            f"{1000 * float(quantisation_step(z, f, b, 3)):.2f} | {_mm(real_steps['linemod'])} | "
+            f"{_mm(real_steps['distreal'])} | {ratios[0]} | {ratios[1]} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQuantisation, path: Path | str) -> None:
+    """One PNG, six panels: std vs z per alpha with Nguyen / Khoshelham; std / Nguyen; std vs alpha;
+    quantisation step vs z with the real device's values; bias vs z; valid fraction vs z."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ddsgen.io.atomic import atomic_path
+
+    angles = sorted({p.angle_deg for p in points})
+    zs = sorted({p.z for p in points})
+    colours = plt.cm.viridis(np.linspace(0.0, 0.9, max(len(angles), 1)))
+    z_line = np.linspace(min(zs + [0.4]), max(zs + [4.0]), 200)
+
+    def series(angle, key):
+        rows = [(p.z, getattr(p, key)) for p in points if p.angle_deg == angle and getattr(p, key) is not None]
+        return (np.array([r[0] for r in rows]), np.array([r[1] for r in rows])) if rows else (np.zeros(0), np.zeros(0))
+
+    fig, axes = plt.subplots(2, 3, figsize=(17, 10))
+    ax = axes[0, 0]
+    for colour, angle in zip(colours, angles):
+        z, s = series(angle, "std_m")
+        ax.plot(z, 1000 * s, "o-", color=colour, ms=4, label=f"simulated α={angle:g}°")
+        z, s = series(angle, "inlier_std_m")
+        ax.plot(z, 1000 * s, "o:", color=colour, ms=4, mfc="none", lw=0.8)
+        if angle > 60:
+            ax.plot(z_line, 1000 * nguyen_sigma(z_line, angle), "--", color=colour, lw=1,
+                    label=f"Nguyen 2012 with angle term, θ={angle:g}°")  # fmt: skip
+    ax.plot(z_line, 1000 * nguyen_sigma(z_line), "k--", lw=2, label="Nguyen 2012 (10°–60°)")
+    ax.fill_between(z_line, 700 * nguyen_sigma(z_line), 1300 * nguyen_sigma(z_line), color="k", alpha=0.08,
+                    label="Nguyen ±30 %")  # fmt: skip
+    ax.plot(z_line, 1000 * khoshelham_sigma(z_line), "k:", lw=2, label="Khoshelham 2012 1.425e-3 z²")
+    ax.set_yscale("log")
+    ax.set_xlabel("plane distance z (m)")
+    ax.set_ylabel("axial noise std (mm, plane removed)\nhollow: without outlier matches")
+    ax.set_title(f"{preset.name}: axial noise vs distance")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+
+    ax = axes[0, 1]
+    for colour, angle in zip(colours, angles):
+        z, s = series(angle, "std_m")
+        if len(z):
+            ax.plot(z, s / nguyen_sigma(z), "o-", color=colour, ms=4, label=f"α={angle:g}°")
+    ax.axhspan(0.7, 1.3, color="g", alpha=0.1, label="goal ±30 %")
+    ax.axhline(1.0, color="k", lw=1)
+    ax.set_yscale("log")
+    ax.set_xlabel("plane distance z (m)")
+    ax.set_ylabel("simulated std / Nguyen (10°–60° curve)")
+    ax.set_title("ratio to Nguyen 2012")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+
+    ax = axes[0, 2]
+    picks = [z for z in (0.5, 1.0, 2.0, 3.0, 3.5) if z in zs] or zs[:: max(len(zs) // 4, 1)]
+    theta = np.linspace(0.0, max(angles + [75.0]), 100)
+    for colour, z in zip(plt.cm.plasma(np.linspace(0.0, 0.85, len(picks))), picks):
+        rows = [(p.angle_deg, p.std_m) for p in points if p.z == z and p.std_m is not None]
+        if rows:
+            ax.plot([r[0] for r in rows], [1000 * r[1] for r in rows], "o-", color=colour, label=f"simulated z={z:g} m")
+        ax.plot(theta, 1000 * nguyen_sigma(z, theta), "--", color=colour, lw=1, label=f"Nguyen+angle z={z:g} m")
+    ax.set_yscale("log")
+    ax.set_xlabel("tilt α (deg)")
+    ax.set_ylabel("axial noise std (mm)")
+    ax.set_title("axial noise vs tilt")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+
+    ax = axes[1, 0]
+    f, b, n = preset.focal_px, preset.baseline_m, preset.subpixel_level
+    steps = [(p.z, p.step_m) for p in points if p.step_m is not None]
+    if steps:
+        ax.plot([s[0] for s in steps], [1000 * s[1] for s in steps], "bo", ms=5, label="simulated (distinct values)")
+    ax.plot(z_line, 1000 * quantisation_step(z_line, f, b, n), "b-", label=f"z²/(2^{n}·f·b) (preset, 1/{2**n} px)")
+    ax.plot(z_line, 1000 * quantisation_step(z_line, f, b, 3), "k--", label="z²/(8·f·b) (device, 1/8 px)")
+    if real.linemod is not None:
+        mids, diffs = local_steps(real.linemod, resolution=1e-3)
+        ax.plot(mids, 1000 * diffs, ".", color="tab:red", ms=3, alpha=0.6, label="real LineMOD frame (OpenNI, mm)")
+    if real.distreal is not None:
+        mids, diffs = local_steps(real.distreal, resolution=1e-3)
+        ax.plot(mids, 1000 * diffs, "-", color="tab:orange", lw=1, label="real Kinect for Windows value list")
+    for message in real.messages:
+        ax.text(0.02, 0.98 - 0.05 * real.messages.index(message), message[-70:], transform=ax.transAxes,
+                fontsize=6, va="top")  # fmt: skip
+    ax.set_yscale("log")
+    ax.set_xlabel("depth z (m)")
+    ax.set_ylabel("quantisation step (mm)")
+    ax.set_title("depth quantisation step")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+
+    ax = axes[1, 1]
+    for colour, angle in zip(colours, angles):
+        z, s = series(angle, "bias_m")
+        ax.plot(z, 1000 * s, "o-", color=colour, ms=4, label=f"α={angle:g}°")
+    ax.axhline(0.0, color="k", lw=1)
+    ax.set_xlabel("plane distance z (m)")
+    ax.set_ylabel("bias: mean(depth − true) (mm)")
+    ax.set_title("bias")
+    ax.legend(fontsize=7)
+    ax.grid(True, alpha=0.3)
+
+    ax = axes[1, 2]
+    for colour, angle in zip(colours, angles):
+        z, s = series(angle, "valid_fraction")
+        ax.plot(z, s, "o-", color=colour, ms=4, label=f"α={angle:g}°")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("plane distance z (m)")
+    ax.set_ylabel("valid fraction of the region")
+    ax.set_title("valid pixels")
+    ax.legend(fontsize=7)
+    ax.grid(True, alpha=0.3)
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
