@@ -1,6 +1,8 @@
 """IR image formation: what the IR camera captures when the projector lights the scene.
 
     signal = albedo * eta_c * Pi(proj(P)) * max(0, n.l) / ||P - t_p||_mm^2 * (1 - S)
+
+where Pi is the pattern in units of LIT_DOT_INTENSITY / 255 per 8-bit value.
     I      = quantise(clip(signal * speckle + ambient + read_noise))
 
 with the projector a pinhole of the camera's intrinsics at t_p = (+b, 0, 0) in the
@@ -23,6 +25,14 @@ import numpy as np
 import torch
 
 from ddsgen.sensor.pattern import PatternField
+
+# Intensity of a fully lit dot (8-bit pattern value 255) in the units eta_c multiplies.
+# Chosen so that the paper's eta_c = 1.5e6 (counts * mm^2) reproduces Landau et al.'s
+# fit to a real Kinect V1, I = 5.90e8 * cos / r_mm^2 counts for a lit dot:
+# 5.90e8 / 1.5e6 = 393 per lit dot. (With 1 unit per 8-bit value, a dot at 3 m gave
+# ~26 counts against 10.4 counts of read noise, and a plane at 3 m was only 50 % valid.)
+LIT_DOT_INTENSITY = 5.90e8 / 1.5e6
+PATTERN_UNIT = LIT_DOT_INTENSITY / 255.0
 
 
 @dataclass
@@ -92,7 +102,8 @@ def render_ir(
         lit: (H, W) float {0, 1}: 1 where there is a hit that the projector sees (1 - shadow).
         field: the projector's pattern field.
         fx, fy, cx, cy, baseline: camera/projector geometry (px, m); tensors for gradients.
-        emitted_intensity: eta_c (counts * mm^2 per 8-bit pattern unit).
+        emitted_intensity: eta_c (counts * mm^2 per unit of dot intensity; a lit dot is
+            LIT_DOT_INTENSITY units).
         ambient: ambient IR level (counts), added to every pixel.
         speckle_scale, read_noise_mean, read_noise_std: noise parameters (counts).
         noise: unit noise draws, or None for the noise-free image.
@@ -106,7 +117,7 @@ def render_ir(
             effects and diagnostics.
     """
     u_p, v_p = projector_coordinates(points, fx, fy, cx, cy, baseline)
-    pattern = field.sample(u_p, v_p)
+    pattern = field.sample(u_p, v_p) * PATTERN_UNIT
     to_projector = torch.stack([baseline - points[..., 0], -points[..., 1], -points[..., 2]], dim=-1)
     distance_m = torch.linalg.vector_norm(to_projector, dim=-1).clamp_min(1e-6)
     cos_incidence = ((normals * to_projector).sum(-1) / distance_m).clamp_min(0.0)
