@@ -136,7 +136,13 @@ class DepthSensor(nn.Module):
         self.log_baseline = _log_param(preset.baseline_m)
         self.log_focal_scale = nn.Parameter(torch.tensor(0.0))
         self.effects = nn.ModuleList(build_effects(preset.effects))
+        # Optional post-processing CNN (ddsgen.sensor.postprocess): called as
+        # (depth, valid, valid_soft, geometry) -> (depth, valid, valid_soft).
         self.postprocess: nn.Module | None = None
+        if preset.postprocess:
+            from ddsgen.sensor.postprocess import load_postprocess
+
+            self.postprocess = load_postprocess(preset.resolve_path(preset.postprocess))
         # Reference padding: the largest disparity the matcher may search, plus the window.
         self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px
         self.margin = preset.block_size_px + 2
@@ -270,12 +276,13 @@ class DepthSensor(nn.Module):
         in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
         valid = result.valid & geometry.hit & ~geometry.shadow & in_range & (keep > 0.5)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
+        valid_soft = keep * in_range.float()
         if self.postprocess is not None:
-            depth, valid = self.postprocess(depth, valid, geometry, ctx)
+            depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)
         return SensorOutput(
             depth=depth,
             valid=valid,
-            valid_soft=keep * in_range.float(),
+            valid_soft=valid_soft,
             ir=ir,
             disparity=torch.where(valid, disparity, torch.zeros_like(disparity)),
             confidence=result.confidence,

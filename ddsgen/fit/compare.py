@@ -1,0 +1,337 @@
+"""How far is the simulation from a real sensor: the headline gap, its parts, plots.
+
+The headline metric (``gap``, millimetres)
+------------------------------------------
+For each frame, on its comparison region R (modelled geometry visible and plausible, see
+:mod:`ddsgen.fit.simulate`), with the simulation run at a fixed noise seed:
+
+    gap_f = D_f + G_f + V_f                                    (mm)
+
+* D_f -- **systematic depth error**: mean Huber (delta 5 mm) of the 5x5 masked local median
+  of sim - real over pixels valid in both. The local median keeps what is systematic
+  (bias, scale, edge and shadow structure, quantisation staircases) and removes what is
+  independent per pixel (noise, isolated mismatches), which no simulator can reproduce
+  pixel for pixel.
+* G_f -- **noise-texture mismatch**: Huber of the difference between the mean |Sobel| of
+  (sim - clean) and of (real - clean), per 0.25 m depth bin, pixel-weighted.
+* V_f -- **validity disagreement**: 20 mm x mean over R of the squared difference of the
+  local (5x5) valid rates of sim and real.
+
+    gap = mean over frames of gap_f.
+
+These are exactly the loss terms of :mod:`ddsgen.fit.losses` (so ``fit`` minimises what
+``compare`` reports). Two independent noise draws of the *same* sensor do not score 0:
+``noise_floor`` is the gap between two simulations of the sensor under test with different
+noise seeds, and ``excess = gap - noise_floor`` is the part a better model could remove.
+
+Parts reported besides: bias (median) and spread (1.4826 MAD) of sim - real, and of real -
+clean and sim - clean, binned by clean depth, incidence angle and image radius; validity
+confusion (both valid / real only / sim only / neither) as fractions of R.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ddsgen.fit.losses import LossWeights, frame_loss
+from ddsgen.fit.simulate import FrameData, simulate
+
+DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
+INCIDENCE_EDGES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.01)
+RADIUS_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.01)
+MIN_BIN_PIXELS = 20
+
+
+@dataclasses.dataclass
+class GapReport:
+    """Result of :func:`gap`.
+
+    gap: headline (mm); noise_floor: gap between two simulation draws (mm, NaN if not computed);
+    frames: per-frame dicts (name, gap, depth_mm, gradient_mm, validity_mm, bias_mm, spread_mm,
+    confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
+    real depth, region) numpy arrays when requested (for residual plots).
+    """
+
+    gap: float
+    noise_floor: float
+    frames: list[dict]
+    parts: dict
+    region: str = "all"
+    maps: list[dict] = dataclasses.field(default_factory=list)
+
+    @property
+    def excess(self) -> float:
+        return self.gap - self.noise_floor if math.isfinite(self.noise_floor) else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"gap": _r(self.gap), "noise_floor": _r(self.noise_floor), "excess": _r(self.excess),
+                "units": "mm", "region": self.region, "definition": DEFINITION, "frames": self.frames,
+                "parts": self.parts}  # fmt: skip
+
+
+DEFINITION = (
+    "gap = mean over frames of D + G + V (mm) on the modelled, plausible region: D = mean Huber(5 mm) of the 5x5 "
+    "local median of sim - real (both valid); G = Huber of the difference of mean |Sobel(depth - clean)| of sim "
+    "and real per 0.25 m depth bin; V = 20 mm x mean squared difference of 5x5 local valid rates. "
+    "noise_floor = the same between two noise draws of the simulated sensor; excess = gap - noise_floor."
+)
+
+
+def _r(x, nd=4):
+    x = float(x)
+    return round(x, nd) if math.isfinite(x) else None
+
+
+def _robust(values: np.ndarray) -> tuple[float, float]:
+    if values.size == 0:
+        return float("nan"), float("nan")
+    med = float(np.median(values))
+    return med, float(1.4826 * np.median(np.abs(values - med)))
+
+
+def _mask(frame: FrameData, region: str) -> torch.Tensor:
+    if region == "objects":
+        return frame.object_region
+    if region == "all":
+        return frame.region
+    raise ValueError(f"region must be 'all' or 'objects', got {region!r}")
+
+
+def _with_region(frame: FrameData, region: str) -> FrameData:
+    return frame if region == "all" else dataclasses.replace(frame, region=_mask(frame, region))
+
+
+def _confusion(sim_valid, real_valid, region) -> dict:
+    n = max(int(region.sum()), 1)
+    return {
+        "both_valid": _r(int((region & sim_valid & real_valid).sum()) / n),
+        "real_only": _r(int((region & ~sim_valid & real_valid).sum()) / n),
+        "sim_only": _r(int((region & sim_valid & ~real_valid).sum()) / n),
+        "neither": _r(int((region & ~sim_valid & ~real_valid).sum()) / n),
+    }
+
+
+def frame_gap(sim, frame: FrameData, region: str = "all") -> dict:
+    """Gap terms and parts of one simulated frame (see the module docstring)."""
+    f = _with_region(frame, region)
+    with torch.no_grad():
+        terms = frame_loss(sim, f, LossWeights(depth=1.0, gradient=1.0, validity=1.0, pixel=0.0))
+    mask = f.region
+    both = mask & sim.valid & f.real_valid
+    err = ((sim.depth - f.real_depth)[both] * 1000.0).numpy()
+    bias, spread = _robust(err)
+    return {
+        "name": frame.name,
+        "gap": _r(terms["total"]),
+        "depth_mm": _r(terms["depth"]),
+        "gradient_mm": _r(terms["gradient"]),
+        "validity_mm": _r(terms["validity"]),
+        "pixel_huber_mm": _r(terms["pixel"]),
+        "bias_mm": _r(bias),
+        "spread_mm": _r(spread),
+        "pixels": int(mask.sum()),
+        "confusion": _confusion(sim.valid, f.real_valid, mask),
+        "pose_error_mm": _r(frame.pose_error_mm),
+    }
+
+
+def _bins(rows: dict[str, np.ndarray], key: str, edges) -> list[dict]:
+    x = rows[key]
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (x >= lo) & (x < hi)
+        if int(sel.sum()) < MIN_BIN_PIXELS:
+            continue
+        both = sel & rows["sim_valid"] & rows["real_valid"]
+        entry = {"low": lo, "high": hi, "pixels": int(sel.sum()), "both_valid": int(both.sum()),
+                 "real_valid_rate": _r(rows["real_valid"][sel].mean()),
+                 "sim_valid_rate": _r(rows["sim_valid"][sel].mean())}  # fmt: skip
+        for name, a, b in (("gap", "sim", "real"), ("real", "real", "clean"), ("sim", "sim", "clean")):
+            bias, spread = _robust((rows[a][both] - rows[b][both]) * 1000.0)
+            entry[f"{name}_bias_mm"], entry[f"{name}_spread_mm"] = _r(bias), _r(spread)
+        out.append(entry)
+    return out
+
+
+def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, noise_floor: bool = True,
+        keep_maps: bool = False, progress: bool = False) -> GapReport:  # fmt: skip
+    """The headline gap between ``sensor`` and the real scans of ``frames``, with its parts.
+
+    Args:
+        sensor: a :class:`~ddsgen.sensor.depth_sensor.DepthSensor` (not modified).
+        frames: from :func:`ddsgen.fit.simulate.prepare_frames`.
+        region: ``"all"`` (every modelled, plausible pixel) or ``"objects"`` (only the objects').
+        seed: noise seed of the simulation (the floor uses ``seed + 1000``).
+        noise_floor: also compute the gap between two noise draws of ``sensor``.
+        keep_maps: keep per-frame depth maps in ``GapReport.maps`` (for residual plots).
+        progress: show a progress bar.
+
+    Returns:
+        :class:`GapReport`.
+    """
+    from tqdm import tqdm
+
+    per_frame, floors, maps = [], [], []
+    rows = {k: [] for k in ("depth", "incidence", "radius", "sim", "real", "clean", "sim_valid", "real_valid")}
+    totals = {"both_valid": 0, "real_only": 0, "sim_only": 0, "neither": 0}
+    n_total = 0
+    with torch.no_grad():
+        for frame in tqdm(frames, desc="compare", unit="frame", disable=not progress, leave=False):
+            sim = simulate(sensor, frame, seed)
+            per_frame.append(frame_gap(sim, frame, region))
+            if noise_floor:
+                other = simulate(sensor, frame, seed + 1000)
+                twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
+                floors.append(frame_gap(sim, twin, region)["gap"] or 0.0)
+            mask = _mask(frame, region)
+            rows["depth"].append(frame.geometry.clean_depth[mask].numpy())
+            rows["incidence"].append(frame.incidence_deg[mask].numpy())
+            rows["radius"].append(frame.radius[mask].numpy())
+            rows["sim"].append(sim.depth[mask].numpy())
+            rows["real"].append(frame.real_depth[mask].numpy())
+            rows["clean"].append(frame.geometry.clean_depth[mask].numpy())
+            rows["sim_valid"].append(sim.valid[mask].numpy())
+            rows["real_valid"].append(frame.real_valid[mask].numpy())
+            n = int(mask.sum())
+            for key, value in per_frame[-1]["confusion"].items():
+                totals[key] += (value or 0.0) * n
+            n_total += n
+            if keep_maps:
+                maps.append({"name": frame.name, "sim": sim.depth.numpy().copy(), "real": frame.real_depth.numpy(),
+                             "sim_valid": sim.valid.numpy().copy(), "region": mask.numpy()})  # fmt: skip
+    cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in rows.items()}
+    both = cat["sim_valid"] & cat["real_valid"] if n_total else np.zeros(0, bool)
+    bias, spread = _robust((cat["sim"][both] - cat["real"][both]) * 1000.0) if n_total else (float("nan"),) * 2
+    parts = {
+        "depth_mm": _r(np.mean([f["depth_mm"] or 0.0 for f in per_frame])),
+        "gradient_mm": _r(np.mean([f["gradient_mm"] or 0.0 for f in per_frame])),
+        "validity_mm": _r(np.mean([f["validity_mm"] or 0.0 for f in per_frame])),
+        "bias_mm": _r(bias),
+        "spread_mm": _r(spread),
+        "confusion": {k: _r(v / max(n_total, 1)) for k, v in totals.items()},
+        "pixels": n_total,
+        "bins": {
+            "depth_m": _bins(cat, "depth", DEPTH_EDGES_M),
+            "incidence_deg": _bins(cat, "incidence", INCIDENCE_EDGES_DEG),
+            "radius": _bins(cat, "radius", RADIUS_EDGES),
+        },
+    }
+    headline = float(np.mean([f["gap"] or 0.0 for f in per_frame])) if per_frame else float("nan")
+    floor = float(np.mean(floors)) if floors else float("nan")
+    return GapReport(gap=headline, noise_floor=floor, frames=per_frame, parts=parts, region=region, maps=maps)
+
+
+# ------------------------------------------------------------------------------------------ output
+
+
+def table(report: GapReport, title: str = "") -> str:
+    """A short plain-text table of the headline and its parts."""
+    p = report.parts
+    c = p["confusion"]
+    lines = [title] if title else []
+    lines += [
+        f"gap ({report.region} region)       {report.gap:8.2f} mm   (noise floor {report.noise_floor:.2f} mm, "
+        f"excess {report.excess:.2f} mm)",
+        f"  systematic depth D     {p['depth_mm']:8.2f} mm",
+        f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
+        f"  validity         V     {p['validity_mm']:8.2f} mm",
+        f"sim - real: bias {p['bias_mm']:+.2f} mm, spread {p['spread_mm']:.2f} mm over {p['pixels']} px",
+        f"validity: both {c['both_valid']:.3f}  real only {c['real_only']:.3f}  sim only {c['sim_only']:.3f}  "
+        f"neither {c['neither']:.3f}",
+        "depth bin (m)   px     bias   spread  real-valid sim-valid",
+    ]
+    for b in p["bins"]["depth_m"]:
+        lines.append(f"  {b['low']:.1f}-{b['high']:.1f}  {b['pixels']:7d} {_f(b['gap_bias_mm']):>7} "
+                     f"{_f(b['gap_spread_mm']):>7}   {b['real_valid_rate']:.3f}     {b['sim_valid_rate']:.3f}")  # fmt: skip
+    return "\n".join(lines)
+
+
+def _f(x):
+    return "-" if x is None else f"{x:+.1f}"
+
+
+def write_report(report: GapReport, folder: str | Path, name: str = "comparison") -> list[Path]:
+    """Write ``NAME.json`` and the PNG plots (binned bias/spread/validity; residual maps) into ``folder``."""
+    from ddsgen.io.atomic import atomic_write_text
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = [folder / f"{name}.json"]
+    atomic_write_text(out[0], json.dumps(report.to_dict(), indent=1) + "\n")
+    out.append(plot_bins(report, folder / f"{name}_bins.png"))
+    if report.maps:
+        out.append(plot_residuals([report], folder / f"{name}_residuals.png", ["residual (sim - real)"]))
+    return out
+
+
+def plot_bins(report: GapReport, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
+    titles = {"depth_m": "clean depth (m)", "incidence_deg": "incidence angle (deg)", "radius": "image radius"}
+    for col, (key, label) in enumerate(titles.items()):
+        bins = report.parts["bins"][key]
+        x = [0.5 * (b["low"] + min(b["high"], 8.0)) for b in bins]
+        ax = axes[0, col]
+        for name, style in (("real", "o-"), ("sim", "s--"), ("gap", "^:")):
+            y = [np.nan if b[f"{name}_bias_mm"] is None else b[f"{name}_bias_mm"] for b in bins]
+            e = [np.nan if b[f"{name}_spread_mm"] is None else b[f"{name}_spread_mm"] for b in bins]
+            label_ = {"real": "real - clean", "sim": "sim - clean", "gap": "sim - real"}[name]
+            ax.errorbar(x, y, yerr=e, fmt=style, capsize=3, label=label_)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(label)
+        ax.set_ylabel("bias +- spread (mm)")
+        ax.legend(fontsize=8)
+        ax = axes[1, col]
+        ax.plot(x, [b["real_valid_rate"] for b in bins], "o-", label="real valid rate")
+        ax.plot(x, [b["sim_valid_rate"] for b in bins], "s--", label="sim valid rate")
+        ax.set_ylim(0, 1.05)
+        ax.set_xlabel(label)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"gap {report.gap:.2f} mm (noise floor {report.noise_floor:.2f} mm)")
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def plot_residuals(reports: list[GapReport], path: Path, labels: list[str], max_frames: int = 4,
+                   limit_mm: float = 30.0) -> Path:  # fmt: skip
+    """Residual maps sim - real (mm) of the first frames, one row per report (e.g. before/after fitting).
+    Grey: outside the region; black: valid in only one of sim/real."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(max_frames, min(len(r.maps) for r in reports))
+    fig, axes = plt.subplots(len(reports), max(n, 1), figsize=(3.2 * max(n, 1), 2.8 * len(reports)), squeeze=False,
+                             constrained_layout=True)  # fmt: skip
+    for row, (report, label) in enumerate(zip(reports, labels)):
+        for col in range(n):
+            m = report.maps[col]
+            res = (m["sim"] - m["real"]) * 1000.0
+            both = m["region"] & m["sim_valid"] & (m["real"] > 0)
+            one = m["region"] & (m["sim_valid"] != (m["real"] > 0))
+            img = np.full(res.shape + (3,), 0.8)
+            cmap = plt.get_cmap("coolwarm")
+            rgb = cmap(np.clip(res / limit_mm * 0.5 + 0.5, 0, 1))[..., :3]
+            img[both] = rgb[both]
+            img[one] = 0.0
+            ax = axes[row, col]
+            ax.imshow(img, interpolation="nearest")
+            ax.set_title(f"{label}\n{m['name']}", fontsize=8)
+            ax.axis("off")
+    sm = plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-limit_mm, limit_mm))
+    fig.colorbar(sm, ax=axes, shrink=0.6, label="sim - real (mm)")
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path

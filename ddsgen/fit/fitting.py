@@ -1,0 +1,353 @@
+"""Fit the sensor's parameters to real scans: what is identifiable, and how.
+
+:func:`fit_sensor` fits the parameters named in ``params`` on the prepared fit frames:
+
+* **Adam** (default lr 1e-3, the paper's) on the loss of :mod:`ddsgen.fit.losses` for every
+  parameter that the depth images constrain through a usable gradient: the soft-argmax
+  temperature beta, focal length, effect parameters, the post-processing CNN. Parameters
+  stored as logarithms (eta_c, noise, beta, baseline, focal scale) and effects' unbounded
+  raw values get ``lr * LOG_LR_SCALE``: a step of lr in log space is a relative change of lr,
+  so lr = 1e-3 alone would need ~1,100 steps to move eta_c by x3; with the scale
+  (30 -> 3 % per step at most) a factor of 3 takes tens of steps. The CNN's weights use lr.
+* Two parameters are found by a **1-D search** instead (``search=True``, the default),
+  because their effect on depth has no useful gradient:
+
+  - **eta_c / read-noise std (the IR signal-to-noise ratio).** ZNCC is invariant to an affine
+    change of the IR image, so depth depends on eta_c and the read-noise std only through
+    their ratio (up to 10-bit clipping and rounding): only eta_c / sigma is identifiable. It
+    shows in the *validity rate* (low SNR -> low matching confidence -> dropped pixels) and
+    in the noise texture; the matcher's confidence carries no gradient, and a per-pixel
+    depth loss against an independently noisy scan is minimised by a noise-free simulation.
+    So the SNR is set by a golden-section search on log(eta_c) (sigma held; or on log(sigma)
+    if only it is fitted) minimising the validity term plus the noise-texture term.
+  - **baseline b.** The sensor converts its own disparity with its own baseline, z = f b / d,
+    so b cancels from depth except through the disparity quantisation: depth values lie on
+    the lattice z = f b / (k s) (s = 2^-n_sub px). b is estimated from the real depth alone by
+    maximising the lattice coherence |mean exp(2 pi i f b / (s z))| (a constant disparity
+    offset only shifts the phase). The estimate is used only when its coherence is high
+    (>= 0.3 and twice that of the start value); a real sensor quantising on another lattice
+    (e.g. Kinect's 1/8 px with a 1/4 px preset) leaves b unchanged and says so.
+
+  Searched parameters are not moved by Adam afterwards (their gradients are noise).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ddsgen.errors import InputError
+from ddsgen.fit.losses import LossWeights, frame_loss
+from ddsgen.fit.simulate import FrameData, simulate
+
+DEFAULT_PARAMS = ("emitted_intensity", "read_noise_std", "beta", "baseline")
+#: Sensor parameters by CLI name -> DepthSensor attribute.
+SENSOR_PARAMS = {
+    "emitted_intensity": "log_emitted_intensity",
+    "read_noise_std": "log_read_noise_std",
+    "beta": "log_beta",
+    "baseline": "log_baseline",
+    "focal": "log_focal_scale",
+    "speckle_scale": "log_speckle_scale",
+    "ambient": "log_ambient",
+    "read_noise_mean": "read_noise_mean",
+}
+LOG_LR_SCALE = 30.0
+SNR_RANGE = (1.0 / 8.0, 8.0)
+LATTICE_RANGE = (0.85, 1.15)
+LATTICE_MIN_COHERENCE = 0.3
+
+
+def param_names_help() -> str:
+    return ", ".join([*SENSOR_PARAMS, "effects", "effect:NAME[.PARAM]", "cnn"])
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of :func:`fit_sensor`.
+
+    params: the names fitted; before/after: physical values (preset keys) before and after;
+    history: one dict per Adam step (step, loss and its terms, mean over the fit frames);
+    searches: what the 1-D searches found (see the module docstring); seconds: wall time;
+    trainable: number of scalars fitted (sensor parameters + effect parameters + CNN weights).
+    """
+
+    params: list[str]
+    before: dict
+    after: dict
+    history: list[dict]
+    searches: dict
+    seconds: float
+    trainable: int
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# ------------------------------------------------------------------------------------------ params
+
+
+def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
+    """Map parameter names to the tensors they stand for; attaches a CNN for ``cnn``.
+
+    Names: the keys of :data:`SENSOR_PARAMS`; ``effects`` (every effect's parameters);
+    ``effect:NAME`` or ``effect:NAME.PARAM``; ``cnn``.
+
+    Raises:
+        InputError: unknown name or an effect the preset does not list.
+    """
+    out: dict[str, list[torch.nn.Parameter]] = {}
+    effects = {e.name: e for e in sensor.effects}
+    for name in names:
+        if name in SENSOR_PARAMS:
+            out[name] = [getattr(sensor, SENSOR_PARAMS[name])]
+        elif name == "effects":
+            for effect in sensor.effects:
+                for key, p in effect.raw.items():
+                    out[f"effect:{effect.name}.{key}"] = [p]
+        elif name.startswith("effect:"):
+            effect_name, _, key = name[len("effect:"):].partition(".")
+            if effect_name not in effects:
+                raise InputError(f"--params: {name}: the preset has no effect {effect_name!r} "
+                                 f"(listed: {', '.join(effects) or 'none'})")  # fmt: skip
+            raw = effects[effect_name].raw
+            if key and key not in raw:
+                raise InputError(f"--params: {name}: effect {effect_name} has no parameter {key!r} "
+                                 f"(has: {', '.join(raw)})")  # fmt: skip
+            for k, p in raw.items():
+                if not key or k == key:
+                    out[f"effect:{effect_name}.{k}"] = [p]
+        elif name == "cnn":
+            if sensor.postprocess is None:
+                from ddsgen.sensor.postprocess import PostProcessCNN
+
+                sensor.postprocess = PostProcessCNN().to(sensor.device_)
+            out["cnn"] = list(sensor.postprocess.parameters())
+        else:
+            raise InputError(f"--params: unknown parameter {name!r} (known: {param_names_help()})")
+    return out
+
+
+def physical_values(sensor) -> dict:
+    """Physical parameter values plus effect values (plain floats), for reports."""
+    values = {k: round(v, 9) for k, v in sensor.physical_parameters().items()}
+    for effect in sensor.effects:
+        for key, value in effect.values().items():
+            values[f"effect:{effect.name}.{key}"] = round(value, 9)
+    return values
+
+
+# ------------------------------------------------------------------------------------------ searches
+
+
+def lattice_coherence(frames: list[FrameData], fb_over_s: np.ndarray, fx_scale: float = 1.0,
+                      max_pixels: int = 20000) -> np.ndarray:  # fmt: skip
+    """|mean exp(2 pi i * (f b / s) / z)| over the real valid region pixels, for each candidate f b / s."""
+    inv_z = []
+    for f in frames:
+        sel = f.region & f.real_valid
+        z = f.real_depth[sel].double().numpy()
+        fx = (f.full_intrinsics or f.intrinsics).fx * fx_scale
+        inv_z.append(fx / z)  # f / z; times b / s gives the disparity in steps
+    x = np.concatenate(inv_z) if inv_z else np.zeros(0)
+    if x.size > max_pixels:
+        x = x[np.random.default_rng(0).choice(x.size, max_pixels, replace=False)]
+    if x.size == 0:
+        return np.zeros(len(fb_over_s))
+    out = np.empty(len(fb_over_s))
+    for i in range(0, len(fb_over_s), 64):
+        phase = 2.0 * np.pi * np.outer(fb_over_s[i : i + 64], x)
+        out[i : i + 64] = np.abs(np.exp(1j * phase).mean(axis=1))
+    return out
+
+
+def estimate_baseline(sensor, frames: list[FrameData]) -> dict:
+    """Baseline from the disparity quantisation lattice of the real depth (see the module docstring).
+
+    Returns a dict: start, estimate, coherence_start, coherence, accepted (bool). Sets the
+    sensor's baseline when accepted.
+    """
+    step = 2.0 ** -sensor.preset.subpixel_level
+    b0 = float(sensor.baseline)
+    scale = float(sensor.focal_scale)
+    zs = [f.real_depth[f.region & f.real_valid] for f in frames]
+    z_min = min((float(z.min()) for z in zs if z.numel()), default=1.0)
+    fx = max((f.full_intrinsics or f.intrinsics).fx for f in frames) * scale
+    period = step * z_min / fx  # change of b that moves the nearest pixel by one lattice step
+    lo, hi = LATTICE_RANGE
+    grid = np.arange(lo * b0, hi * b0, period / 8.0)
+    coherence = lattice_coherence(frames, grid / step, scale)
+    best = grid[int(np.argmax(coherence))]
+    fine = np.linspace(best - period / 8.0, best + period / 8.0, 33)
+    fine_coherence = lattice_coherence(frames, fine / step, scale)
+    best = float(fine[int(np.argmax(fine_coherence))])
+    c_best = float(fine_coherence.max())
+    c_start = float(lattice_coherence(frames, np.array([b0 / step]), scale)[0])
+    accepted = c_best >= LATTICE_MIN_COHERENCE and c_best >= 2.0 * c_start and abs(best - b0) > 1e-9
+    if accepted:
+        with torch.no_grad():
+            sensor.log_baseline.fill_(math.log(best))
+    return {"method": "disparity quantisation lattice", "start": b0, "estimate": best, "coherence_start": c_start,
+            "coherence": c_best, "accepted": bool(accepted)}  # fmt: skip
+
+
+def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
+    totals: dict[str, float] = {}
+    context = torch.enable_grad() if grad else torch.no_grad()
+    with context:
+        for f in frames:
+            terms = frame_loss(simulate(sensor, f, seed), f, weights)
+            for k, v in terms.items():
+                totals[k] = totals.get(k, 0.0) + float(v) / len(frames)
+    return totals
+
+
+def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 14) -> dict:
+    """Golden-section search of log(eta_c) (``which="emitted_intensity"``) or log(sigma)
+    (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames``."""
+    attr = SENSOR_PARAMS[which]
+    param = getattr(sensor, attr)
+    start = float(param)
+    weights = LossWeights(depth=0.0, gradient=1.0, validity=1.0)
+    cache: dict[float, float] = {}
+
+    def objective(x: float) -> float:
+        if x not in cache:
+            with torch.no_grad():
+                param.fill_(start + x)
+            cache[x] = _mean_terms(sensor, frames, seed, weights)["total"]
+        return cache[x]
+
+    start_value = objective(0.0)
+    a, b = math.log(SNR_RANGE[0]), math.log(SNR_RANGE[1])
+    # Coarse grid first (the objective is noisy and may be flat far from the optimum), then golden section.
+    grid = np.linspace(a, b, 7)
+    values = [objective(float(x)) for x in grid]
+    i = int(np.argmin(values))
+    a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - g * (b - a), a + g * (b - a)
+    for _ in range(max(evaluations - len(grid) - 1, 0)):
+        if objective(c) < objective(d):
+            b, d = d, c
+            c = b - g * (b - a)
+        else:
+            a, c = c, d
+            d = a + g * (b - a)
+    best = min(cache, key=cache.get)
+    with torch.no_grad():
+        param.fill_(start + best)
+    return {"method": "golden-section search on validity + noise texture", "parameter": which,
+            "multiplier": math.exp(best), "objective_start": start_value,
+            "objective": cache[best], "evaluations": len(cache)}  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------ fit
+
+
+def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: int = 100, lr: float = 1e-3,
+               progress: bool = True, *, seed: int = 0, weights: LossWeights = LossWeights(), search: bool = True,
+               batch_frames: int | None = None, callback: Callable[[int, dict], None] | None = None) -> FitResult:  # fmt: skip
+    """Fit ``params`` of ``sensor`` (in place) to the real scans of ``frames``.
+
+    Args:
+        sensor: :class:`~ddsgen.sensor.depth_sensor.DepthSensor` built from the preset to start from.
+        frames: fit frames from :func:`ddsgen.fit.simulate.prepare_frames` (keep held-out frames apart).
+        params: names (see :func:`resolve_params`); default: the paper's four sensor parameters
+            eta_c (``emitted_intensity``), IR read-noise std, soft-argmax beta, baseline.
+        steps: Adam steps (0: searches only).
+        lr: Adam learning rate (CNN weights; log-space parameters get ``lr * LOG_LR_SCALE``).
+        progress: tqdm progress bar with the current loss.
+        seed: IR noise seed of the simulations (same draws at every step).
+        weights: loss term weights.
+        search: find eta_c/sigma and the baseline by the 1-D searches (else Adam moves them too).
+        batch_frames: frames per Adam step (cycling through ``frames``); default all.
+        callback: called after every step with (step, terms).
+
+    Returns:
+        :class:`FitResult`.
+    """
+    from tqdm import tqdm
+
+    start_time = time.perf_counter()
+    params = list(dict.fromkeys(params))
+    resolved = resolve_params(sensor, params)
+    before = physical_values(sensor)
+    for p in sensor.parameters():
+        p.requires_grad_(False)
+    searches: dict = {}
+    searched: set[str] = set()
+    if search and "baseline" in resolved:
+        searches["baseline"] = estimate_baseline(sensor, frames)
+        searched.add("baseline")
+    snr = [n for n in ("emitted_intensity", "read_noise_std") if n in resolved]
+    if search and snr:
+        searches["snr"] = search_snr(sensor, frames, snr[0], seed)
+        searched.update(snr)  # the other one is not identifiable separately: held
+    groups = []
+    for name, tensors in resolved.items():
+        if name in searched:
+            continue
+        for t in tensors:
+            t.requires_grad_(True)
+        groups.append({"params": tensors, "lr": lr if name == "cnn" else lr * LOG_LR_SCALE, "name": name})
+    history: list[dict] = []
+    if groups and steps > 0:
+        optimiser = torch.optim.Adam(groups)
+        batch = len(frames) if not batch_frames else min(batch_frames, len(frames))
+        bar = tqdm(range(steps), desc="fit", unit="step", disable=not progress, dynamic_ncols=True)
+        for step in bar:
+            chosen = [frames[(step * batch + i) % len(frames)] for i in range(batch)]
+            optimiser.zero_grad(set_to_none=True)
+            totals: dict[str, float] = {}
+            for f in chosen:
+                terms = frame_loss(simulate(sensor, f, seed), f, weights)
+                (terms["total"] / len(chosen)).backward()
+                for k, v in terms.items():
+                    totals[k] = totals.get(k, 0.0) + float(v) / len(chosen)
+            for group in groups:
+                for t in group["params"]:
+                    if t.grad is not None:
+                        t.grad.nan_to_num_(0.0, 0.0, 0.0)
+            optimiser.step()
+            totals["step"] = step
+            history.append({k: round(v, 5) if isinstance(v, float) else v for k, v in totals.items()})
+            bar.set_postfix(loss=f"{totals['total']:.3f}")
+            if callback is not None:
+                callback(step, totals)
+        bar.close()
+    for p in sensor.parameters():
+        p.requires_grad_(False)
+    trainable = sum(t.numel() for tensors in resolved.values() for t in tensors)
+    return FitResult(params=list(resolved), before=before, after=physical_values(sensor), history=history,
+                     searches=searches, seconds=time.perf_counter() - start_time, trainable=int(trainable))  # fmt: skip
+
+
+def split_frames(frames: list, holdout: float, seed: int = 0) -> tuple[list, list]:
+    """Split into (fit, held-out) frames; held-out gets round(holdout * n) frames (>= 1 when holdout > 0
+    and n >= 2), chosen by a seeded permutation. With one frame, both sets are that frame."""
+    if not 0.0 <= holdout < 1.0:
+        raise InputError(f"--holdout: must be in [0, 1), got {holdout}")
+    n = len(frames)
+    k = int(round(holdout * n))
+    if holdout > 0 and n >= 2:
+        k = min(max(k, 1), n - 1)
+    if k == 0 or n < 2:
+        return list(frames), list(frames)
+    order = np.random.default_rng(seed).permutation(n)
+    held = sorted(order[:k].tolist())
+    return [frames[i] for i in range(n) if i not in held], [frames[i] for i in held]
+
+
+def fitted_preset(sensor, postprocess_path: str | None = None):
+    """The fitted preset: the sensor's preset with the fitted values (``DepthSensor.to_preset``),
+    naming ``postprocess_path`` as its CNN weights when given."""
+    preset = sensor.to_preset()
+    if postprocess_path is not None:
+        preset = preset.replace(postprocess=str(postprocess_path))
+    return preset

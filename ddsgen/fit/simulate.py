@@ -1,0 +1,378 @@
+"""Simulate the views of a folder of scans: meshes at their ground-truth poses, ray cast once.
+
+For each :class:`~ddsgen.io.scanfolder.ScanFrame` (real or rendered), :func:`prepare_frames`
+builds a :class:`FrameData`:
+
+1. a :class:`~ddsgen.scene.sampling.FrameScene` in the camera frame (``world_T_cam`` = I)
+   holding the listed meshes at ``cam_T_obj`` (scaled to metres by ``mesh_scale``);
+2. optionally a **support plane** fitted by RANSAC to the real depth outside the objects'
+   silhouettes (the table the objects stand on), added as a large background quad, so that
+   the table and the objects' projector shadows on it are modelled too;
+3. one ray cast (embreex) with the sensor's baseline and shadow bias -> the constant
+   :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` the differentiable sensor consumes
+   (ray casting is not differentiable: it is done once per frame and cached in FrameData);
+4. optionally a **crop** to the objects' bounding box plus a margin (a sub-window of a
+   pinhole image is a pinhole image with a shifted principal point, so the crop is
+   simulated exactly; it only makes fitting cheaper);
+5. the **comparison region**: pixels where the modelled geometry is visible (clean depth
+   hit) and plausible: the real depth is invalid there (a validity disagreement to count)
+   or agrees with the clean depth within ``plausible_px`` px of disparity f*b/z (things that
+   are not modelled -- hands, other objects, a wall -- are far off and left out). A border
+   of ``block // 2 + 1`` px is left out of crops (the matcher cannot match there, the real
+   sensor could).
+
+The sensor's intrinsics are set per frame by :func:`simulate` (frames may have different
+cameras; the sensor's parameters are shared).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+from ddsgen.errors import InputError
+from ddsgen.preset import Intrinsics, SensorPreset
+
+#: Default IR reflectance of modelled surfaces (the scene-list default for objects). eta_c and
+#: albedo only appear as their product in the IR image, so a fitted eta_c is relative to this.
+DEFAULT_ALBEDO = 0.6
+#: Plausibility threshold: |f b / z_real - f b / z_clean| <= this (px of disparity).
+DEFAULT_PLAUSIBLE_PX = 2.0
+#: Noise stream of simulated frames: rng([seed, frame_index, SIM_STREAM]) -- never the
+#: stream ``render`` uses (1), so simulating a rendered folder does not reuse its noise.
+SIM_STREAM = 7919
+
+
+@dataclasses.dataclass
+class Plane:
+    """A plane n . X + d = 0 in the camera frame (n unit, pointing towards the camera)."""
+
+    normal: np.ndarray
+    offset: float
+    inliers: int
+    candidates: int
+
+    def as_dict(self) -> dict:
+        return {"normal": [round(float(x), 6) for x in self.normal], "offset_m": round(float(self.offset), 6),
+                "inliers": int(self.inliers), "candidates": int(self.candidates)}  # fmt: skip
+
+
+@dataclasses.dataclass
+class FrameData:
+    """One scan frame prepared for simulation and comparison (all tensors (H, W), CPU).
+
+    name: the scan frame's name; index: position in the folder (seeds the frame's IR noise).
+    intrinsics: camera of the (possibly cropped) image; crop: (x0, y0, width, height) of the
+        image in the original frame.
+    geometry: ray-cast geometry (constant); instance: int32 object ids (0 = support plane / none).
+    real_depth: float32 m (0 = invalid); real_valid: bool.
+    region: bool, where the comparison counts (modelled, visible, plausible);
+    object_region: region & instance > 0.
+    incidence_deg: angle between the normal and the ray to the camera; radius: distance from
+        the principal point over the half-diagonal of the original image (0..~1).
+    plane: the fitted support plane, or None. pose_error_mm: median |real - clean| on the
+        objects' pixels where the real depth is valid (a check of the ground-truth poses).
+    """
+
+    name: str
+    index: int
+    intrinsics: Intrinsics
+    crop: tuple[int, int, int, int]
+    geometry: object  # SensorGeometry
+    instance: torch.Tensor
+    real_depth: torch.Tensor
+    real_valid: torch.Tensor
+    region: torch.Tensor
+    object_region: torch.Tensor
+    incidence_deg: torch.Tensor
+    radius: torch.Tensor
+    plane: Plane | None = None
+    pose_error_mm: float = float("nan")
+    full_intrinsics: Intrinsics | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.real_depth.shape)
+
+    def noise_seed(self, seed: int = 0) -> list[int]:
+        return [int(seed), int(self.index), SIM_STREAM]
+
+
+# ------------------------------------------------------------------------------------------ scene
+
+
+def _load_object_mesh(obj):
+    from ddsgen.scene.scenelist import load_mesh
+
+    if obj.mesh_path.startswith("shape:"):
+        return load_mesh(obj.mesh_path, obj.mesh_scale)
+    return load_mesh(obj.mesh_path, obj.mesh_scale, source=obj.mesh_path)
+
+
+def frame_scene(frame, albedo: float = DEFAULT_ALBEDO, plane: Plane | None = None, plane_size_m: float = 20.0):
+    """The FrameScene of a scan frame: its objects at their poses (camera frame = world frame)."""
+    from ddsgen.scene import shapes
+    from ddsgen.scene.sampling import FrameScene, PlacedObject
+
+    objects = []
+    for obj in frame.objects:
+        mesh = _load_object_mesh(obj)
+        objects.append(PlacedObject(id=int(obj.id), class_name=obj.class_name, mesh_ref=obj.mesh_path, mesh=mesh,
+                                    world_T_obj=np.asarray(obj.cam_T_obj, dtype=np.float64), albedo=float(albedo),
+                                    mesh_scale=float(obj.mesh_scale)))  # fmt: skip
+    background = []
+    if plane is not None:
+        background.append(PlacedObject(0, "support_plane", "plane:fitted", shapes.plane_mesh(plane_size_m, plane_size_m),
+                                       _plane_pose(plane), float(albedo)))  # fmt: skip
+    return FrameScene(objects=objects, background=background, world_T_cam=np.eye(4), frame_index=int(frame.frame),
+                      seed=0, scene_name=frame.name)  # fmt: skip
+
+
+def _plane_pose(plane: Plane) -> np.ndarray:
+    """A pose whose z axis is the plane normal and whose origin is the foot of the camera's optical axis on it."""
+    n = np.asarray(plane.normal, dtype=np.float64)
+    # Point on the plane closest to the optical axis hit (or to the origin if the axis is parallel).
+    if abs(n[2]) > 1e-6:
+        origin = np.array([0.0, 0.0, -plane.offset / n[2]])
+    else:
+        origin = -plane.offset * n
+    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, n)
+    x /= np.linalg.norm(x)
+    y = np.cross(n, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, n, origin
+    return T
+
+
+def backproject(depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W, 3) camera-frame points of a depth image (z = depth)."""
+    h, w = depth.shape
+    u = (np.arange(w) - intrinsics.cx) / intrinsics.fx
+    v = (np.arange(h) - intrinsics.cy) / intrinsics.fy
+    return np.stack([u[None, :] * depth, v[:, None] * depth, depth], axis=-1)
+
+
+def fit_support_plane(depth: np.ndarray, intrinsics: Intrinsics, exclude: np.ndarray, disparity_fb: float,
+                      rng: np.random.Generator, iterations: int = 300, tolerance_px: float = 0.5,
+                      min_inlier_fraction: float = 0.2, max_points: int = 20000) -> Plane | None:  # fmt: skip
+    """RANSAC plane through the valid real depth outside ``exclude``.
+
+    Inliers agree with the plane within ``tolerance_px`` px of disparity (f b / z), so the
+    tolerance follows the sensor's depth resolution (it grows with z^2). The best plane is
+    refined by least squares on its inliers. Returns None when fewer than
+    ``min_inlier_fraction`` of the candidate pixels are inliers (no dominant plane).
+    """
+    mask = (depth > 0) & ~exclude
+    points = backproject(depth, intrinsics)[mask]
+    if len(points) < 50:
+        return None
+    if len(points) > max_points:
+        points = points[rng.choice(len(points), max_points, replace=False)]
+    z = points[:, 2]
+    disp = disparity_fb / z
+    best, best_count = None, 0
+    for _ in range(iterations):
+        sample = points[rng.choice(len(points), 3, replace=False)]
+        n = np.cross(sample[1] - sample[0], sample[2] - sample[0])
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n /= norm
+        d = -float(n @ sample[0])
+        inliers = _plane_inliers(points, disp, n, d, disparity_fb, tolerance_px)
+        count = int(inliers.sum())
+        if count > best_count:
+            best, best_count = (n, d), count
+    if best is None or best_count < min_inlier_fraction * len(points):
+        return None
+    n, d = best
+    for _ in range(2):  # least-squares refinement on the inliers
+        inliers = _plane_inliers(points, disp, n, d, disparity_fb, tolerance_px)
+        sel = points[inliers]
+        centroid = sel.mean(axis=0)
+        _, _, vt = np.linalg.svd(sel - centroid, full_matrices=False)
+        n = vt[2]
+        d = -float(n @ centroid)
+    if d < 0:  # orient the normal towards the camera (origin on the positive side)
+        n, d = -n, -d
+    count = int(_plane_inliers(points, disp, n, d, disparity_fb, tolerance_px).sum())
+    return Plane(normal=n, offset=d, inliers=count, candidates=len(points))
+
+
+def _plane_inliers(points, disp, n, d, fb, tolerance_px):
+    # Depth of the plane along each point's ray: ray r = p / z (z = 1), plane n.(t r) + d = 0.
+    rays = points / points[:, 2:3]
+    denom = rays @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -d / denom
+        plane_disp = np.where(t > 0, fb / t, np.inf)
+    return np.abs(plane_disp - disp) <= tolerance_px
+
+
+# ------------------------------------------------------------------------------------------ frames
+
+
+def _crop_box(instance: np.ndarray, margin: int, min_size: int) -> tuple[int, int, int, int]:
+    h, w = instance.shape
+    rows, cols = np.nonzero(instance > 0)
+    if len(rows) == 0:
+        return 0, 0, w, h
+    x0, x1 = int(cols.min()) - margin, int(cols.max()) + margin + 1
+    y0, y1 = int(rows.min()) - margin, int(rows.max()) + margin + 1
+    # Grow to the minimum size around the centre, then clip to the image.
+    def grow(a, b, limit):
+        size = max(b - a, min(min_size, limit))
+        centre = (a + b) // 2
+        a = max(0, min(centre - size // 2, limit - size))
+        return a, a + size
+
+    x0, x1 = grow(x0, x1, w)
+    y0, y1 = grow(y0, y1, h)
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def crop_intrinsics(intrinsics: Intrinsics, box: tuple[int, int, int, int]) -> Intrinsics:
+    x0, y0, w, h = box
+    return Intrinsics(int(w), int(h), intrinsics.fx, intrinsics.fy, intrinsics.cx - x0, intrinsics.cy - y0)
+
+
+def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: bool = True,
+                  albedo: float = DEFAULT_ALBEDO, plausible_px: float = DEFAULT_PLAUSIBLE_PX,
+                  crop: bool = False, crop_margin_px: int = 24, seed: int = 0) -> FrameData:  # fmt: skip
+    """One :class:`FrameData` (see :func:`prepare_frames`)."""
+    from ddsgen.raycast import cast
+    from ddsgen.sensor.depth_sensor import SensorGeometry
+
+    intr = frame.intrinsics
+    real = np.asarray(frame.depth, dtype=np.float32)
+    real = np.where(np.isfinite(real) & (real > 0), real, 0.0).astype(np.float32)
+    fb = intr.fx * preset.baseline_m
+    scene = frame_scene(frame, albedo)
+    hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
+    plane = None
+    if support_plane:
+        # Exclude the objects' silhouettes grown by a few px (their rims are mixed pixels).
+        import cv2
+
+        exclude = cv2.dilate((hits.instance > 0).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+        plane = fit_support_plane(real, intr, exclude, fb, np.random.default_rng([seed, index, 5]))
+        if plane is not None:
+            hits = cast(frame_scene(frame, albedo, plane), intr, preset.baseline_m, preset.shadow_bias_m)
+
+    instance = hits.instance.astype(np.int32)
+    object_px = instance > 0
+    pose_error = float("nan")
+    both = object_px & (real > 0)
+    if both.any():
+        pose_error = float(np.median(np.abs(real[both] - hits.depth[both])) * 1000.0)
+
+    box = _crop_box(instance, crop_margin_px, min_size=max(4 * preset.block_size_px, 48)) if crop else (
+        0, 0, intr.width, intr.height)  # fmt: skip
+    x0, y0, w, h = box
+    sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+    for name in ("depth", "points", "normals", "instance", "hit", "shadow", "albedo"):
+        setattr(hits, name, np.ascontiguousarray(getattr(hits, name)[sl]))
+    real = np.ascontiguousarray(real[sl])
+    instance = instance[sl]
+    cintr = crop_intrinsics(intr, box) if crop else intr
+
+    # Comparison region: modelled, visible, plausible.
+    clean = hits.depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gap_px = np.abs(fb / np.where(real > 0, real, np.inf) - fb / np.where(clean > 0, clean, np.inf))
+    plausible = (real <= 0) | (gap_px <= plausible_px)
+    region = hits.hit & plausible
+    if crop:
+        border = preset.block_size_px // 2 + 1
+        inner = np.zeros_like(region)
+        inner[border:-border, border:-border] = True
+        region &= inner
+
+    p = hits.points
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ray = -p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-9)
+        cos = np.clip((ray * hits.normals).sum(-1), -1.0, 1.0)
+    incidence = np.where(hits.hit, np.degrees(np.arccos(np.abs(cos))), 90.0).astype(np.float32)
+    u = np.arange(x0, x0 + w) - intr.cx
+    v = np.arange(y0, y0 + h) - intr.cy
+    half_diag = 0.5 * math.hypot(intr.width, intr.height)
+    radius = (np.hypot(u[None, :], v[:, None]) / half_diag).astype(np.float32)
+
+    t = torch.from_numpy
+    return FrameData(
+        name=frame.name, index=int(index), intrinsics=cintr, crop=box, geometry=SensorGeometry.from_hits(hits),
+        instance=t(instance), real_depth=t(real), real_valid=t(real > 0), region=t(region),
+        object_region=t(region & (instance > 0)), incidence_deg=t(incidence), radius=t(radius), plane=plane,
+        pose_error_mm=pose_error, full_intrinsics=intr,
+    )  # fmt: skip
+
+
+def prepare_frames(preset: SensorPreset, scan_frames, *, support_plane: bool = True,
+                   albedo: float = DEFAULT_ALBEDO, plausible_px: float = DEFAULT_PLAUSIBLE_PX,
+                   crop: bool = False, crop_margin_px: int = 24, seed: int = 0, progress: bool = False,
+                   ) -> list[FrameData]:  # fmt: skip
+    """Ray-cast every scan frame once: the constant inputs of simulation, comparison and fitting.
+
+    Args:
+        preset: the sensor preset (its baseline and shadow bias are used for the ray cast and
+            its baseline for the plausibility test in disparity).
+        scan_frames: list of :class:`~ddsgen.io.scanfolder.ScanFrame` (from ``read_scan_folder``).
+        support_plane: add a RANSAC plane fitted to the real depth outside the objects.
+        albedo: IR reflectance given to every modelled surface.
+        plausible_px: plausibility threshold (px of disparity) of the comparison region.
+        crop: crop each frame to its objects' bounding box plus ``crop_margin_px``.
+        seed: seeds RANSAC (and, via :meth:`FrameData.noise_seed`, the simulated IR noise).
+        progress: show a progress bar.
+
+    Returns:
+        One :class:`FrameData` per scan frame, in order.
+
+    Raises:
+        InputError: a frame has no objects, or none of its modelled geometry is in view.
+    """
+    from tqdm import tqdm
+
+    if not scan_frames:
+        raise InputError("scan folder: no frames")
+    out = []
+    for i, frame in enumerate(tqdm(scan_frames, desc="ray cast", unit="frame", disable=not progress, leave=False)):
+        if not frame.objects:
+            raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists no objects (nothing to simulate)")
+        data = prepare_frame(preset, frame, i, support_plane=support_plane, albedo=albedo, plausible_px=plausible_px,
+                             crop=crop, crop_margin_px=crop_margin_px, seed=seed)  # fmt: skip
+        if not bool(data.region.any()):
+            raise InputError(f"{frame.source_depth_path}: frame {frame.name}: no modelled object is visible and "
+                             f"plausible (check the poses, mesh units and intrinsics)")  # fmt: skip
+        frame.release()
+        out.append(data)
+    return out
+
+
+# ------------------------------------------------------------------------------------------ simulate
+
+
+@contextlib.contextmanager
+def frame_camera(sensor, intrinsics: Intrinsics):
+    """Temporarily give ``sensor`` the camera of a frame (the parameters stay shared)."""
+    old = sensor.intr
+    sensor.intr = intrinsics
+    try:
+        yield sensor
+    finally:
+        sensor.intr = old
+
+
+def simulate(sensor, frame: FrameData, seed: int = 0):
+    """Run the differentiable sensor on a prepared frame -> SensorOutput (gradients if enabled).
+
+    The IR noise of frame ``i`` is drawn from ``rng([seed, i, SIM_STREAM])``: the same draws
+    at every call (common random numbers across fitting steps), different draws for another seed.
+    """
+    with frame_camera(sensor, frame.intrinsics):
+        noise = sensor.draw_noise(frame.noise_seed(seed))
+        return sensor(frame.geometry, noise=noise)
