@@ -51,6 +51,8 @@ from ddsgen.errors import InputError
 TASK_RETRIES = 2
 #: Tasks kept in flight per worker thread (enough to hide the ~2 ms per-task overhead).
 IN_FLIGHT_PER_THREAD = 3
+#: Seconds to wait for the scheduler before giving up with a one-line error.
+CONNECT_TIMEOUT_S = 20.0
 #: glibc mallopt parameters (malloc.h).
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
@@ -96,14 +98,14 @@ def run_batch_on_worker(fn: Callable, job, batch: list[int]) -> list[dict]:
         return fn(job, batch)
 
 
-def connect(scheduler: str, timeout: float = 20.0):
+def connect(scheduler: str, timeout: float | None = None):
     """A :class:`distributed.Client` for ``scheduler``; :class:`InputError` if unreachable or Dask is missing."""
     try:
         from distributed import Client
     except ImportError:
         raise InputError("--scheduler: needs Dask distributed (pip install 'ddsgen[dask]')") from None
     try:
-        return Client(scheduler, timeout=timeout, set_as_default=False)
+        return Client(scheduler, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as error:
         first = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise InputError(f"--scheduler: cannot connect to {scheduler} ({first})") from None

@@ -31,6 +31,7 @@ from ddsgen.scene.scenelist import SceneList, load_scene_list
 MANIFEST = "manifest.jsonl"
 RUN_FILE = "run.json"
 DEPTH_SCALE = 0.001  # metres per PNG unit (millimetres)
+OUTPUT_FORMATS = ("ddsgen", "bop")
 
 # Random streams of a frame: rng([seed, frame, STREAM]).
 NOISE_STREAM = 1
@@ -238,6 +239,7 @@ def render_dataset(
     scheduler: str | None = None,
     progress: bool = True,
     batch_size: int = 1,
+    output_format: str = "ddsgen",
 ) -> RenderSummary:
     """Render frames 0..n-1 into ``out`` (skipping finished ones).
 
@@ -251,12 +253,12 @@ def render_dataset(
         scheduler: address of a Dask scheduler (``tcp://host:port``) to run on instead.
         progress: show a tqdm progress bar.
         batch_size: frames per task.
+        output_format: ``"ddsgen"`` (DESIGN.md §3) or ``"bop"``: a BOP dataset at ``out`` (see
+            ``ddsgen/io/bop_writer.py``), rendered through the ddsgen layout in ``out/ddsgen``.
 
     Raises:
         InputError: bad preset, scene list, arguments or output folder -- before anything is written.
     """
-    from tqdm import tqdm
-
     if n < 0:
         raise InputError(f"-n: must be >= 0, got {n}")
     if workers < 1:
@@ -265,7 +267,37 @@ def render_dataset(
     scene_list: SceneList = load_scene_list(scenes_path)  # validates and loads every mesh now
     del scene_list
     check_sensor_assets(preset)
+    if output_format not in OUTPUT_FORMATS:
+        raise InputError(f"--format: must be one of {', '.join(OUTPUT_FORMATS)}, got {output_format!r}")
     out_dir = Path(out)
+    if output_format == "bop":
+        from ddsgen.io.bop_writer import check_bop_root, scans_folder
+
+        check_bop_root(out_dir)
+        out_dir = scans_folder(out_dir)
+    client = None
+    if scheduler:  # connect first: an unreachable scheduler must not leave an output folder behind
+        from ddsgen.distributed import connect
+
+        client = connect(scheduler)
+    try:
+        summary = _render_into(out_dir, preset, scenes_path, n, workers, seed, client, progress, batch_size)
+    finally:
+        if client is not None:
+            client.close()
+    if output_format == "bop":
+        from ddsgen.io.bop_writer import write_bop_dataset
+
+        try:
+            write_bop_dataset(out_dir, Path(out))
+        except OSError as error:
+            raise InputError(f"{out}: cannot write the BOP dataset ({_os_reason(error)}); re-run to finish it") from None
+    return summary
+
+
+def _render_into(out_dir: Path, preset: SensorPreset, scenes_path, n, workers, seed, client, progress, batch_size):
+    from tqdm import tqdm
+
     done = prepare_output(out_dir, preset, scenes_path, seed)
     todo = [f for f in range(n) if f not in done]
     job = RenderJob(str(Path(preset.source).resolve()), str(Path(scenes_path).resolve()) if scenes_path else None,
@@ -276,10 +308,10 @@ def render_dataset(
     bar = tqdm(total=n, initial=n - len(todo), unit="frame", desc="render", disable=not progress, dynamic_ncols=True)
     appended: set[int] = set()
     try:
-        if scheduler:
+        if client is not None:
             from ddsgen.distributed import run_on_dask
 
-            results = run_on_dask(scheduler, _render_batch, job, batches)
+            results = run_on_dask(client, _render_batch, job, batches)
         elif workers == 1:
             results = (_render_batch(job, b) for b in batches)
         else:

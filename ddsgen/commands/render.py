@@ -20,10 +20,16 @@ from ddsgen.runner import render_dataset
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Dataset seed: frame i depends only on (seed, i).")
 @click.option("--scheduler", default=None, metavar="ADDR",
-              help="Address of a Dask scheduler (tcp://HOST:PORT) to render on a cluster (needs ddsgen[dask]).")
+              help="Address of a Dask scheduler (tcp://HOST:PORT) to render on a cluster (needs ddsgen[dask] on the "
+                   "client and the workers, and an --out folder every worker reaches under the same path). Start "
+                   "workers with one thread each: dask worker ADDR --nworkers K --nthreads 1.")
 @click.option("--batch-size", type=int, default=1, show_default=True, help="Frames per task sent to a worker.")
+@click.option("--format", "output_format", type=click.Choice(["ddsgen", "bop"]), default="ddsgen", show_default=True,
+              help="Output layout: ddsgen's (manifest.jsonl, EXR/PNG) or BOP's (models/, camera.json, "
+                   "train_pbr/SCENE/{scene_camera,scene_gt,scene_gt_info}.json, depth/, mask_visib/; the ddsgen "
+                   "render is kept in OUT/ddsgen/).")
 @click.option("--quiet", is_flag=True, help="No progress bar and no summary.")
-def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, quiet):
+def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, output_format, quiet):
     """Render N frames with the sensor PRESET (a preset YAML file or a shipped name such as kinect_v1).
 
     Writes, per frame, depth as float32 EXR (metres) and 16-bit PNG (millimetres, 0 = invalid),
@@ -35,10 +41,12 @@ def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, quiet):
     if batch_size < 1:
         raise click.BadParameter("must be >= 1", param_hint="--batch-size")
     summary = render_dataset(preset, scenes, n, out, workers=workers, seed=seed, scheduler=scheduler,
-                             progress=not quiet, batch_size=batch_size)
+                             progress=not quiet, batch_size=batch_size, output_format=output_format)
     if not quiet:
         rate = f"{summary.frames_per_second:.2f} frames/s" if summary.frames_rendered else "nothing to do"
         click.echo(
             f"rendered {summary.frames_rendered} frame(s) ({summary.frames_skipped} already done) of "
             f"{summary.frames_total} in {summary.seconds:.1f} s ({rate}) -> {summary.out}/manifest.jsonl"
         )
+        if output_format == "bop":
+            click.echo(f"BOP dataset: {out}/ (camera.json, models/, train_pbr/)")
