@@ -58,7 +58,7 @@ SENSOR_PARAMS = {
     "read_noise_mean": "read_noise_mean",
 }
 LOG_LR_SCALE = 30.0
-SNR_RANGE = (1.0 / 8.0, 8.0)
+SNR_RANGE = (1.0 / 16.0, 16.0)
 LATTICE_RANGE = (0.85, 1.15)
 LATTICE_MIN_COHERENCE = 0.3
 
@@ -207,7 +207,7 @@ def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
     return totals
 
 
-def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 14) -> dict:
+def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 16) -> dict:
     """Golden-section search of log(eta_c) (``which="emitted_intensity"``) or log(sigma)
     (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames``."""
     attr = SENSOR_PARAMS[which]
@@ -226,7 +226,7 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
     start_value = objective(0.0)
     a, b = math.log(SNR_RANGE[0]), math.log(SNR_RANGE[1])
     # Coarse grid first (the objective is noisy and may be flat far from the optimum), then golden section.
-    grid = np.linspace(a, b, 7)
+    grid = np.linspace(a, b, 9)
     values = [objective(float(x)) for x in grid]
     i = int(np.argmin(values))
     a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
@@ -277,9 +277,9 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     start_time = time.perf_counter()
     params = list(dict.fromkeys(params))
     resolved = resolve_params(sensor, params)
-    before = physical_values(sensor)
     for p in sensor.parameters():
         p.requires_grad_(False)
+    before = physical_values(sensor)
     searches: dict = {}
     searched: set[str] = set()
     if search and "baseline" in resolved:
