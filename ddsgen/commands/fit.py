@@ -65,10 +65,12 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
     report = Path(report_dir) if report_dir else out_path.with_name(out_path.stem + "_report")
+    from ddsgen.preset import load_preset
+
+    resolve_params(DepthSensor(load_preset(preset)), names)  # validate names before any work
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
                                                      plausible_px=plausible_px, seed=seed, progress=not quiet)  # fmt: skip
     sensor = DepthSensor(camera_preset)
-    resolve_params(DepthSensor(camera_preset), names)  # validate names before any work
     fit_frames, held = split_frames(frames, holdout, seed)
     progress = not quiet
     before = gap(sensor, held, region=region, seed=seed + 1, keep_maps=True, progress=progress)

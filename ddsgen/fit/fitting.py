@@ -203,7 +203,7 @@ def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
         for f in frames:
             terms = frame_loss(simulate(sensor, f, seed), f, weights)
             for k, v in terms.items():
-                totals[k] = totals.get(k, 0.0) + float(v) / len(frames)
+                totals[k] = totals.get(k, 0.0) + float(v.detach()) / len(frames)
     return totals
 
 
@@ -309,7 +309,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
                 terms = frame_loss(simulate(sensor, f, seed), f, weights)
                 (terms["total"] / len(chosen)).backward()
                 for k, v in terms.items():
-                    totals[k] = totals.get(k, 0.0) + float(v) / len(chosen)
+                    totals[k] = totals.get(k, 0.0) + float(v.detach()) / len(chosen)
             for group in groups:
                 for t in group["params"]:
                     if t.grad is not None:
