@@ -71,6 +71,10 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
                                                      plausible_px=plausible_px, seed=seed, progress=not quiet)  # fmt: skip
     sensor = DepthSensor(camera_preset)
+    if region == "objects":  # fit on the pixels that count
+        import dataclasses
+
+        frames = [dataclasses.replace(f, region=f.object_region) for f in frames]
     fit_frames, held = split_frames(frames, holdout, seed)
     progress = not quiet
     before = gap(sensor, held, region=region, seed=seed + 1, keep_maps=True, progress=progress)

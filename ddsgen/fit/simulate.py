@@ -76,6 +76,7 @@ class FrameData:
         the principal point over the half-diagonal of the original image (0..~1).
     plane: the fitted support plane, or None. pose_error_mm: median |real - clean| on the
         objects' pixels where the real depth is valid (a check of the ground-truth poses).
+    full_intrinsics: the camera of the uncropped frame.
     """
 
     name: str
