@@ -1,0 +1,380 @@
+"""The block matcher (ddsgen/sensor/matcher.py): accuracy on known disparities, exact band
+stitching, gradients against finite differences, finite gradients everywhere, memory bounded
+by the band, and the reference-phase layout of docs/ARCHITECTURE.md.
+
+The synthetic scenes use an analytic dot pattern (Gaussian dots, sigma 0.6 px, ~11 % of the
+area lit, like a Kinect pattern), so the observed image I(u, v) = R(u - d(u, v), v) and the
+reference phases R(j - pad - s/S, v) are exact samples of one continuous function: any error
+is the matcher's, not interpolation's.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_flatten
+
+from ddsgen.sensor import matcher as M
+from ddsgen.sensor.matcher import match, stereo_reference_phases
+
+SIGMA = 0.6
+
+
+def _dots(height, x_min, x_max, seed, density=0.11):
+    """Random dot centres covering rows [-3, height + 3) and x in [x_min, x_max)."""
+    rng = np.random.default_rng(seed)
+    area = (height + 6) * (x_max - x_min)
+    count = int(density * area / (2 * math.pi * SIGMA**2))
+    xs = rng.uniform(x_min, x_max, count)
+    ys = rng.uniform(-3, height + 3, count)
+    amp = rng.uniform(0.6, 1.0, count)
+    return xs, ys, amp
+
+
+def _render(dots, x, y):
+    """Sum of Gaussian dots at continuous positions x, y (same shape)."""
+    xs, ys, amp = dots
+    out = np.zeros(x.shape, dtype=np.float64)
+    for row in range(x.shape[0]):
+        near = np.abs(ys - y[row, 0]) < 4 * SIGMA
+        dx = x[row][:, None] - xs[near][None, :]
+        dy = y[row][:, None] - ys[near][None, :]
+        out[row] = (amp[near] * np.exp(-(dx**2 + dy**2) / (2 * SIGMA**2))).sum(axis=1)
+    return out
+
+
+def _scene(height, width, disparity, n_sub=2, pad=None, noise=0.0, seed=0, dtype=torch.float32):
+    """(observed, reference_phases, pad, true disparity) for a disparity map (H, W) or constant."""
+    d = np.broadcast_to(np.asarray(disparity, dtype=np.float64), (height, width))
+    pad = pad or int(math.ceil(d.max())) + 12
+    dots = _dots(height, -pad - 3, width + 3, seed)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    observed = 40 + 800 * _render(dots, u - d, v)
+    if noise:
+        observed += np.random.default_rng(seed + 1).normal(0, noise, observed.shape)
+    steps = 2**n_sub
+    vj, j = np.mgrid[0:height, 0 : width + pad].astype(np.float64)
+    phases = np.stack([_render(dots, j - pad - s / steps, vj) for s in range(steps)])
+    return (torch.tensor(observed, dtype=dtype), torch.tensor(phases, dtype=dtype), pad, d.astype(np.float32))
+
+
+@pytest.fixture(scope="module")
+def sloped():
+    """A plane tilted in both directions: d = 14 + 0.06 u + 0.03 v (px), mild sensor noise."""
+    height, width = 40, 120
+    v, u = np.mgrid[0:height, 0:width]
+    return _scene(height, width, 14.0 + 0.06 * u + 0.03 * v, noise=4.0, seed=3)
+
+
+def _interior(mask, block=9):
+    h = block // 2
+    out = np.zeros_like(mask)
+    out[h:-h, h:-h] = mask[h:-h, h:-h]
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Accuracy
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("true_d", [17.0, 23.6])
+@pytest.mark.parametrize("backend", ["c", "torch"])
+def test_constant_disparity_recovered_within_subpixel_step(true_d, backend):
+    if backend == "c" and M.integer_search_backend() != "c":
+        pytest.skip("no C compiler: the C kernel is unavailable")
+    observed, phases, pad, d = _scene(32, 96, true_d, n_sub=2, noise=2.0, seed=1)
+    result = match(observed, phases, pad, 5, pad - 12, 9, 15.0, 2, 64, 0.05, backend=backend, compile=False)
+    valid = result.valid.numpy()
+    inner = _interior(np.ones_like(valid))
+    assert valid[inner].mean() > 0.97, "textured pixels must be valid"
+    error = np.abs(result.disparity.numpy() - d)[inner & valid]
+    step = 0.25
+    # Quantised output: the best possible error is half a step; allow the step itself (the
+    # soft-argmax over K - 1/2 .. K + 1/2 is pulled towards the integer peak K by < 1/2 step).
+    assert np.mean(error <= step + 1e-6) > 0.97, f"median error {np.median(error):.3f} px"
+    assert np.median(error) < 0.2
+
+
+def test_sloped_disparity_recovered_within_subpixel_step(sloped):
+    observed, phases, pad, d = sloped
+    result = match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05, compile=False)
+    valid = result.valid.numpy()
+    inner = _interior(np.ones_like(valid))
+    assert valid[inner].mean() > 0.95
+    error = np.abs(result.disparity.numpy() - d)[inner & valid]
+    assert np.mean(error <= 0.25 + 1e-6) > 0.9, f"median error {np.median(error):.3f} px"
+    assert np.percentile(error, 99) < 1.0
+
+
+def test_output_is_quantised_to_the_subpixel_step(sloped):
+    observed, phases, pad, _ = sloped
+    result = match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05, compile=False)
+    steps = result.disparity * 4
+    assert torch.equal(steps, torch.round(steps))
+    assert result.disparity.dtype == torch.float32
+    assert result.confidence.min() >= 0 and result.confidence.max() <= 1
+
+
+def test_backends_agree(sloped):
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    observed, phases, pad, _ = sloped
+    a = match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05, backend="c", compile=False, quantize=False)
+    b = match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05, backend="torch", compile=False, quantize=False)
+    close = (a.disparity - b.disparity).abs() < 1e-3
+    assert close.float().mean() > 0.995  # differences only at exact ties of the integer search
+    assert (a.confidence - b.confidence).abs().max() < 1e-3  # float32 running sums vs explicit sums
+
+
+# ---------------------------------------------------------------------------------------
+# Bands
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("backend", ["c", "torch"])
+def test_band_split_is_identical_to_one_band(sloped, backend):
+    if backend == "c" and M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    observed, phases, pad, _ = sloped
+    observed = observed.clone().requires_grad_(True)
+
+    def run(rows):
+        observed.grad = None
+        result = match(observed, phases, pad, 8, 30, 9, 15.0, 2, rows, 0.05, backend=backend, compile=False)
+        (result.disparity * torch.linspace(0, 1, observed.shape[1])).sum().backward()
+        return result, observed.grad.clone()
+
+    whole, grad_whole = run(1000)
+    for rows in (1, 7, 16):
+        split, grad_split = run(rows)
+        assert torch.equal(split.disparity, whole.disparity), f"band_rows={rows}"
+        assert torch.equal(split.confidence, whole.confidence)
+        assert torch.equal(split.valid, whole.valid)
+        assert torch.allclose(grad_split, grad_whole, rtol=1e-5, atol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------
+# Gradients
+# ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small64():
+    observed, phases, pad, d = _scene(12, 34, 9.3, n_sub=2, noise=3.0, seed=5, dtype=torch.float64)
+    return observed, phases, pad
+
+
+def test_gradcheck_float64_observed_and_beta(small64):
+    """Autograd vs central finite differences (torch.autograd.gradcheck, fast mode: random
+    projections of the Jacobian) in float64 on the unquantised soft-argmax (the
+    straight-through gradient is exactly this one). The integer argmax is piecewise
+    constant, so a 1e-6 perturbation does not move it; rtol 1e-4 covers the float64
+    rounding of the exp/rsqrt chain through ~100-term window sums."""
+    observed, phases, pad = small64
+
+    def fn(obs, beta):
+        result = match(obs, phases, pad, 4, 16, 5, beta, 2, 5, 0.05, quantize=False, backend="torch", compile=False)
+        return result.disparity
+
+    obs = observed.clone().requires_grad_(True)
+    beta = torch.tensor(15.0, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(fn, (obs, beta), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+def test_c_kernel_gradient_matches_float64_autograd(small64):
+    """The C kernels' hand-written backward (float32) against float64 autograd (which the
+    gradcheck above verifies against finite differences)."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    observed, phases, pad = small64
+    weights = torch.randn(observed.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def grads(obs, ph, backend):
+        obs = obs.clone().requires_grad_(True)
+        beta = torch.tensor(15.0, dtype=obs.dtype, requires_grad=True)
+        result = match(obs, ph, pad, 4, 16, 5, beta, 2, 5, 0.05, quantize=False, backend=backend, compile=False)
+        (result.disparity * weights.to(obs.dtype)).sum().backward()
+        return obs.grad.double(), beta.grad.double()
+
+    g32, b32 = grads(observed.float(), phases.float(), "c")
+    g64, b64 = grads(observed, phases, "torch")
+    rel = (g32 - g64).norm() / g64.norm()
+    assert rel < 1e-3, f"relative error {rel:.2e}"  # float32 rounding in a ~100-term chain
+    assert abs(float(b32 - b64)) <= 1e-3 * abs(float(b64)) + 1e-6
+
+
+def test_finite_difference_beta_float32_c_path():
+    """Central differences w.r.t. beta on the float32 C path (beta never moves the integer
+    argmax, so the loss is smooth in beta). The observed-image gradient of this path is
+    checked against float64 autograd above: image perturbations large enough to beat float32
+    rounding also flip near-tie integer argmaxes, which makes a float32 pixel FD unreliable."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    observed, phases, pad, _ = _scene(16, 48, 11.4, n_sub=2, noise=3.0, seed=7)
+    weights = torch.linspace(-1, 1, observed.numel()).reshape(observed.shape)
+
+    def loss(beta):
+        result = match(observed, phases, pad, 4, 20, 7, beta, 2, 64, 0.05, quantize=False, compile=False)
+        return (result.disparity * weights).sum()
+
+    beta = torch.tensor(15.0, requires_grad=True)
+    loss(beta).backward()
+    with torch.no_grad():
+        fd = (loss(15.25) - loss(14.75)) / 0.5
+    # O(step^2) error ~1e-3 relative here; float32 rounding of the loss ~3e-5 / 0.5.
+    assert abs(float(fd - beta.grad)) <= 1e-2 * abs(float(beta.grad)) + 2e-4, (float(fd), float(beta.grad))
+
+
+def test_straight_through_gradient_equals_soft_gradient(sloped):
+    observed, phases, pad, _ = sloped
+    grads = []
+    for quantize in (True, False):
+        obs = observed.clone().requires_grad_(True)
+        result = match(obs, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05, quantize=quantize, compile=False)
+        result.disparity.sum().backward()
+        grads.append(obs.grad)
+    assert torch.equal(grads[0], grads[1])
+    assert grads[0].abs().sum() > 0
+
+
+def test_gradients_finite_on_flat_windows_unknown_reference_and_seams():
+    """Flat (textureless) regions, saturated columns, reference columns that are unknown
+    (NaN, stereo padding) and band seams: values and gradients stay finite."""
+    height, width = 24, 64
+    rng = np.random.default_rng(0)
+    right = rng.random((height, width)).astype(np.float32)
+    left = np.roll(right, 6, axis=1)
+    left[:, 20:34] = 0.5  # flat block
+    left[8:12, :] = 1.0  # flat rows across a band seam
+    pad = 6 + 9 + 8
+    phases = stereo_reference_phases(torch.from_numpy(right), 2, pad)
+    assert torch.isnan(phases[:, :, :pad]).all()
+    for backend in ("c", "torch"):
+        if backend == "c" and M.integer_search_backend() != "c":
+            continue
+        obs = torch.from_numpy(left).requires_grad_(True)
+        beta = torch.tensor(15.0, requires_grad=True)
+        result = match(obs, phases, pad, 0, 14, 9, beta, 2, 8, 0.05, backend=backend, compile=False)
+        assert torch.isfinite(result.disparity).all()
+        (result.disparity.sum() + (result.disparity**2).mean()).backward()
+        assert torch.isfinite(obs.grad).all() and torch.isfinite(beta.grad)
+        conf = result.confidence.numpy()
+        flat_rows = np.r_[0:4, 16:24]  # windows entirely inside the flat block
+        assert (conf[flat_rows][:, 24:30] < 0.05).all(), "flat windows must be low-confidence"
+        # Never matched against the unknown (NaN) padding: valid windows lie inside RIGHT.
+        u = torch.arange(width, dtype=torch.float32)
+        inside = (u - result.disparity.detach() - 4) >= -1e-4
+        assert inside[result.valid].all(), "a valid match used reference columns outside the right image"
+        assert not (result.valid[:, :6] & ((result.disparity[:, :6] - 6).abs() < 0.5)).any()
+
+
+def test_gradient_wrt_reference_phases_when_they_require_grad():
+    observed, phases, pad, _ = _scene(12, 40, 8.5, n_sub=1, noise=2.0, seed=9)
+    ph = phases.clone().requires_grad_(True)
+    result = match(observed, ph, pad, 3, 14, 5, 15.0, 1, 64, 0.05, compile=False)
+    result.disparity.sum().backward()
+    assert torch.isfinite(ph.grad).all() and ph.grad.abs().sum() > 0
+
+
+# ---------------------------------------------------------------------------------------
+# Memory
+# ---------------------------------------------------------------------------------------
+class _PeakTensorMemory(TorchDispatchMode):
+    """Peak bytes of live tensor storages allocated inside the mode (views of existing
+    storages, e.g. of the cached reference, are not allocations)."""
+
+    def __init__(self):
+        super().__init__()
+        self.live = 0
+        self.peak = 0
+        self._seen = set()
+
+    def _track(self, tensor):
+        storage = tensor.untyped_storage()
+        key = storage.data_ptr()
+        if key in self._seen or storage.nbytes() == 0:
+            return
+        self._seen.add(key)
+        self.live += storage.nbytes()
+        self.peak = max(self.peak, self.live)
+        nbytes = storage.nbytes()
+
+        def release(key=key, nbytes=nbytes):
+            self.live -= nbytes
+            self._seen.discard(key)
+
+        weakref.finalize(storage, release)
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        inputs = {t.untyped_storage().data_ptr() for t in tree_flatten((args, kwargs))[0] if isinstance(t, torch.Tensor)}
+        for item in tree_flatten(out)[0]:
+            # Views share their input's storage: only new allocations count.
+            if isinstance(item, torch.Tensor) and item.untyped_storage().data_ptr() not in inputs:
+                self._track(item)
+        return out
+
+
+def test_band_rows_bound_the_cost_volume():
+    """torch backend: the (row, column, disparity) volume exists one band at a time, so peak
+    tensor memory follows band_rows and stays far below that of a whole-image volume."""
+    height, width, d_max = 160, 120, 40
+    observed, phases, pad, _ = _scene(height, width, 20.0, n_sub=2, pad=d_max + 16, seed=2)
+    M._REF_CACHE.clear()
+    M._prepare_reference(phases, pad, 9, 2, 4 + 8)  # reference tensors are per sensor, not per frame
+    peaks = {}
+    for rows in (4, 16, height):
+        with _PeakTensorMemory() as mode:
+            match(observed, phases, pad, 0, d_max, 9, 15.0, 2, rows, 0.05, backend="torch", compile=False)
+        peaks[rows] = mode.peak
+    full_volume = height * width * (d_max + 1) * 4  # one float32 score volume of the whole image
+    assert peaks[height] > 2 * full_volume, peaks  # unbanded: several whole-image volumes
+    assert peaks[4] < 0.5 * full_volume, (peaks, full_volume)  # banded: image-sized buffers only
+    assert peaks[4] < peaks[16] < peaks[height]
+
+
+def test_c_path_memory_does_not_grow_with_the_disparity_range():
+    """The C integer search streams over disparities: no cost volume at all, so peak tensor
+    memory is independent of the number of disparities."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    height, width = 96, 160
+    observed, phases, pad, _ = _scene(height, width, 15.0, n_sub=2, pad=76, seed=2)
+    peaks = {}
+    for d_max in (20, 60):
+        M._prepare_reference(phases, pad, 9, 2, 4 + 8)
+        with _PeakTensorMemory() as mode:
+            match(observed, phases, pad, 0, d_max, 9, 15.0, 2, 32, 0.05, compile=False)
+        peaks[d_max] = mode.peak
+    assert peaks[60] < 1.1 * peaks[20], peaks
+    assert peaks[60] < 0.5 * height * width * 61 * 4, peaks
+
+
+# ---------------------------------------------------------------------------------------
+# Reference phases and input checks
+# ---------------------------------------------------------------------------------------
+def test_stereo_reference_phases_layout():
+    right = torch.arange(5 * 12, dtype=torch.float32).reshape(5, 12) % 7 + torch.rand(5, 12)
+    pad = 4
+    phases = stereo_reference_phases(right, 1, pad)
+    assert phases.shape == (2, 5, 16)
+    assert torch.isnan(phases[:, :, :pad]).all()
+    assert torch.allclose(phases[0, :, pad:], right)  # phase 0: R(j - pad)
+    # phase 1 at column j holds R(j - pad - 1/2); a linear ramp is reproduced exactly by cubic
+    ramp = torch.arange(12, dtype=torch.float32).expand(5, 12).contiguous()
+    half = stereo_reference_phases(ramp, 1, pad)[1]
+    assert torch.allclose(half[:, pad + 2 : -1], ramp[:, 2:-1] - 0.5, atol=1e-5)
+    assert torch.isnan(half[:, pad]).all()  # R(-1/2) is outside the image
+
+
+def test_input_validation():
+    observed = torch.rand(16, 40)
+    phases = torch.rand(4, 16, 60)
+    with pytest.raises(ValueError, match="reference_phases"):
+        match(observed, phases[:2], 20, 0, 8, 5, 15.0, 2)
+    with pytest.raises(ValueError, match="block"):
+        match(observed, phases, 20, 0, 8, 4, 15.0, 2)
+    with pytest.raises(ValueError, match="pad"):
+        match(observed, phases, 20, 0, 19, 5, 15.0, 2)
+    with pytest.raises(ValueError, match="range"):
+        match(observed, phases, 20, 5, 4.5, 5, 15.0, 2)
