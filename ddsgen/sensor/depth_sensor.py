@@ -179,18 +179,20 @@ class DepthSensor(nn.Module):
 
     def physical_parameters(self) -> dict[str, float]:
         """Current values as preset keys (plain floats)."""
-        scale = float(self.focal_scale)
-        return {
-            "emitted_intensity": float(self.emitted_intensity),
-            "speckle_scale": float(self.speckle_scale),
-            "read_noise_std_counts": float(self.read_noise_std),
-            "read_noise_mean_counts": float(self.read_noise_mean),
-            "ambient_counts": float(self.ambient) if float(self.ambient) > 1e-5 else 0.0,
-            "softargmax_beta": float(self.beta),
-            "baseline_m": float(self.baseline),
-            "focal_px": self.preset.focal_px * scale,
-            "focal_y_px": self.preset.focal_y_px * scale,
-        }
+        with torch.no_grad():
+            scale = float(self.focal_scale)
+            ambient = float(self.ambient)
+            return {
+                "emitted_intensity": float(self.emitted_intensity),
+                "speckle_scale": float(self.speckle_scale),
+                "read_noise_std_counts": float(self.read_noise_std),
+                "read_noise_mean_counts": float(self.read_noise_mean),
+                "ambient_counts": ambient if ambient > 1e-5 else 0.0,
+                "softargmax_beta": float(self.beta),
+                "baseline_m": float(self.baseline),
+                "focal_px": self.preset.focal_px * scale,
+                "focal_y_px": self.preset.focal_y_px * scale,
+            }
 
     def to_preset(self) -> SensorPreset:
         """The preset with the current (fitted) parameter and effect values."""
