@@ -42,6 +42,7 @@ per worker are safe but do not add speed.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 from ddsgen.errors import InputError
@@ -49,8 +50,9 @@ from ddsgen.errors import InputError
 #: Retries of a task that raised (a worker that *died* is handled by the scheduler's
 #: ``allowed-failures`` instead, which re-runs the task elsewhere).
 TASK_RETRIES = 2
-#: Tasks kept in flight per worker thread (enough to hide the ~2 ms per-task overhead).
-IN_FLIGHT_PER_THREAD = 3
+#: Tasks kept in flight per worker thread, and at least MIN_IN_FLIGHT (hides the per-task round trip).
+IN_FLIGHT_PER_THREAD = 4
+MIN_IN_FLIGHT = 16
 #: Seconds to wait for the scheduler before giving up with a one-line error.
 CONNECT_TIMEOUT_S = 20.0
 #: glibc mallopt parameters (malloc.h).
@@ -150,31 +152,31 @@ def run_on_dask(
         client.register_plugin(_plugin_class()())
         queue = iter(enumerate(batches))
         seen: set[int] = set()
-
-        def submit(index: int, batch: list[int]):
-            key = f"ddsgen-render-{job_token}-{index}-{batch[0] if batch else 'empty'}"
-            return client.submit(run_batch_on_worker, fn, job, batch, key=key, pure=False, retries=retries)
-
         job_token = _job_token(job)
-        window = IN_FLIGHT_PER_THREAD * _total_threads(client)
-        pending = as_completed(loop=client.loop)
-        for index, batch in queue:
-            pending.add(submit(index, batch))
-            if pending.count() >= window:
-                break
+
+        def submit(count: int) -> list:
+            """Send up to ``count`` more batches in one message."""
+            chosen = [item for _, item in zip(range(count), queue)]
+            if not chosen:
+                return []
+            keys = [f"ddsgen-render-{job_token}-{index}" for index, _ in chosen]
+            return client.map(run_batch_on_worker, [fn] * len(chosen), [job] * len(chosen),
+                              [batch for _, batch in chosen], key=keys, pure=False, retries=retries)  # fmt: skip
+
+        window = max(MIN_IN_FLIGHT, IN_FLIGHT_PER_THREAD * _total_threads(client))
+        checked = time.monotonic()
+        pending = as_completed(submit(window), with_results=True, loop=client.loop)
         try:
-            for future in pending:
-                records = future.result()
-                future.release()
-                fresh = [r for r in records if int(r["frame"]) not in seen]
-                seen.update(int(r["frame"]) for r in fresh)
-                yield fresh
-                window = IN_FLIGHT_PER_THREAD * _total_threads(client)
-                while pending.count() < window:
-                    nxt = next(queue, None)
-                    if nxt is None:
-                        break
-                    pending.add(submit(*nxt))
+            for finished in pending.batches():  # everything that completed since the last look
+                for future, records in finished:
+                    future.release()
+                    fresh = [r for r in records if int(r["frame"]) not in seen]
+                    seen.update(int(r["frame"]) for r in fresh)
+                    yield fresh
+                if time.monotonic() - checked > 2.0:  # workers may join or leave; ask now and then
+                    window = max(MIN_IN_FLIGHT, IN_FLIGHT_PER_THREAD * _total_threads(client))
+                    checked = time.monotonic()
+                pending.update(submit(window - pending.count()))
         except BaseException:
             for future in list(pending.futures):
                 future.cancel()
@@ -185,7 +187,7 @@ def run_on_dask(
 
 
 def _job_token(job) -> str:
-    """Short stable token of the job, so task keys of different runs never collide on a shared cluster."""
+    """A token unique to this run (job, process, time), so task keys of different runs never collide on a shared cluster."""
     import hashlib
     import os
     import time
