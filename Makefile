@@ -12,6 +12,10 @@ N ?= 100
 OUT ?= datasets/$(basename $(notdir $(PRESET)))
 SEED ?= 0
 FORMAT ?= ddsgen
+# Optional: SCHEDULER=tcp://HOST:PORT renders on a Dask cluster (workers: dask worker ADDR --nworkers K --nthreads 1);
+# BATCH=frames per task.
+SCHEDULER ?=
+BATCH ?= 1
 
 .PHONY: install demo test bench dataset datasets clean
 
@@ -35,12 +39,15 @@ test: install
 bench: install
 	$(PY) bench/run_all.py
 
+# Re-running the same command resumes an interrupted build (finished frames are kept).
 dataset: install
-	$(DDSGEN) render $(PRESET) $(if $(SCENES),--scenes $(SCENES)) -n $(N) --out $(OUT) --workers $(WORKERS) --seed $(SEED) $(if $(filter bop,$(FORMAT)),--format bop)
+	$(DDSGEN) render $(PRESET) $(if $(SCENES),--scenes $(SCENES)) -n $(N) --out $(OUT) --workers $(WORKERS) \
+		--seed $(SEED) --format $(FORMAT) --batch-size $(BATCH) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
+# A kinect_v1 and a matterport_pro2 dataset from the shipped scene list (FORMAT=bop for the BOP layout).
 datasets: install
-	$(MAKE) dataset PRESET=presets/kinect_v1.yaml SCENES=scenes/default.yaml N=$(N) OUT=datasets/kinect_v1
-	$(MAKE) dataset PRESET=presets/matterport_pro2.yaml SCENES=scenes/default.yaml N=$(N) OUT=datasets/matterport_pro2
+	$(MAKE) dataset PRESET=presets/kinect_v1.yaml SCENES=scenes/default.yaml N=$(N) OUT=datasets/kinect_v1$(if $(filter bop,$(FORMAT)),_bop)
+	$(MAKE) dataset PRESET=presets/matterport_pro2.yaml SCENES=scenes/default.yaml N=$(N) OUT=datasets/matterport_pro2$(if $(filter bop,$(FORMAT)),_bop)
 
 clean:
 	rm -rf demo_out datasets .pytest_cache .hypothesis build *.egg-info
