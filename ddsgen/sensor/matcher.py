@@ -427,7 +427,7 @@ void ddsgen_window_cross(const float *restrict O, int Wo, const float *restrict 
 #pragma omp parallel num_threads(n_threads)
     {
         v8 acc[8];
-#pragma omp for schedule(static)
+#pragma omp for schedule(dynamic, 4)
         for (int v = 0; v < H; v++) {
             for (int u = 0; u < W; u++) {
                 const int c0 = col0[(size_t)v * W + u];
@@ -467,7 +467,7 @@ void ddsgen_window_cross_grad(const float *restrict G, const float *restrict FT,
 #pragma omp parallel num_threads(n_threads)
     {
         v8 acc[8];
-#pragma omp for schedule(static)
+#pragma omp for schedule(dynamic, 4)
         for (int y = 0; y < Hp; y++) {
             float *restrict drow = dO + (size_t)y * Wo;
             for (int x = 0; x < Wo; x++) drow[x] = 0.0f;
@@ -836,8 +836,11 @@ def match(
     fn = _refine_band if use_c_refine else _compiled(_refine_band, compile_mode)
     rows = max(1, min(int(band_rows), H))
     # The C path holds no cost volume; its autograd graph is ~12 floats per pixel and candidate.
-    # Recompute bands in the backward pass (checkpointing) only when that graph would be large.
+    # Split it into bands recomputed in the backward pass (checkpointing) only when that graph
+    # would be large; otherwise one call (fewer, larger ops: much faster on a busy machine).
     checkpoint_bands = H * W * ref.n_cand > _CHECKPOINT_ELEMENTS
+    if use_c_refine and not checkpoint_bands:
+        rows = H
     col_shift = pad + ref.offset - h
     pieces = []
     done = 0
