@@ -1,0 +1,556 @@
+"""Diagnosis: find where simulation and measurement disagree, name the missing effect, add it, show the gap shrink.
+
+The loop (:func:`diagnose`):
+
+1. **Base fit.** The base sensor parameters are fitted on the fit frames with the fit
+   machinery (:func:`ddsgen.fit.fitting.fit_sensor`); the held-out gap (the ``compare``
+   metric, :func:`ddsgen.fit.compare.gap`) of that model is the baseline.
+2. **Residual analysis** (:mod:`ddsgen.fit.residuals`): bias and validity disagreement
+   binned by depth, incidence angle, image radius, row, column, distance to depth edges and
+   IR signal; per axis the structure beyond noise (bootstrap over frames).
+3. **Candidates.** Every library effect not yet in the model is added in turn and its
+   parameters are fitted on the fit frames by a coarse grid plus a local refinement
+   (forward passes), minimising the *excess* of the gap over the noise floor (below); then
+   the held-out gap and noise floor it leaves are measured.
+4. **Acceptance** (:data:`RULE`). Accepted: named, added, the base parameters refitted with it,
+   and the loop repeats with the remaining effects; otherwise it stops.
+5. **What remains**: axes whose residual structure is still beyond noise (and at least
+   :data:`UNEXPLAINED_MIN_MM`) are reported as unexplained, strongest first, rather than
+   naming a wrong effect.
+
+Two things make the comparison fair to every candidate:
+
+* **Excess over the noise floor.** The gap metric can be lowered by *hiding* noise: a
+  dropout effect that removes the noisiest pixels from the simulation lowers the depth and
+  texture terms by more than it costs in validity, even on data that has no such dropout. The
+  noise floor (the gap between two noise draws of the same model, ``compare``'s
+  ``noise_floor``) falls by the same amount, while a genuinely missing effect lowers the gap
+  and leaves the floor. So candidates are fitted and judged by ``excess = gap - noise_floor``
+  (per frame, same noise draws for every model).
+* **The support plane is re-estimated under each model** (:func:`replane`). It is fitted to
+  the real depth, so it already contains any bias that keeps planes planar (a disparity
+  offset, a depth scale error); a model with that effect would apply it twice.
+
+Speed: effects that act after block matching (disparity, depth and validity stages) do not
+change the matcher's input, so :func:`reuse_matches` serves the matcher's result from a cache
+keyed by the IR image; validity effects do not move the plane either, so their whole search
+runs without the matcher. Grids use at most :attr:`DiagnoseConfig.grid_frames` fit frames.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import math
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ddsgen.fit.compare import gap
+from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
+from ddsgen.fit.residuals import AXIS_WORDS, analyse, pixel_residuals
+from ddsgen.fit.simulate import simulate
+from ddsgen.sensor.effects import REGISTRY
+
+#: A candidate must remove at least this fraction of the held-out gap from its excess over the noise floor ...
+MIN_RELATIVE_GAIN = 0.10
+#: ... and the BOOTSTRAP_QUANTILE-quantile of that gain over resamples of the held-out frames must stay above zero.
+BOOTSTRAP_RESAMPLES = 2000
+BOOTSTRAP_QUANTILE = 0.05
+#: Residual structure below this (mm, beyond noise) is not reported as unexplained.
+UNEXPLAINED_MIN_MM = 1.0
+
+RULE = (
+    f"Each round, the candidate whose held-out excess (gap minus noise floor, paired per frame, same noise draws) "
+    f"falls most is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
+    f"and (b) it is not carried by a few frames: over {BOOTSTRAP_RESAMPLES} bootstrap resamples of the held-out "
+    f"frames (with replacement), the {100 * BOOTSTRAP_QUANTILE:.0f}th percentile of that relative fall stays above "
+    f"zero. Residual structure along an axis counts as unexplained when it exceeds twice its bootstrap noise and "
+    f"is at least {UNEXPLAINED_MIN_MM:.1f} mm beyond it."
+)
+
+#: Coarse search grids (first parameter) per library effect; a local search refines the best point.
+GRIDS: dict[str, list[dict]] = {
+    "lens_distortion": [{"k1": v} for v in (-0.03, -0.015, -0.006, 0.006, 0.015, 0.03)],
+    "disparity_offset": [{"offset_px": v} for v in (-1.0, -0.5, -0.25, -0.1, 0.1, 0.25, 0.5, 1.0)],
+    "depth_scale": [{"scale_error": v} for v in (-0.04, -0.02, -0.01, -0.004, 0.004, 0.01, 0.02, 0.04)],
+    "grazing_dropout": [{"angle_deg": v} for v in (45.0, 55.0, 62.0, 67.0, 71.0, 75.0, 79.0, 83.0, 87.0)],
+    "edge_dropout": [{"width_px": v} for v in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)],
+    "low_signal_dropout": [{"threshold_counts": v} for v in (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 9.0)],
+}
+
+
+def default_grid(name: str) -> list[dict]:
+    """The search grid of an effect: :data:`GRIDS`, or multiples of each parameter's typical value."""
+    if name in GRIDS:
+        return GRIDS[name]
+    cls = REGISTRY[name]
+    grid = []
+    for key, spec in cls.params.items():
+        typical = spec.typical if spec.typical is not None else 0.5 * (spec.low + spec.high)
+        for m in (-2.0, -1.0, -0.5, 0.5, 1.0, 2.0):
+            value = spec.neutral + m * (typical - spec.neutral)
+            if spec.low <= value <= spec.high and value != spec.neutral:
+                grid.append({key: value})
+    return grid
+
+
+# ------------------------------------------------------------------------------------------ speed
+
+
+@contextlib.contextmanager
+def reuse_matches():
+    """Serve block-matching results from a cache while the matcher's input does not change.
+
+    Inside the context, :func:`ddsgen.sensor.matcher.match` as called by the sensor is wrapped:
+    when neither the IR image nor beta needs a gradient, the result for an identical IR image
+    (same bytes) and identical settings is computed once and reused. With only post-matching
+    effect parameters free, every simulation after the first of a frame skips the matcher.
+    """
+    import ddsgen.sensor.depth_sensor as depth_sensor
+
+    original = depth_sensor.match
+    cache: dict = {}
+
+    def cached_match(observed, reference_phases, pad, d_min, d_max, block, beta, *args, **kwargs):
+        needs_grad = observed.requires_grad or (torch.is_tensor(beta) and beta.requires_grad)
+        if needs_grad:
+            return original(observed, reference_phases, pad, d_min, d_max, block, beta, *args, **kwargs)
+        digest = hashlib.blake2b(observed.detach().contiguous().cpu().numpy().tobytes(), digest_size=16).hexdigest()
+        key = (digest, tuple(observed.shape), reference_phases.data_ptr(), pad, round(float(d_min), 9),
+               round(float(d_max), 9), block, round(float(beta), 9), args, tuple(sorted(kwargs.items())))  # fmt: skip
+        if key not in cache:
+            cache[key] = original(observed, reference_phases, pad, d_min, d_max, block, beta, *args, **kwargs)
+        return cache[key]
+
+    depth_sensor.match = cached_match
+    try:
+        yield cache
+    finally:
+        depth_sensor.match = original
+
+
+# ------------------------------------------------------------------------------------------ support plane
+
+
+def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
+    """``frame`` with its support plane re-estimated under the model that produced ``sim``.
+
+    The support plane of :func:`ddsgen.fit.simulate.prepare_frames` is fitted to the *real*
+    depth, so it already contains every bias that keeps a plane a plane (a disparity offset:
+    1/z shifts by a constant; a depth scale error) -- simulating a sensor that has the effect
+    on that plane would apply it twice. The plane is a nuisance of the comparison, so it is
+    re-estimated for each model: one Gauss-Newton step in inverse depth, where a plane is an
+    affine function of the normalised pixel coordinates, moves it by the affine fit (trimmed
+    least squares) of the inverse-depth residual 1/z_sim - 1/z_real over its pixels valid in
+    both. Plane pixels get the new depth, points and normal; objects and masks are unchanged.
+
+    Returns ``frame`` itself when it has no plane or too few plane pixels.
+    """
+    from ddsgen.fit.simulate import Plane
+
+    if frame.plane is None:
+        return frame
+    g = frame.geometry
+    on_plane = g.hit & (frame.instance == 0)
+    use = on_plane & frame.region & sim.valid & frame.real_valid
+    if int(use.sum()) < min_pixels:
+        return frame
+    intr = frame.intrinsics
+    h, w = frame.shape
+    xn = ((torch.arange(w, dtype=torch.float64) - intr.cx) / intr.fx)[None, :].expand(h, w)
+    yn = ((torch.arange(h, dtype=torch.float64) - intr.cy) / intr.fy)[:, None].expand(h, w)
+    r = (1.0 / sim.depth.double()[use] - 1.0 / frame.real_depth.double()[use]).numpy()
+    a = np.stack([np.ones_like(r), xn[use].numpy(), yn[use].numpy()], 1)
+    keep = np.ones(r.shape, bool)
+    coef = np.zeros(3)
+    for _ in range(3):  # trimmed least squares: drop the largest residuals of the previous fit
+        coef = np.linalg.lstsq(a[keep], r[keep], rcond=None)[0]
+        dev = np.abs(r - a @ coef)
+        keep = dev <= np.quantile(dev, 1.0 - clip_quantile)
+    n = np.asarray(frame.plane.normal, np.float64)
+    d = float(frame.plane.offset)
+    # Plane n.X + d = 0  <=>  1/z = alpha + beta x_n + gamma y_n with (beta, gamma, alpha) = -n / d.
+    abc = -n / d - np.array([coef[1], coef[2], coef[0]])
+    norm = float(np.linalg.norm(abc))
+    new_n, new_d = -abc / norm, 1.0 / norm
+    inv = abc[2] + abc[0] * xn + abc[1] * yn
+    ok = on_plane & (inv > 1e-6)
+    z = torch.where(ok, 1.0 / inv.clamp_min(1e-6), torch.zeros_like(inv)).float()
+    points = g.points.clone()
+    normals = g.normals.clone()
+    xyz = torch.stack([xn.float() * z, yn.float() * z, z], -1)
+    points[ok] = xyz[ok]
+    normals[ok] = torch.tensor(new_n, dtype=torch.float32)
+    clean = torch.where(ok, z, g.clean_depth)
+    geometry = dataclasses.replace(g, points=points, normals=normals, clean_depth=clean,
+                                   hit=g.hit & (ok | ~on_plane))  # fmt: skip
+    ray = -points / torch.linalg.vector_norm(points, dim=-1, keepdim=True).clamp_min(1e-9)
+    cos = (ray * normals).sum(-1).clamp(-1.0, 1.0).abs()
+    incidence = torch.where(geometry.hit, torch.rad2deg(torch.acos(cos)), torch.full_like(cos, 90.0))
+    plane = Plane(normal=new_n, offset=new_d, inliers=frame.plane.inliers, candidates=frame.plane.candidates)
+    return dataclasses.replace(frame, geometry=geometry, incidence_deg=incidence.float(), plane=plane)
+
+
+def replane_all(sensor, frames, seed: int) -> list:
+    """Every frame re-planed under ``sensor`` (see :func:`replane`)."""
+    out = []
+    with torch.no_grad():
+        for f in frames:
+            out.append(replane(f, simulate(sensor, f, seed)) if f.plane is not None else f)
+    return out
+
+
+#: Values tried for the other parameters of an effect, one at a time, after its first parameter is set.
+SECONDARY_GRIDS: dict[str, dict[str, tuple]] = {
+    "lens_distortion": {"k2": (-0.02, -0.01, 0.01, 0.02)},
+}
+
+
+# ------------------------------------------------------------------------------------------ pieces
+
+
+@dataclasses.dataclass
+class DiagnoseConfig:
+    """Settings of :func:`diagnose` (defaults sized for a dozen 640x480 frames on 2 cores)."""
+
+    holdout: float = 1.0 / 3.0
+    base_params: tuple = DEFAULT_PARAMS
+    base_steps: int = 15  # Adam steps of the base fit (after its 1-D searches)
+    refit_steps: int = 10  # Adam steps of the refit after accepting an effect
+    refine_rounds: int = 2  # halving rounds of the local search around a candidate's best grid point
+    lr: float = 1e-3
+    batch_frames: int | None = 2
+    candidates: tuple | None = None  # effect names; default: the whole library
+    max_steps: int = 4
+    seed: int = 0
+    grid_frames: int = 4  # fit frames used by the candidates' searches
+    min_relative_gain: float = MIN_RELATIVE_GAIN
+
+
+@dataclasses.dataclass
+class Evaluation:
+    """Gap and noise floor of one model on some frames (per frame and mean, mm)."""
+
+    frame_gaps: list[float]
+    frame_floors: list[float]
+
+    @property
+    def gap(self) -> float:
+        return float(np.mean(self.frame_gaps)) if self.frame_gaps else float("nan")
+
+    @property
+    def floor(self) -> float:
+        return float(np.mean(self.frame_floors)) if self.frame_floors else float("nan")
+
+    @property
+    def excess(self) -> float:
+        return self.gap - self.floor
+
+
+@dataclasses.dataclass
+class Candidate:
+    effect: str
+    params: dict
+    fit_excess: float
+    held: Evaluation
+    gain: float = 0.0
+    gain_low: float = 0.0
+    sensor: object = None
+
+
+@dataclasses.dataclass
+class Step:
+    effect: str
+    params: dict
+    gap_before: float
+    gap_after: float
+    axis: str
+    sentence: str
+    analysis_before: dict
+    analysis_after: dict
+
+
+@dataclasses.dataclass
+class Diagnosis:
+    baseline: Evaluation
+    steps: list[Step]
+    final: Evaluation
+    unexplained: list[dict]
+    sensor: object
+    fit_frames: list
+    held_frames: list
+    analysis_baseline: dict
+    analysis_final: dict
+    rounds: list[list[Candidate]]
+
+    @property
+    def baseline_gap(self) -> float:
+        return self.baseline.gap
+
+    @property
+    def final_gap(self) -> float:
+        return self.final.gap
+
+    def to_dict(self) -> dict:
+        """The ``diagnosis.json`` document (exactly this shape)."""
+        return {
+            "baseline_gap": _f(self.baseline.gap),
+            "steps": [{"effect": s.effect, "params": {k: _f(v) for k, v in s.params.items()},
+                       "gap_before": _f(s.gap_before), "gap_after": _f(s.gap_after)} for s in self.steps],  # fmt: skip
+            "final_gap": _f(self.final.gap),
+            "unexplained": [{"axis": u["axis"], "strength": _f(u["strength"])} for u in self.unexplained],
+        }
+
+
+def _f(x) -> float:
+    x = float(x)
+    return round(x, 6) if math.isfinite(x) else 0.0
+
+
+def replaned(sensor, frames, seed: int, steps: int = 1) -> list:
+    """``frames`` with their support planes re-estimated under ``sensor`` (``steps`` Gauss-Newton steps)."""
+    for _ in range(steps):
+        frames = replane_all(sensor, frames, seed)
+    return frames
+
+
+def evaluate(sensor, frames, seed: int, replane_steps: int = 0) -> Evaluation:
+    """Per-frame gap and noise floor (``compare`` metric) of ``sensor``, planes re-estimated first if asked."""
+    if replane_steps:
+        frames = replaned(sensor, frames, seed, replane_steps)
+    gaps, floors = [], []
+    for f in frames:
+        report = gap(sensor, [f], seed=seed, noise_floor=True)
+        gaps.append(float(report.gap))
+        floors.append(float(report.noise_floor))
+    return Evaluation(gaps, floors)
+
+
+def changes_depth(name: str) -> bool:
+    """Whether an effect changes depth values (then the support plane must be re-estimated under it)."""
+    return REGISTRY[name].stage != "validity"
+
+
+def with_effect(sensor, name: str, values: dict):
+    """A new DepthSensor: ``sensor``'s current parameters plus effect ``name`` at ``values``."""
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    preset = sensor.to_preset()
+    entries = [dict(e) for e in preset.effects] + [{"name": name, **values}]
+    new = DepthSensor(preset.replace(effects=entries), intrinsics=sensor.intr, device=sensor.device_)
+    for p in new.parameters():
+        p.requires_grad_(False)
+    return new
+
+
+def relative_fall(before: Evaluation, after: Evaluation) -> float:
+    """Fall of the excess (gap - floor), paired per frame, as a fraction of the gap before."""
+    b = np.asarray(before.frame_gaps) - np.asarray(before.frame_floors)
+    a = np.asarray(after.frame_gaps) - np.asarray(after.frame_floors)
+    return float((b - a).sum() / max(float(np.sum(before.frame_gaps)), 1e-12))
+
+
+def bootstrap_fall(before: Evaluation, after: Evaluation, rng: np.random.Generator,
+                   resamples: int = BOOTSTRAP_RESAMPLES) -> float:  # fmt: skip
+    """The BOOTSTRAP_QUANTILE-quantile of :func:`relative_fall` over resamples of the frames."""
+    gb = np.asarray(before.frame_gaps)
+    d = (gb - np.asarray(before.frame_floors)) - (np.asarray(after.frame_gaps) - np.asarray(after.frame_floors))
+    n = len(d)
+    if n == 0:
+        return 0.0
+    idx = rng.integers(0, n, size=(resamples, n))
+    falls = d[idx].sum(1) / np.maximum(gb[idx].sum(1), 1e-12)
+    return float(np.quantile(falls, BOOTSTRAP_QUANTILE))
+
+
+def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig) -> tuple[object, dict, float]:
+    """Add effect ``name`` to (a copy of) ``sensor`` and fit its parameters on ``frames``.
+
+    ``frames`` are fit frames re-planed under ``sensor``. The objective is the mean excess of
+    the gap over the noise floor; for effects that change depth the support plane is
+    re-estimated under every trial value. The first parameter is searched on a coarse grid,
+    then by ``refine_rounds`` rounds of halving the interval around the best value; the other
+    parameters on :data:`SECONDARY_GRIDS`. Returns (sensor with the effect, values, excess).
+    """
+    cls = REGISTRY[name]
+    candidate = with_effect(sensor, name, {})
+    effect = candidate.effects[-1]
+    steps = 1 if changes_depth(name) else 0
+    tried: dict[tuple, float] = {}
+
+    def objective(values: dict) -> float:
+        key = tuple(round(values[k], 9) for k in cls.params)
+        if key not in tried:
+            effect.set_values(**values)
+            tried[key] = evaluate(candidate, frames, config.seed, steps).excess
+        return tried[key]
+
+    neutral = {k: spec.neutral for k, spec in cls.params.items()}
+    grid = [dict(neutral, **point) for point in default_grid(name)]
+    scores = [objective(v) for v in grid]
+    best = dict(grid[int(np.argmin(scores))])
+    first = next(iter(cls.params))
+    values = sorted({g[first] for g in grid})
+    i = values.index(best[first])
+    lo = values[i - 1] if i > 0 else best[first]
+    hi = values[i + 1] if i + 1 < len(values) else best[first]
+    for _ in range(config.refine_rounds):
+        for x in (0.5 * (lo + best[first]), 0.5 * (hi + best[first])):
+            trial = dict(best, **{first: x})
+            if objective(trial) < objective(best):
+                best = trial
+        lo, hi = 0.5 * (lo + best[first]), 0.5 * (hi + best[first])
+    for key, options in SECONDARY_GRIDS.get(name, {}).items():
+        for x in options:
+            trial = dict(best, **{key: x})
+            if objective(trial) < objective(best):
+                best = trial
+    effect.set_values(**best)
+    return candidate, effect.values(), objective(best)
+
+
+def analysis_of(sensor, frames, seed: int, edges: dict | None = None, stride: int = 1) -> dict:
+    """Residual analysis (stats and structure per axis) of ``sensor`` on ``frames`` (re-planed under it)."""
+    frames = replaned(sensor, frames, seed, 2)
+    with torch.no_grad():
+        sims = [simulate(sensor, f, seed) for f in frames]
+    res = pixel_residuals(frames, sims, stride=stride)
+    return analyse(res, seed=seed, edges=edges)
+
+
+def structure_summary(analysis: dict, top: int = 3) -> str:
+    items = sorted(analysis.items(), key=lambda kv: -kv[1][1].excess_mm)[:top]
+    return ", ".join(f"{axis} {s.excess_mm:.1f} mm (noise {s.noise_mm:.1f})" for axis, (_, s) in items)
+
+
+def unexplained_axes(analysis: dict) -> list[dict]:
+    out = []
+    for axis, (_, s) in analysis.items():
+        if s.significant and s.excess_mm >= UNEXPLAINED_MIN_MM:
+            out.append({"axis": axis, "strength": s.excess_mm})
+    return sorted(out, key=lambda u: -u["strength"])
+
+
+def step_sentence(name: str, params: dict, before: float, after: float) -> str:
+    cls = REGISTRY[name]
+    pct = 100.0 * (1.0 - after / before) if before > 0 else 0.0
+    values = ", ".join(f"{k} = {v:.3g} {cls.params[k].unit}".rstrip() for k, v in params.items())
+    return (
+        f"Missing effect: {name}. {cls.description} With it ({values}) the held-out gap falls from {before:.2f} mm "
+        f"to {after:.2f} mm ({pct:.0f} % less); the disagreement it removes varied {AXIS_WORDS.get(cls.axis, cls.axis)} "
+        f"({cls.signature})."
+    )
+
+
+def refit(sensor, frames, config: DiagnoseConfig, progress: bool) -> None:
+    """Refit the base parameters (and, by Adam, the parameters of accepted effects that change depth) in place.
+
+    Dropout thresholds are left where their excess-based search put them: the fit loss, unlike
+    the excess, rewards dropping noisy pixels.
+    """
+    names = list(config.base_params) + [f"effect:{e.name}" for e in sensor.effects if changes_depth(e.name)]
+    fit_sensor(sensor, frames, names, steps=config.refit_steps, lr=config.lr, progress=progress, seed=config.seed,
+               batch_frames=config.batch_frames)  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------ the loop
+
+
+def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callable[[str], None] = print,
+             progress: bool = False, analysis_stride: int = 1) -> Diagnosis:  # fmt: skip
+    """Run the diagnosis loop (see the module docstring) on prepared frames.
+
+    Args:
+        preset: the starting sensor preset (with the scans' camera).
+        frames: :func:`ddsgen.fit.simulate.prepare_frames` output (split into fit / held-out here).
+        config: settings.
+        echo: receives one line per stage (progress output).
+        progress: tqdm bars of the fits.
+        analysis_stride: pixel subsampling of the residual analysis (1 = every pixel).
+    """
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    config = config or DiagnoseConfig()
+    names = list(config.candidates) if config.candidates else sorted(REGISTRY)
+    unknown = [n for n in names if n not in REGISTRY]
+    if unknown:
+        raise ValueError(f"unknown candidate effect(s) {unknown}")
+    fit_frames, held = split_frames(frames, config.holdout, config.seed)
+    held_seed = config.seed + 1  # held-out gaps use other noise draws than the fit
+    rng = np.random.default_rng([config.seed, 77])
+
+    echo(f"[1/5] base fit of {', '.join(config.base_params)} on {len(fit_frames)} fit frame(s) "
+         f"({len(held)} held out)")  # fmt: skip
+    sensor = DepthSensor(preset)
+    fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
+               seed=config.seed, batch_frames=config.batch_frames)  # fmt: skip
+    current = evaluate(sensor, held, held_seed, replane_steps=2)
+    baseline = current
+    echo(f"      held-out gap {current.gap:.2f} mm (noise floor {current.floor:.2f} mm)")
+
+    echo("[2/5] residual analysis (depth, incidence, radius, row, column, edge distance, IR signal)")
+    analysis = analysis_of(sensor, frames, held_seed, stride=analysis_stride)
+    edges = {axis: stats.edges for axis, (stats, _) in analysis.items()}
+    analysis_baseline = analysis
+    echo(f"      strongest structure: {structure_summary(analysis)}")
+
+    steps: list[Step] = []
+    rounds: list[list[Candidate]] = []
+    in_model = {e.name for e in sensor.effects}
+    with reuse_matches():
+        while len(steps) < config.max_steps:
+            todo = [n for n in names if n not in in_model]
+            if not todo:
+                break
+            echo(f"[3/5] round {len(rounds) + 1}: fitting {len(todo)} candidate effect(s) on the fit frames")
+            grid_frames = fit_frames[: config.grid_frames] if config.grid_frames else fit_frames
+            grid_frames = replaned(sensor, grid_frames, config.seed)
+            results = []
+            for name in todo:
+                cand_sensor, values, fit_excess = fit_candidate(sensor, name, grid_frames, config)
+                held_eval = evaluate(cand_sensor, held, held_seed, replane_steps=2)
+                c = Candidate(name, values, fit_excess, held_eval, sensor=cand_sensor)
+                c.gain = relative_fall(current, held_eval)
+                c.gain_low = bootstrap_fall(current, held_eval, rng)
+                results.append(c)
+                echo(f"      {name:20s} held-out gap {held_eval.gap:7.2f} mm (floor {held_eval.floor:5.2f})  "
+                     f"excess falls by {100 * c.gain:+6.1f} % of the gap (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)"
+                     f"  {_fmt(values)}")  # fmt: skip
+            rounds.append(results)
+            best = max(results, key=lambda c: c.gain)
+            if not (best.gain >= config.min_relative_gain and best.gain_low > 0.0):
+                echo(f"[4/5] no candidate clears the rule (best: {best.effect}, {100 * best.gain:.1f} %, "
+                     f"bootstrap 5 % {100 * best.gain_low:.1f} %): stop")  # fmt: skip
+                break
+            echo(f"[4/5] accepted {best.effect}; refitting the base parameters with it")
+            new = best.sensor
+            fit_before = evaluate(new, grid_frames, config.seed, replane_steps=1).excess
+            refit(new, replaned(new, fit_frames, config.seed), config, progress)
+            if evaluate(new, grid_frames, config.seed, replane_steps=1).excess > fit_before:
+                new = with_effect(sensor, best.effect, best.params)  # the refit did not help: undo it
+                after = best.held
+            else:
+                after = evaluate(new, held, held_seed, replane_steps=2)
+            params = next(e for e in new.effects if e.name == best.effect).values()
+            after_analysis = analysis_of(new, frames, held_seed, edges=edges, stride=analysis_stride)
+            steps.append(Step(best.effect, params, current.gap, after.gap, REGISTRY[best.effect].axis,
+                              step_sentence(best.effect, params, current.gap, after.gap), analysis,
+                              after_analysis))  # fmt: skip
+            echo(f"      {best.effect}: held-out gap {current.gap:.2f} -> {after.gap:.2f} mm ({_fmt(params)})")
+            sensor, current, analysis = new, after, after_analysis
+            in_model.add(best.effect)
+
+    unexplained = unexplained_axes(analysis)
+    if unexplained:
+        echo("[5/5] unexplained structure: " + ", ".join(f"{u['axis']} {u['strength']:.1f} mm" for u in unexplained))
+    else:
+        echo("[5/5] no residual structure beyond noise remains")
+    return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
+                     rounds)  # fmt: skip
+
+
+def _fmt(values: dict) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in values.items())
