@@ -190,11 +190,11 @@ def middlebury() -> None:
         bench(f"middlebury_bad2_{name}", 100.0 * bad.mean(), "%")
         bench(f"middlebury_density_{name}", 100.0 * valid[known].mean(), "%")
 
-    block, n_sub = 9, 2  # the `ddsgen stereo` defaults
+    block, n_sub = 9, 2  # the `ddsgen stereo` defaults (and --min-confidence 0)
     pad = max_disp + block
     with torch.no_grad():
         phases = stereo_reference_phases(torch.from_numpy(right.astype(np.float32)), n_sub, pad)
-        result = match(torch.from_numpy(left.astype(np.float32)), phases, pad, 0, max_disp, block, 15.0, n_sub, 64, 0.05)
+        result = match(torch.from_numpy(left.astype(np.float32)), phases, pad, 0, max_disp, block, 15.0, n_sub, 64, 0.0)
     report("ddsgen", result.disparity.numpy(), result.valid.numpy())
 
     bm = cv2.StereoBM_create(numDisparities=max_disp, blockSize=block)

@@ -56,7 +56,9 @@ def _colour_png(path: Path, disparity: np.ndarray, valid: np.ndarray, max_dispar
 @click.option("--block", "-w", type=int, default=9, show_default=True, help="ZNCC window size (odd, px).")
 @click.option("--subpixel", "n_sub", type=int, default=2, show_default=True, help="Sub-pixel level n: steps of 2^-n px.")
 @click.option("--beta", type=float, default=15.0, show_default=True, help="Soft-argmax temperature.")
-@click.option("--min-confidence", type=float, default=0.05, show_default=True, help="Confidence below which a pixel is invalid (0..1).")
+@click.option("--min-confidence", type=float, default=0.0, show_default=True,
+              help="Confidence (best ZNCC minus the best other peak, 0..1) below which a pixel is invalid; "
+                   "0 keeps every pixel with a unique match (flat windows and matches outside RIGHT stay invalid).")
 @click.option("--band-rows", type=int, default=64, show_default=True, help="Rows per matching band (bounds memory).")
 @click.option("--out", "-o", type=click.Path(dir_okay=False), default="disparity.exr", show_default=True, help="Output EXR: float32 disparity (px), 0 = invalid.")
 @click.option("--png", type=click.Path(dir_okay=False), default=None, help="Also write a colour-mapped PNG to look at.")
