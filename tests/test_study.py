@@ -53,13 +53,15 @@ def test_parse_grid_rejects_malformed(text):
         parse_grid(text, "--z", 0, 100, low_open=True)
 
 
-@pytest.mark.parametrize("argv", [["--z", "0.5:x:1"], ["--angles", "0,90"], ["--angles", "ten"], ["--frames", "0"]])
+@pytest.mark.parametrize(
+    "argv", [["--z", "0.5:x:1"], ["--angles", "0,90"], ["--angles", "ten"], ["--frames", "0"], ["--rows", "47"]]
+)
 def test_cli_bad_grid_is_one_line_and_exit_2(argv, tmp_path, capsys):
     code = main(["study", "noise", "kinect_v1", "--out", str(tmp_path / "o"), "--quiet", *argv])
     err = capsys.readouterr().err
     assert code == 2
     assert err.startswith("ddsgen: error: ") and err.count("\n") == 1, err
-    assert not (tmp_path / "o" / "noise.json").exists()
+    assert not (tmp_path / "o").exists()  # nothing written
 
 
 def test_published_curves():

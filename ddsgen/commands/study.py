@@ -51,6 +51,7 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, quiet):
         quantisation_table,
         real_quantisation,
         run_noise_study,
+        study_intrinsics,
         write_noise_json,
     )
 
@@ -59,6 +60,7 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, quiet):
     if frames < 1:
         raise InputError(f"--frames: must be >= 1, got {frames}")
     sensor = load_preset(preset)
+    study_intrinsics(sensor, rows)  # checks --rows before anything is written
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
 

@@ -572,6 +572,8 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
     for message in real.messages:
         ax.text(0.02, 0.98 - 0.05 * real.messages.index(message), message[-70:], transform=ax.transAxes,
                 fontsize=6, va="top")  # fmt: skip
+    ax.set_xlim(0.0, max(zs + [4.0]) + 0.25)
+    ax.set_ylim(0.3, None)
     ax.set_yscale("log")
     ax.set_xlabel("depth z (m)")
     ax.set_ylabel("quantisation step (mm)")
@@ -584,8 +586,9 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
         z, s = series(angle, "bias_m")
         ax.plot(z, 1000 * s, "o-", color=colour, ms=4, label=f"α={angle:g}°")
     ax.axhline(0.0, color="k", lw=1)
+    ax.set_yscale("symlog", linthresh=1.0)
     ax.set_xlabel("plane distance z (m)")
-    ax.set_ylabel("bias: mean(depth − true) (mm)")
+    ax.set_ylabel("bias: mean(depth − true) (mm, symlog)")
     ax.set_title("bias")
     ax.legend(fontsize=7)
     ax.grid(True, alpha=0.3)
