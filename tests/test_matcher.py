@@ -347,8 +347,9 @@ def test_c_path_memory_does_not_grow_with_the_disparity_range():
             match(observed, phases, pad, 0, d_max, 9, 15.0, 2, 32, 0.05, compile=False)
         peaks[d_max] = mode.peak
     assert peaks[60] < 1.1 * peaks[20], peaks
-    # What remains is the refinement's: O(pixels x 5 sub-pixel candidates), ~12 floats each.
-    assert peaks[60] < 16 * height * width * 5 * 4, peaks
+    # What remains is the refinement's: O(pixels x 13 sub-pixel candidates (K +- 1.5 px in
+    # quarter steps)), ~12 floats each.
+    assert peaks[60] < 16 * height * width * 13 * 4, peaks
 
 
 # ---------------------------------------------------------------------------------------
