@@ -8,8 +8,10 @@ Prints `bench: NAME VALUE UNIT` lines:
   dask_task_overhead_ms                   wall time per no-op task with all 2000 in flight (2 workers)
   dask_run_on_dask_overhead_ms            the same through ddsgen.distributed.run_on_dask (bounded window)
 
-Steady state: each configuration renders a short and a long dataset and the rate is taken
-from the difference, so process start-up, torch.compile and scene preparation cancel out.
+Steady state: each configuration renders LONG frames; the rate is timed from the SKIP-th
+(= LONG/2-th) manifest record to the last, so process start-up, torch.compile and the
+warm-up of every worker are left out (a worker that compiles slower than its peer can
+still be warming up after the first few frames arrive, so the first half is skipped).
 Other work on the machine shows up in every figure: compare them within one run.
 """
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -26,19 +29,34 @@ sys.path.insert(0, str(ROOT))
 from ddsgen.runner import render_dataset  # noqa: E402
 
 PRESET = "kinect_v1"
-SHORT, LONG = 4, 20
+LONG = 32  # frames per render; the rate is timed over the second half
+SKIP = LONG // 2
 OVERHEAD_TASKS = 2000
 
 
 def steady_fps(workers: int = 1, scheduler: str | None = None) -> float:
-    times = {}
+    """Frames/s between the SKIP-th and the LONG-th frame of one render (start-up and warm-up excluded)."""
+    marks: dict[int, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for n in (2, SHORT, LONG):  # 2: warm-up (first use in this process or on these Dask workers)
-            start = time.perf_counter()
-            render_dataset(PRESET, None, n, str(Path(tmp) / f"run{n}"), workers=workers, seed=1, progress=False,
-                           scheduler=scheduler)  # fmt: skip
-            times[n] = time.perf_counter() - start
-    return (LONG - SHORT) / max(times[LONG] - times[SHORT], 1e-9)
+        out = Path(tmp) / "run"
+        done = threading.Event()
+
+        def watch():
+            manifest = out / "manifest.jsonl"
+            while not done.is_set():
+                count = manifest.read_bytes().count(b"\n") if manifest.exists() else 0
+                for mark in (SKIP, LONG):
+                    if count >= mark and mark not in marks:
+                        marks[mark] = time.perf_counter()
+                time.sleep(0.005)
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        render_dataset(PRESET, None, LONG, str(out), workers=workers, seed=1, progress=False, scheduler=scheduler)
+        marks.setdefault(LONG, time.perf_counter())
+        done.set()
+        watcher.join()
+    return (LONG - SKIP) / max(marks[LONG] - marks[SKIP], 1e-9)
 
 
 def noop_batch(job, frames):
