@@ -335,25 +335,53 @@ def _render_into(out_dir: Path, preset: SensorPreset, scenes_path, n, workers, s
     return RenderSummary(n, len(todo), n - len(todo), time.perf_counter() - start, str(out_dir))
 
 
+#: How often a local pool is rebuilt after one of its processes died (OOM killer, kill -9) before giving up.
+POOL_RESTARTS = 3
+
+
 def _run_in_pool(job: RenderJob, batches: list[list[int]], workers: int):
-    """Yield batch results as they complete, keeping at most 2 batches per worker in flight."""
+    """Yield batch results as they complete, keeping at most 2 batches per worker in flight.
+
+    If a worker process dies (the pool breaks), the pool is rebuilt and the batches that had
+    not returned are rendered again (same bytes: frame i depends only on (seed, i)), up to
+    :data:`POOL_RESTARTS` times; then :class:`InputError` says so in one line.
+    """
+    from concurrent.futures.process import BrokenProcessPool
+
     context = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        pending: set[cf.Future] = set()
-        queue = iter(batches)
-        try:
-            for batch in queue:
-                pending.add(pool.submit(_render_batch, job, batch))
-                if len(pending) >= 2 * workers:
-                    finished, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
-                    for future in finished:
-                        yield future.result()
-            for future in cf.as_completed(pending):
-                yield future.result()
-        except BaseException:
-            for future in pending:
-                future.cancel()
-            raise
+    todo = list(batches)  # batches not yet returned, in order
+    restarts = 0
+    while todo:
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+            pending: dict[cf.Future, int] = {}
+            queue = iter(range(len(todo)))
+            returned: set[int] = set()
+            try:
+                for index in queue:
+                    pending[pool.submit(_render_batch, job, todo[index])] = index
+                    if len(pending) >= 2 * workers:
+                        finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                        for future in finished:
+                            result = future.result()
+                            returned.add(pending.pop(future))
+                            yield result
+                for future in cf.as_completed(list(pending)):
+                    result = future.result()
+                    returned.add(pending.pop(future))
+                    yield result
+                todo = []
+            except BrokenProcessPool:
+                restarts += 1
+                if restarts > POOL_RESTARTS:
+                    raise InputError(
+                        f"{job.out}: a worker process died {restarts} times (out of memory? try fewer --workers); "
+                        f"finished frames are kept, re-run the same command to resume"
+                    ) from None
+                todo = [batch for i, batch in enumerate(todo) if i not in returned]
+            except BaseException:
+                for future in pending:
+                    future.cancel()
+                raise
 
 
 def default_workers() -> int:

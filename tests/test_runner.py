@@ -143,6 +143,47 @@ def test_resume_in_process_renders_only_missing_frames(inputs, reference, tmp_pa
     assert tree_hashes(out) == reference[1]
 
 
+def _pool_children() -> list[int]:
+    """pids of this process's multiprocessing spawn children (the pool workers)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (proc / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == os.getpid() and b"spawn_main" in cmdline:
+            pids.append(int(proc.name))
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_pool_worker_killed_mid_run_dataset_completes(inputs, reference, tmp_path):
+    preset, scenes = inputs
+    out = tmp_path / "out"
+    killed: list[int] = []
+
+    def killer():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            children = _pool_children()
+            if children and len(records_of(out)) >= 2:
+                os.kill(children[0], signal.SIGKILL)
+                killed.append(children[0])
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    render_dataset(preset, scenes, N_FRAMES, str(out), workers=2, seed=SEED, progress=False)
+    thread.join(timeout=10)
+    assert killed, "the test never found a pool worker to kill"
+    assert_complete_and_valid(out, N_FRAMES)
+    assert tree_hashes(out) == reference[1]
+
+
 # ---------------------------------------------------------------- Dask
 
 
