@@ -59,6 +59,10 @@ MIN_RELATIVE_GAIN = 0.10
 #: ... and the BOOTSTRAP_QUANTILE-quantile of that gain over resamples of the held-out frames must stay above zero.
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_QUANTILE = 0.05
+#: Base parameters fitted first. Not the baseline: fit_sensor estimates it from the disparity quantisation
+#: lattice of the real depth, which a depth scale error rescales just like a baseline error would, so a
+#: fitted baseline would hide that effect (b itself cancels from z = f b / d).
+BASE_PARAMS = tuple(p for p in DEFAULT_PARAMS if p != "baseline")
 #: Residual structure below this (mm, beyond noise) is not reported as unexplained.
 UNEXPLAINED_MIN_MM = 1.0
 
@@ -217,7 +221,7 @@ class DiagnoseConfig:
     """Settings of :func:`diagnose` (defaults sized for a dozen 640x480 frames on 2 cores)."""
 
     holdout: float = 1.0 / 3.0
-    base_params: tuple = DEFAULT_PARAMS
+    base_params: tuple = BASE_PARAMS
     base_steps: int = 15  # Adam steps of the base fit (after its 1-D searches)
     refit_steps: int = 10  # Adam steps of the refit after accepting an effect
     refine_rounds: int = 2  # halving rounds of the local search around a candidate's best grid point
@@ -370,22 +374,27 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig) -> tuple[ob
     """Add effect ``name`` to (a copy of) ``sensor`` and fit its parameters on ``frames``.
 
     ``frames`` are fit frames re-planed under ``sensor``. The objective is the mean excess of
-    the gap over the noise floor; for effects that change depth the support plane is
-    re-estimated under every trial value. The first parameter is searched on a coarse grid,
+    the gap over the noise floor for dropout effects (they can hide noise, which lowers the floor
+    too); for effects that change depth it is the gap with the support plane re-estimated under
+    every trial value (their floor hardly moves, and its extra simulation would re-run the matcher). The first parameter is searched on a coarse grid,
     then by ``refine_rounds`` rounds of halving the interval around the best value; the other
     parameters on :data:`SECONDARY_GRIDS`. Returns (sensor with the effect, values, excess).
     """
     cls = REGISTRY[name]
     candidate = with_effect(sensor, name, {})
     effect = candidate.effects[-1]
-    steps = 1 if changes_depth(name) else 0
+    moves_depth = changes_depth(name)
     tried: dict[tuple, float] = {}
 
     def objective(values: dict) -> float:
         key = tuple(round(values[k], 9) for k in cls.params)
         if key not in tried:
             effect.set_values(**values)
-            tried[key] = evaluate(candidate, frames, config.seed, steps).excess
+            if moves_depth:  # re-plane; the floor barely moves with a depth bias, skip its extra simulation
+                tried[key] = float(np.mean([float(gap(candidate, [f], seed=config.seed, noise_floor=False).gap)
+                                            for f in replaned(candidate, frames, config.seed)]))  # fmt: skip
+            else:  # dropout: the floor moves with it (hiding noisy pixels), so judge the excess
+                tried[key] = evaluate(candidate, frames, config.seed).excess
         return tried[key]
 
     neutral = {k: spec.neutral for k, spec in cls.params.items()}
@@ -414,7 +423,7 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig) -> tuple[ob
 
 def analysis_of(sensor, frames, seed: int, edges: dict | None = None, stride: int = 1) -> dict:
     """Residual analysis (stats and structure per axis) of ``sensor`` on ``frames`` (re-planed under it)."""
-    frames = replaned(sensor, frames, seed, 2)
+    frames = replaned(sensor, frames, seed, 1)
     with torch.no_grad():
         sims = [simulate(sensor, f, seed) for f in frames]
     res = pixel_residuals(frames, sims, stride=stride)
@@ -491,8 +500,10 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     baseline = current
     echo(f"      held-out gap {current.gap:.2f} mm (noise floor {current.floor:.2f} mm)")
 
-    echo("[2/5] residual analysis (depth, incidence, radius, row, column, edge distance, IR signal)")
-    analysis = analysis_of(sensor, frames, held_seed, stride=analysis_stride)
+    echo("[2/5] residual analysis (depth, incidence, radius, row, column, edge distance, IR signal) "
+         "on the held-out and search frames")
+    analysis_frames = held + fit_frames[: config.grid_frames]
+    analysis = analysis_of(sensor, analysis_frames, held_seed, stride=analysis_stride)
     edges = {axis: stats.edges for axis, (stats, _) in analysis.items()}
     analysis_baseline = analysis
     echo(f"      strongest structure: {structure_summary(analysis)}")
@@ -535,7 +546,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             else:
                 after = evaluate(new, held, held_seed, replane_steps=2)
             params = next(e for e in new.effects if e.name == best.effect).values()
-            after_analysis = analysis_of(new, frames, held_seed, edges=edges, stride=analysis_stride)
+            after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
             steps.append(Step(best.effect, params, current.gap, after.gap, REGISTRY[best.effect].axis,
                               step_sentence(best.effect, params, current.gap, after.gap), analysis,
                               after_analysis))  # fmt: skip

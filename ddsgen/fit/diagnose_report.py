@@ -6,7 +6,6 @@ import base64
 import html
 import io
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +107,7 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
         parts.append(f"<img alt='residual along {e(step['axis'])}' src='data:image/png;base64,{step['figure']}'>")
     if rejected:
         parts.append("<h2>Candidates tried in the last round</h2><table><tr><th>effect</th><th>fitted parameters</th>"
-                     "<th>held-out gap (mm)</th><th>relative gain</th><th>bootstrap 5 % gain</th></tr>")  # fmt: skip
+                     "<th>held-out gap (mm)</th><th>excess fall / gap</th><th>bootstrap 5 %</th></tr>")  # fmt: skip
         for c in rejected:
             parts.append(
                 f"<tr><td>{e(c['effect'])}</td><td>{e(_fmt_params(c['params']))}</td><td>{c['gap']:.2f}</td>"
@@ -125,8 +124,53 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
 
 
 def axis_sentence(axis: str, strength: float) -> str:
-    return f"The residual still varies {AXIS_WORDS.get(axis, 'along ' + axis)} by about {strength:.1f} mm."
+    return (f"Unexplained: the disagreement still varies {AXIS_WORDS.get(axis, 'along ' + axis)} by about "
+            f"{strength:.1f} mm beyond noise, and no effect of the library removes it.")  # fmt: skip
 
 
-def finite(x: float) -> float:
-    return float(x) if math.isfinite(float(x)) else 0.0
+def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] | None = None) -> list[Path]:
+    """Write ``diagnosis.json`` and ``report.html`` of a :class:`~ddsgen.fit.diagnose.Diagnosis` into ``folder``."""
+    from ddsgen.fit.diagnose import RULE
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    d = diagnosis
+    summary = list(notes or [])
+    summary.append(
+        f"{len(d.fit_frames)} frame(s) fitted, {len(d.held_frames)} held out. Held-out gap of the fitted base sensor: "
+        f"{d.baseline.gap:.2f} mm (noise floor {d.baseline.floor:.2f} mm: two noise draws of the same simulated "
+        f"sensor differ by this much)."
+    )
+    if d.steps:
+        names = ", ".join(s.effect for s in d.steps)
+        summary.append(f"Effects added, in order: {names}. Final held-out gap {d.final.gap:.2f} mm "
+                       f"(noise floor {d.final.floor:.2f} mm).")  # fmt: skip
+    else:
+        summary.append("No effect was added: the base sensor explains the scans as well as any library effect would.")
+    steps = []
+    for step in d.steps:
+        before = step.analysis_before[step.axis][0]
+        after = step.analysis_after[step.axis][0]
+        fig = profile_figure([("before", before), (f"with {step.effect}", after)], step.axis,
+                             f"{step.effect}: residual along {step.axis}")  # fmt: skip
+        steps.append({"effect": step.effect, "sentence": step.sentence, "params": step.params,
+                      "gap_before": step.gap_before, "gap_after": step.gap_after, "axis": step.axis,
+                      "figure": fig})  # fmt: skip
+    rejected = []
+    if d.rounds:
+        for c in d.rounds[-1]:
+            rejected.append({"effect": c.effect, "params": c.params, "gap": c.held.gap, "gain": c.gain,
+                             "gain_low": c.gain_low})  # fmt: skip
+    unexplained_text = [axis_sentence(u["axis"], u["strength"]) for u in d.unexplained]
+    if not unexplained_text:
+        unexplained_text = ["No residual structure beyond noise remains along any axis."]
+    overview = [("Residual structure beyond noise per axis", strengths_figure(
+        {a: s for a, (_, s) in d.analysis_baseline.items()}, {a: s for a, (_, s) in d.analysis_final.items()}))]
+    for u in d.unexplained:
+        axis = u["axis"]
+        overview.append((f"Residual along {axis}: baseline and final model", profile_figure(
+            [("baseline", d.analysis_baseline[axis][0]), ("final", d.analysis_final[axis][0])], axis)))
+    json_path, html_path = folder / "diagnosis.json", folder / "report.html"
+    write_json(json_path, d.to_dict())
+    write_html(html_path, title, summary, steps, overview, unexplained_text, RULE, rejected)
+    return [json_path, html_path]
