@@ -155,6 +155,47 @@ def test_band_split_is_identical_to_one_band(sloped, backend):
         assert torch.allclose(grad_split, grad_whole, rtol=1e-5, atol=1e-7)
 
 
+def test_c_refinement_does_not_depend_on_the_thread_count(sloped):
+    """Render workers run 1 thread, tests and fits more: per-pixel values and gradients
+    (including the beta reduction) must be bit-identical."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    observed, phases, pad, _ = sloped
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            obs = observed.clone().requires_grad_(True)
+            beta = torch.tensor(15.0, requires_grad=True)
+            result = match(obs, phases, pad, 8, 30, 9, beta, 2, 16, 0.05, quantize=False)
+            (result.disparity * torch.linspace(0, 1, obs.shape[1])).sum().backward()
+            out.append((result.disparity.detach(), obs.grad, beta.grad))
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(*out):
+        assert torch.equal(a, b)
+
+
+def test_no_grad_c_path_never_calls_torch_compile(sloped, monkeypatch):
+    """The render path (no gradient) must not pay torch.compile's first-call cost."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("torch.compile called")
+
+    monkeypatch.setattr(torch, "compile", refuse)
+    monkeypatch.setattr(M, "_COMPILED", {})
+    observed, phases, pad, _ = sloped
+    with torch.no_grad():
+        result = match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05)
+    assert result.valid.float().mean() > 0.5
+    obs = observed.clone().requires_grad_(True)  # the C gradient path does not compile either
+    match(obs, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05).disparity.sum().backward()
+    assert torch.isfinite(obs.grad).all()
+
+
 # ---------------------------------------------------------------------------------------
 # Gradients
 # ---------------------------------------------------------------------------------------

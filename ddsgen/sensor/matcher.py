@@ -20,11 +20,19 @@ The observed IR image I_o(u, v) is compared with the reference R(u - d, v) for d
    truncated softmax pulled estimates towards K, and d(disparity)/d(image shift) was 0.85
    instead of 1, so gradients w.r.t. baseline disagreed with finite differences by 5x.
 
+   On the CPU (float32, reference not requiring grad) one fused C kernel does the window
+   cross-correlations, the ZNCC and the soft-argmax per pixel, writing only the disparity:
+   no cost volume and no torch.compile (so a render worker's first frame pays no compile
+   time). Its hand-written backward recomputes bands of ``band_rows`` rows in C. Elsewhere
+   (float64, CUDA, differentiable reference, no C compiler) the same is written in torch,
+   compiled with torch.compile where available (eager fallback).
+
 Rows are independent (epipolar lines are rows): the refinement runs on horizontal bands of
 ``band_rows`` rows, each reading ``block - 1`` extra rows (the overlap), and each band is
-recomputed in the backward pass (activation checkpointing), so memory is bounded by the
-band, not the image. Every output pixel is computed from its own window in a fixed order,
-so a band-split run is bit-identical to a single-band run. Top and bottom image rows use
+recomputed in the backward pass (activation checkpointing in torch, recomputation in C),
+so memory is bounded by the band, not the image. Every output pixel is computed from its
+own window in a fixed order, so a band-split run is bit-identical to a single-band run
+(forward and, on the C path, gradients), whatever the thread count. Top and bottom image rows use
 mirrored rows (the same mirror in both images, so it is consistent); the ``block // 2``
 columns at the left and right borders are reported invalid.
 
@@ -67,8 +75,6 @@ log = logging.getLogger(__name__)
 VARIANCE_FLOOR = 1e-4
 #: Score given to excluded refinement candidates (ZNCC itself is >= -1).
 _EXCLUDED_SCORE = -3.0
-#: Above this many (pixel, candidate) pairs the C path also recomputes bands in the backward.
-_CHECKPOINT_ELEMENTS = 4_000_000
 #: Penalty added to integer-search scores of candidates whose window touches unknown reference.
 _EXCLUDED_INT = -1e30
 
@@ -200,6 +206,14 @@ class _Reference:
     n_cand: int
 
 
+def _with_slack(x: torch.Tensor, slack: int = 8) -> torch.Tensor:
+    """``x`` contiguous, in a buffer with ``slack`` zero elements after its end (the C kernel
+    reads whole vectors of 8 candidates)."""
+    flat = torch.zeros(x.numel() + slack, dtype=x.dtype, device=x.device)
+    flat[: x.numel()] = x.reshape(-1)
+    return flat[: x.numel()].view(x.shape)
+
+
 _REF_CACHE: dict = {}
 _REF_LOCK = threading.Lock()
 
@@ -266,8 +280,8 @@ def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, ext
             transposed = c32.permute(2, 0, 1).contiguous()
     return _Reference(
         r0_int=r0, rs_int=rs.contiguous(), inv_int=inv.contiguous(), pen_int=penalty.contiguous(), cand=cand.contiguous(),
-        cand_sum=csum.permute(1, 2, 0).contiguous(), cand_inv=cinv.permute(1, 2, 0).contiguous(),
-        cand_unknown=cunk.permute(1, 2, 0).contiguous(), offset=1, n_cand=2 * T + 1,
+        cand_sum=_with_slack(csum.permute(1, 2, 0)), cand_inv=_with_slack(cinv.permute(1, 2, 0)),
+        cand_unknown=_with_slack(cunk.permute(1, 2, 0)), offset=1, n_cand=2 * T + 1,
         cand_padded=padded, cand_t=transposed,
     )  # fmt: skip
 
@@ -416,79 +430,257 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
 }
 
 
-/* Refinement: exact window cross-correlation of each pixel with its C candidate references,
- * and the candidates' window statistics gathered at the same place.
- *   out[v][u][t] = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][col0[v][u] + j][t]
- * F is (H+2h) x Wr x CP (candidates padded with zeros to CP, a multiple of 8); STAT1/STAT2
- * are (H) x Ws x C, gathered into out1/out2 at [v][col0[v][u]]. */
-void ddsgen_window_cross(const float *restrict O, int Wo, const float *restrict Fc, int Wr, int C, int CP,
-                         const int32_t *restrict col0, int H, int W, int b,
-                         const float *restrict STAT1, const float *restrict STAT2, int Ws,
-                         float *restrict out, float *restrict out1, float *restrict out2, int n_threads)
+/* Vector exp for x <= 0 (Cephes expf: range reduction by ln 2, degree-6 polynomial, exponent
+ * bits; relative error ~1e-7). Inputs below -87 give 2^-126 (callers only use x >= -87 as
+ * weights next to exp(0) = 1, where that is far below float resolution). */
+static inline v8 vexp8(v8 x) {
+    const v8 lo = {-87.0f, -87.0f, -87.0f, -87.0f, -87.0f, -87.0f, -87.0f, -87.0f};
+    x = vmax8(x, lo);
+    v8 t = x * 1.44269504088896341f + 0.5f;
+    vi8 n = __builtin_convertvector(t, vi8);  /* truncation; floor for negative t below */
+    v8 nf = __builtin_convertvector(n, v8);
+    vi8 gt = nf > t;
+    n += gt;  /* gt is -1 where nf > t */
+    nf = __builtin_convertvector(n, v8);
+    v8 r = x - nf * 0.693359375f - nf * -2.12194440e-4f;
+    v8 y = 1.9875691500e-4f * r + 1.3981999507e-3f;
+    y = y * r + 8.3334519073e-3f;
+    y = y * r + 4.1665795894e-2f;
+    y = y * r + 1.6666665459e-1f;
+    y = y * r + 5.0000001201e-1f;
+    y = y * (r * r) + r + 1.0f;
+    vi8 scale = (n + 127) << 23;
+    return y * (v8)scale;
+}
+
+/* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0+j][8q..8q+7], q < nq (F rows of 8 nq floats).
+ * NR window rows are accumulated side by side into separate sums (independent dependency
+ * chains: an FMA's latency, not its throughput, would otherwise bound the loop). */
+static inline __attribute__((always_inline)) void window_cross(
+    const float *restrict O, int Wo, const float *restrict Fc, int Wr, int v, int u, int c0, int b,
+    v8 *restrict out, const int nq, const int NR)
 {
-    const int nq = CP / 8;
-#pragma omp parallel num_threads(n_threads)
-    {
-        v8 acc[8];
-#pragma omp for schedule(dynamic, 4)
-        for (int v = 0; v < H; v++) {
-            for (int u = 0; u < W; u++) {
-                const int c0 = col0[(size_t)v * W + u];
-                for (int q = 0; q < nq; q++) acc[q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
-                for (int i = 0; i < b; i++) {
-                    const float *restrict o = O + (size_t)(v + i) * Wo + u;
-                    const v8 *f = (const v8 *)(Fc + ((size_t)(v + i) * Wr + c0) * CP);
-                    for (int j = 0; j < b; j++) {
-                        const float oj = o[j];
-                        for (int q = 0; q < nq; q++) acc[q] += oj * f[j * nq + q];
-                    }
-                }
-                const size_t p = ((size_t)v * W + u) * C;
-                const float *accf = (const float *)acc;
-                for (int t = 0; t < C; t++) out[p + t] = accf[t];
-                const size_t s = ((size_t)v * Ws + c0) * C;
-                for (int t = 0; t < C; t++) {
-                    out1[p + t] = STAT1[s + t];
-                    out2[p + t] = STAT2[s + t];
-                }
+    v8 acc[4][8];
+    for (int r = 0; r < NR; r++)
+        for (int q = 0; q < nq; q++) acc[r][q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
+    int i = 0;
+    for (; i + NR <= b; i += NR) {
+        const float *restrict o[4];
+        const v8 *f[4];
+        for (int r = 0; r < NR; r++) {
+            o[r] = O + (size_t)(v + i + r) * Wo + u;
+            f[r] = (const v8 *)(Fc + ((size_t)(v + i + r) * Wr + c0) * (8 * nq));
+        }
+        for (int j = 0; j < b; j++)
+            for (int r = 0; r < NR; r++) {
+                const float oj = o[r][j];
+                for (int q = 0; q < nq; q++) acc[r][q] += oj * f[r][j * nq + q];
             }
+    }
+    for (; i < b; i++) {
+        const float *restrict o = O + (size_t)(v + i) * Wo + u;
+        const v8 *f = (const v8 *)(Fc + ((size_t)(v + i) * Wr + c0) * (8 * nq));
+        for (int j = 0; j < b; j++) {
+            const float oj = o[j];
+            for (int q = 0; q < nq; q++) acc[0][q] += oj * f[j * nq + q];
+        }
+    }
+    for (int q = 0; q < nq; q++) {
+        v8 s = acc[0][q];
+        for (int r = 1; r < NR; r++) s += acc[r][q];
+        out[q] = s;
+    }
+}
+
+static inline float hsum8(v8 x) {
+    float r = 0.0f;
+    for (int k = 0; k < 8; k++) r += x[k];
+    return r;
+}
+
+typedef struct {
+    const float *O; int Wo; const float *Fc; int Wr; int C; int CP;
+    const int32_t *K; int col_shift; int v0; int W; int b;
+    const float *CSUM; const float *CINV; const uint8_t *CUNK; int Ws;
+    const float *OSUM; const float *OINV; float beta; float d_lo; float d_hi;
+    float *disp; const float *GD; float *G; float *dOSUM; float *dOINV; float *dBETA;
+    v8 OFF[8]; vi8 PADL[8];  /* candidate offsets (t - T) / S; -1 in lanes t >= C */
+} refine_args;
+
+/* One row v of ddsgen_refine, with constant nq = CP / 8 (accumulators in registers). */
+static inline __attribute__((always_inline)) void refine_row(const refine_args *A, int v, const int nq, const int NR)
+{
+    const v8 m3 = {-3.0f, -3.0f, -3.0f, -3.0f, -3.0f, -3.0f, -3.0f, -3.0f};
+    const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
+    const v8 vlow = {-3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f};
+    const float nf = (float)(A->b * A->b), beta = A->beta;
+    const int C = A->C;
+    for (int u = 0; u < A->W; u++) {
+        const size_t p = (size_t)v * A->W + u;
+        const int k = A->K[p];
+        const int c0 = u + A->col_shift - k;
+        v8 cr[8], z[8], e[8];
+        vi8 ex[8];
+        window_cross(A->O, A->Wo, A->Fc, A->Wr, v, u, c0, A->b, cr, nq, NR);
+        const float a = A->OSUM[p] / nf, io = A->OINV[p];
+        const size_t s = ((size_t)v * A->Ws + c0) * C;
+        const float *cs = A->CSUM + s, *ci = A->CINV + s;  /* read 8 nq floats: arrays have slack */
+        const uint8_t *cu = A->CUNK + s;
+        const float kf = (float)k;
+        v8 mv = vlow;
+        for (int q = 0; q < nq; q++) {
+            const v8 dt = kf + A->OFF[q];
+            vi8 x = (dt < A->d_lo) | (dt > A->d_hi) | A->PADL[q];
+            for (int l = 0; l < 8; l++) x[l] |= -(int32_t)(cu[8 * q + l] != 0);
+            const v8 zz = vsel8(x, m3, ((cr[q] - a * LOADU(cs + 8 * q)) * io) * LOADU(ci + 8 * q));
+            z[q] = zz;
+            ex[q] = x;
+            e[q] = vsel8(A->PADL[q], vlow, beta * zz);
+            mv = vmax8(mv, e[q]);
+        }
+        const float m = hmax8(mv);
+        v8 se_v = zero, so_v = zero;
+        for (int q = 0; q < nq; q++) {
+            e[q] = vsel8(A->PADL[q], zero, vexp8(e[q] - m));
+            se_v += e[q];
+            so_v += e[q] * A->OFF[q];
+        }
+        const float se = hsum8(se_v), delta = hsum8(so_v) / se;
+        if (!A->GD) {
+            A->disp[p] = kf + delta;
+            continue;
+        }
+        const float g = A->GD[p];
+        v8 *gp = (v8 *)(A->G + ((size_t)(v - A->v0) * A->W + u) * A->CP);
+        v8 db = zero, dos = zero, doi = zero;
+        for (int q = 0; q < nq; q++) {
+            const v8 dl = g * (e[q] / se) * (A->OFF[q] - delta);
+            db += dl * z[q];
+            const v8 dz = vsel8(ex[q], zero, dl * beta);
+            const v8 c_i = LOADU(ci + 8 * q), c_s = LOADU(cs + 8 * q);
+            const v8 gt = vsel8(ex[q], zero, dz * io * c_i);  /* (garbage lanes: excluded) */
+            gp[q] = gt;
+            dos -= vsel8(ex[q], zero, gt * c_s / nf);
+            doi += vsel8(ex[q], zero, dz * (cr[q] - a * c_s) * c_i);
+        }
+        A->dOSUM[p] = hsum8(dos);
+        A->dOINV[p] = hsum8(doi);
+        A->dBETA[p] = hsum8(db);
+    }
+}
+
+/* Sub-pixel refinement, fused (no cost volume is written). For each pixel (v, u) of rows
+ * [v0, v1) with integer disparity k = K[v][u] and candidates t = 0..C-1 (d_t = k + (t - T)/S,
+ * T = (C - 1) / 2), window start column c0 = u + col_shift - k:
+ *   cross_t = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0 + j][t]
+ *   z_t     = ((cross_t - OSUM/n * CSUM_t) * OINV) * CINV_t, or -3 if excluded (CUNK, or d_t
+ *             outside [d_lo, d_hi])
+ *   d       = k + sum_t e_t (t - T)/S / sum_t e_t,  e_t = exp(beta z_t - max beta z)
+ * F is (H+2h) x Wr x CP (candidates zero-padded to CP, a multiple of 8, at most 64); CSUM,
+ * CINV, CUNK are H x Ws x C, read at [v][c0] (8 nq values: the arrays need CP - C elements of
+ * slack at the end). Forward (GD == NULL): writes disp[v][u]. Backward (GD given): recomputes
+ * the same and writes, for dL/dd = GD[v][u], the gradients w.r.t. cross_t into
+ * G[(v - v0)][u][t] (band-local, CP per pixel, 0 in padding lanes), w.r.t. OSUM, OINV into
+ * dOSUM, dOINV and the pixel's contribution to dL/dbeta into dBETA (all H x W). Every pixel is
+ * computed on its own, in a fixed order: results depend neither on the thread count nor on the
+ * band split. */
+void ddsgen_refine(const float *restrict O, int Wo, const float *restrict Fc, int Wr, int C, int CP,
+                   const int32_t *restrict K, int col_shift, int v0, int v1, int W, int b,
+                   const float *restrict CSUM, const float *restrict CINV, const uint8_t *restrict CUNK, int Ws,
+                   const float *restrict OSUM, const float *restrict OINV, float beta, int S,
+                   float d_lo, float d_hi, float *restrict disp,
+                   const float *restrict GD, float *restrict G, float *restrict dOSUM,
+                   float *restrict dOINV, float *restrict dBETA, int n_threads)
+{
+    refine_args A = {O, Wo, Fc, Wr, C, CP, K, col_shift, v0, W, b, CSUM, CINV, CUNK, Ws, OSUM, OINV, beta,
+                     d_lo, d_hi, disp, GD, G, dOSUM, dOINV, dBETA};
+    const int T = (C - 1) / 2;
+    for (int t = 0; t < 64; t++) {
+        A.OFF[t / 8][t % 8] = (float)(t - T) / (float)S;
+        A.PADL[t / 8][t % 8] = t < C ? 0 : -1;
+    }
+    const int nq = CP / 8;
+#pragma omp parallel for schedule(dynamic, 4) num_threads(n_threads)
+    for (int v = v0; v < v1; v++) {
+        switch (nq) {  /* constant trip counts: the accumulators stay in registers */
+        case 1: refine_row(&A, v, 1, 4); break;
+        case 2: refine_row(&A, v, 2, 4); break;
+        case 3: refine_row(&A, v, 3, 2); break;
+        case 4: refine_row(&A, v, 4, 2); break;
+        case 5: refine_row(&A, v, 5, 1); break;
+        case 6: refine_row(&A, v, 6, 1); break;
+        case 7: refine_row(&A, v, 7, 1); break;
+        default: refine_row(&A, v, 8, 1); break;
         }
     }
 }
 
-/* Backward of ddsgen_window_cross w.r.t. O. Each output row y is owned by one thread (no
- * races, deterministic order):
- *   dO[y][u+j] += sum_t G[v][u][t] * FT[t][y][col0[v][u] + j]   for v = y - i, all u, j
- * FT is the candidate references transposed to C x (H+2h) x Wr, readable 7 columns beyond
- * the last window column. */
-void ddsgen_window_cross_grad(const float *restrict G, const float *restrict FT, int Wr, int C,
-                              const int32_t *restrict col0, int H, int W, int b,
+/* acc[q] = sum_t g[t] * ft[t * tstride + 8q .. 8q + 7], q < nbq; NR candidates side by side
+ * into separate sums (independent dependency chains). */
+static inline __attribute__((always_inline)) void cross_grad(
+    const float *restrict g, const float *restrict ft, size_t tstride, int C, v8 *restrict out, const int nbq,
+    const int NR)
+{
+    v8 acc[4][8];
+    for (int r = 0; r < NR; r++)
+        for (int q = 0; q < nbq; q++) acc[r][q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
+    int t = 0;
+    for (; t + NR <= C; t += NR)
+        for (int r = 0; r < NR; r++) {
+            const float gt = g[t + r];
+            const float *restrict f = ft + (size_t)(t + r) * tstride;
+            for (int q = 0; q < nbq; q++) acc[r][q] += gt * LOADU(f + 8 * q);
+        }
+    for (; t < C; t++) {
+        const float gt = g[t];
+        const float *restrict f = ft + (size_t)t * tstride;
+        for (int q = 0; q < nbq; q++) acc[0][q] += gt * LOADU(f + 8 * q);
+    }
+    for (int q = 0; q < nbq; q++) {
+        v8 s = acc[0][q];
+        for (int r = 1; r < NR; r++) s += acc[r][q];
+        out[q] = s;
+    }
+}
+
+/* Backward of the window cross-correlation w.r.t. O, for the band of rows [v0, v1): adds
+ *   dO[y][u+j] += sum_t G[v - v0][u][t] * FT[t][y][c0 + j]   (G: CG floats per pixel)   for v = y - i in [v0, v1), all u, j
+ * (c0 = u + col_shift - K[v][u]). FT is the candidates transposed to C x Hft x Wr, readable 7
+ * columns beyond the last window column. Each row y is owned by one thread (no races,
+ * deterministic). Bands are called in order and each dO element receives its terms in order
+ * of (v, u) whatever the band split, so the result is bit-identical for any split. */
+void ddsgen_window_cross_grad(const float *restrict G, int CG, const float *restrict FT, int Wr, int C, int Hft,
+                              const int32_t *restrict K, int col_shift, int v0, int v1, int W, int b,
                               float *restrict dO, int Wo, int n_threads)
 {
-    const int Hp = H + b - 1;
     const int nbq = (b + 7) / 8;
 #pragma omp parallel num_threads(n_threads)
     {
         v8 acc[8];
 #pragma omp for schedule(dynamic, 4)
-        for (int y = 0; y < Hp; y++) {
+        for (int y = v0; y < v1 + b - 1; y++) {
             float *restrict drow = dO + (size_t)y * Wo;
-            for (int x = 0; x < Wo; x++) drow[x] = 0.0f;
-            for (int i = 0; i < b; i++) {
-                const int v = y - i;
-                if (v < 0 || v >= H) continue;
+            for (int i = b - 1; i >= 0; i--) {  /* v ascending, as across bands: every dO */
+                const int v = y - i;                /* element sums its terms in the same order */
+                if (v < v0 || v >= v1) continue;
                 for (int u = 0; u < W; u++) {
-                    const float *restrict g = G + ((size_t)v * W + u) * C;
-                    const int c0 = col0[(size_t)v * W + u];
-                    for (int q = 0; q < nbq; q++) acc[q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
-                    for (int t = 0; t < C; t++) {
-                        const float gt = g[t];
-                        const float *restrict f = FT + ((size_t)t * Hp + y) * Wr + c0;
-                        for (int q = 0; q < nbq; q++) acc[q] += gt * LOADU(f + 8 * q);
+                    const float *restrict g = G + ((size_t)(v - v0) * W + u) * CG;
+                    const int c0 = u + col_shift - K[(size_t)v * W + u];
+                    const float *restrict ft = FT + (size_t)y * Wr + c0;
+                    const size_t tstride = (size_t)Hft * Wr;
+                    switch (nbq) {  /* constant trip counts: the accumulators stay in registers */
+                    case 1: cross_grad(g, ft, tstride, C, acc, 1, 4); break;
+                    case 2: cross_grad(g, ft, tstride, C, acc, 2, 4); break;
+                    case 3: cross_grad(g, ft, tstride, C, acc, 3, 2); break;
+                    case 4: cross_grad(g, ft, tstride, C, acc, 4, 2); break;
+                    case 5: cross_grad(g, ft, tstride, C, acc, 5, 1); break;
+                    case 6: cross_grad(g, ft, tstride, C, acc, 6, 1); break;
+                    case 7: cross_grad(g, ft, tstride, C, acc, 7, 1); break;
+                    default: cross_grad(g, ft, tstride, C, acc, 8, 1); break;
                     }
-                    const float *restrict s = (const float *)acc;
+                    const float *restrict sv = (const float *)acc;
                     float *restrict d = drow + u;
-                    for (int j = 0; j < b; j++) d[j] += s[j];  /* scalar: store-forwarding friendly */
+                    for (int j = 0; j < b; j++) d[j] += sv[j];  /* scalar: store-forwarding friendly */
                 }
             }
         }
@@ -542,9 +734,11 @@ def _load_kernel():
             lib = ctypes.CDLL(str(lib_path))
             p, i = ctypes.c_void_p, ctypes.c_int
             lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, i]
-            lib.ddsgen_window_cross.argtypes = [p, i, p, i, i, i, p, i, i, i, p, p, i, p, p, p, i]
-            lib.ddsgen_window_cross_grad.argtypes = [p, p, i, i, p, i, i, i, p, i, i]
-            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_window_cross, lib.ddsgen_window_cross_grad):
+            f = ctypes.c_float
+            lib.ddsgen_refine.argtypes = [p, i, p, i, i, i, p, i, i, i, i, i, p, p, p, i, p, p, f, i, f, f, p,
+                                          p, p, p, p, p, i]  # fmt: skip
+            lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, p, i, i, i, i, i, p, i, i]
+            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad):
                 fn.restype = None
             _KERNEL = lib
         except (OSError, subprocess.SubprocessError) as error:
@@ -613,81 +807,89 @@ def _n_threads() -> int:
     return max(1, torch.get_num_threads())
 
 
-class _WindowCrossC(torch.autograd.Function):
-    """C kernel: cross[v, u, t] = sum_{i, j} o[v + i, u + j] * cand[v + i, col0[v, u] + j, t],
-    plus the candidates' window sum and 1/std gathered at col0 (constants).
+class _RefineC(torch.autograd.Function):
+    """Sub-pixel refinement by the fused C kernel ``ddsgen_refine``: window cross-correlations,
+    ZNCC and soft-argmax per pixel, without a cost volume. Differentiable w.r.t. the padded
+    observed image ``o`` (through the cross-correlations), its window statistics ``osum``,
+    ``oinv`` and ``beta``; the backward recomputes each band of ``rows`` rows in C.
 
-    o: (hb + b - 1, W + b - 1) float32; cand_p: (hb + b - 1, Wr, CP) float32 candidates padded
-    to a multiple of 8; cand_t: (C, hb + b - 1, Wr) transposed candidates (for the backward);
-    csum, cinv: (hb, Ws, C); col0: (hb, W) int. Differentiable w.r.t. ``o`` only."""
-
-    @staticmethod
-    def forward(ctx, o, cand_p, cand_t, csum, cinv, col0, block):
-        lib = _load_kernel()
-        hb, W = col0.shape
-        C = cand_t.shape[0]
-        o_c = o.detach().contiguous()
-        col0_c = col0.to(torch.int32).contiguous()
-        out = torch.empty(3, hb, W, C, dtype=torch.float32)
-        lib.ddsgen_window_cross(o_c.data_ptr(), o_c.shape[1], cand_p.data_ptr(), cand_p.shape[1], C,
-                                cand_p.shape[2], col0_c.data_ptr(), hb, W, block, csum.data_ptr(),
-                                cinv.data_ptr(), csum.shape[1], out[0].data_ptr(), out[1].data_ptr(),
-                                out[2].data_ptr(), _n_threads())  # fmt: skip
-        ctx.save_for_backward(cand_t, col0_c)
-        ctx.block, ctx.o_shape = block, tuple(o_c.shape)
-        ctx.mark_non_differentiable(out[1], out[2])
-        return out[0], out[1], out[2]
+    o: (H + b - 1, W + b - 1) float32 normalised padded observed image; osum, oinv: (H, W);
+    beta: 0-dim; k: (H, W) int32 integer disparities; ref: the prepared reference (its
+    ``cand_padded``, ``cand_t``, ``cand_sum``, ``cand_inv``, ``cand_unknown``). Returns (H, W)."""
 
     @staticmethod
-    def backward(ctx, grad_cross, _g1, _g2):
-        cand_t, col0_c = ctx.saved_tensors
+    def forward(ctx, o, osum, oinv, beta, k, ref, geom):
         lib = _load_kernel()
-        hb, W = col0_c.shape
-        g = grad_cross.float().contiguous()
-        d_o = torch.empty(ctx.o_shape, dtype=torch.float32)
-        lib.ddsgen_window_cross_grad(g.data_ptr(), cand_t.data_ptr(), cand_t.shape[2], cand_t.shape[0],
-                                     col0_c.data_ptr(), hb, W, ctx.block, d_o.data_ptr(), ctx.o_shape[1],
-                                     _n_threads())  # fmt: skip
-        return d_o, None, None, None, None, None, None
+        o_c, os_c, oi_c = (x.detach().float().contiguous() for x in (o, osum, oinv))
+        H, W = k.shape
+        disp = torch.empty(H, W, dtype=torch.float32)
+        _call_refine(lib, o_c, os_c, oi_c, float(beta.detach()), k, ref, geom, 0, H, disp=disp)
+        ctx.save_for_backward(o_c, os_c, oi_c, beta, k)
+        ctx.ref, ctx.geom = ref, geom
+        return disp
+
+    @staticmethod
+    def backward(ctx, grad_disp):
+        o_c, os_c, oi_c, beta, k = ctx.saved_tensors
+        ref, geom = ctx.ref, ctx.geom
+        lib = _load_kernel()
+        H, W = k.shape
+        C = ref.n_cand
+        gd = grad_disp.float().contiguous()
+        d_o = torch.zeros_like(o_c)
+        d_os, d_oi, d_beta = (torch.empty(H, W, dtype=torch.float32) for _ in range(3))
+        rows = geom["rows"]
+        g_band = torch.empty(min(rows, H), W, ref.cand_padded.shape[2], dtype=torch.float32)
+        for v0 in range(0, H, rows):  # the (rows, W, C) gradient buffer bounds the memory
+            v1 = min(H, v0 + rows)
+            _call_refine(lib, o_c, os_c, oi_c, float(beta.detach()), k, ref, geom, v0, v1, grad=(gd, g_band, d_os, d_oi, d_beta))  # fmt: skip
+            lib.ddsgen_window_cross_grad(g_band.data_ptr(), g_band.shape[2], ref.cand_t.data_ptr(), ref.cand_t.shape[2], C,
+                                         ref.cand_t.shape[1], k.data_ptr(), geom["col_shift"], v0, v1, W,
+                                         geom["block"], d_o.data_ptr(), d_o.shape[1], _n_threads())  # fmt: skip
+        d_beta_total = d_beta.double().sum().to(beta.dtype) if ctx.needs_input_grad[3] else None
+        return d_o, d_os, d_oi, d_beta_total, None, None, None
+
+
+def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: dict, v0: int, v1: int, disp=None, grad=None):
+    null = None
+    gd, g_band, d_os, d_oi, d_beta = grad if grad is not None else (null,) * 5
+    ptr = lambda x: None if x is None else x.data_ptr()  # noqa: E731
+    cand = ref.cand_padded
+    lib.ddsgen_refine(o.data_ptr(), o.shape[1], cand.data_ptr(), cand.shape[1], ref.n_cand, cand.shape[2],
+                      k.data_ptr(), geom["col_shift"], v0, v1, k.shape[1], geom["block"], ref.cand_sum.data_ptr(),
+                      ref.cand_inv.data_ptr(), ref.cand_unknown.data_ptr(), ref.cand_sum.shape[1],
+                      osum.data_ptr(), oinv.data_ptr(), beta, geom["S"], geom["d_lo"], geom["d_hi"], ptr(disp),
+                      ptr(gd), ptr(g_band), ptr(d_os), ptr(d_oi), ptr(d_beta), _n_threads())  # fmt: skip
 
 
 def _refine_band(o_band, cand_band, csum_band, cinv_band, cunk_band, osum_band, oinv_band, k_band, beta,
-                 block: int, col_shift: int, n_sub: int, d_min: float, d_max: float, use_c: bool = False,
-                 soft=None):  # fmt: skip
-    """Soft-argmax disparity of one band.
+                 block: int, col_shift: int, n_sub: int, d_min: float, d_max: float, soft=None):  # fmt: skip
+    """Soft-argmax disparity of one band (torch; the C path uses :class:`_RefineC`).
 
     o_band: (hb + b - 1, W + b - 1) normalised, padded observed rows of the band.
     cand_band: (hb + b - 1, Wr, C) candidate references of the same rows.
     csum_band, cinv_band, cunk_band: (hb, Ws, C) window statistics of the candidates.
     osum_band, oinv_band: (hb, W) window statistics of the observed image.
     k_band: (hb, W) int64 integer disparity K.
-    use_c: window cross-correlations by the C kernel (float32 CPU, constant reference).
-    soft: the (possibly compiled) :func:`_soft_argmax`.
+    soft: the soft-argmax (default :func:`_soft_argmax`).
     Returns (hb, W) disparity (not quantised).
     """
     hb, W = k_band.shape
     n_c = csum_band.shape[-1]
     n = block * block
-    S = 2**n_sub
-    T = (n_c - 1) // 2
     # Window start column (in extended reference columns) of each pixel's candidates.
     col0 = torch.arange(W, device=k_band.device)[None, :] + col_shift - k_band  # (hb, W)
     row_idx = torch.arange(hb, device=k_band.device)[:, None]
-    if use_c:
-        cand_p, cand_t = cand_band
-        cross, csum, cinv = _WindowCrossC.apply(o_band, cand_p, cand_t, csum_band, cinv_band, col0, block)
-        cunk = torch.gather(cunk_band, 1, col0[..., None].expand(hb, W, n_c))
-    else:
-        cross = None
-        for i in range(block):  # window rows; each term is an exact per-pixel window product
-            seg = cand_band[i : i + hb].unfold(1, block, 1)[row_idx, col0]  # (hb, W, C, b)
-            obs = o_band[i : i + hb].unfold(1, block, 1)  # (hb, W, b)
-            term = (seg * obs[:, :, None, :]).sum(-1)
-            cross = term if cross is None else cross + term
-        index = col0[..., None].expand(hb, W, n_c)
-        csum = torch.gather(csum_band, 1, index)  # (hb, W, C)
-        cinv = torch.gather(cinv_band, 1, index)
-        cunk = torch.gather(cunk_band, 1, index)
+    cross = None
+    for i in range(block):  # window rows; each term is an exact per-pixel window product
+        seg = cand_band[i : i + hb].unfold(1, block, 1)[row_idx, col0]  # (hb, W, C, b)
+        obs = o_band[i : i + hb].unfold(1, block, 1)  # (hb, W, b)
+        term = (seg * obs[:, :, None, :]).sum(-1)
+        cross = term if cross is None else cross + term
+    index = col0[..., None].expand(hb, W, n_c)
+    csum = torch.gather(csum_band, 1, index)  # (hb, W, C)
+    cinv = torch.gather(cinv_band, 1, index)
+    cunk = torch.gather(cunk_band, 1, index)
     return (soft or _soft_argmax)(cross, csum, cinv, cunk, osum_band, oinv_band, k_band, beta,
                                   n=n, n_sub=n_sub, d_min=d_min, d_max=d_max)  # fmt: skip
 
@@ -767,8 +969,9 @@ def match(
         band_rows: rows per band (bounds memory; the result does not depend on it).
         min_confidence: confidence below which a pixel is invalid.
         quantize: quantise the forward value to 2^-n_sub px (straight-through gradient).
-        compile: use torch.compile for the refinement (default: yes, with eager fallback;
-            environment DDSGEN_NO_COMPILE=1 disables it).
+        compile: use torch.compile for the torch refinement (default: yes, with eager
+            fallback; environment DDSGEN_NO_COMPILE=1 disables it). The C refinement (CPU,
+            float32) never compiles.
         backend: integer search "auto" (C kernel on CPU when available), "c" or "torch".
         device: run on this device (inputs are moved); default: ``observed.device``.
 
@@ -831,38 +1034,35 @@ def match(
         found = arg >= 0
         k_int = torch.where(found, k_hi - arg, torch.full_like(arg, k_lo))
 
-    # Stage 2: refinement in bands of equal height (uniform shapes for the compiled kernel).
+    # Stage 2: sub-pixel refinement.
     grad = torch.is_grad_enabled() and (observed.requires_grad or beta.requires_grad or reference_phases.requires_grad)
-    use_c_refine = (kernel is not None and dev.type == "cpu" and dtype == torch.float32
-                    and ref.cand_padded is not None)  # fmt: skip
-    compile_mode = _want_compile(dev, compile)
-    fn = _refine_band if use_c_refine else _compiled(_refine_band, compile_mode)
     rows = max(1, min(int(band_rows), H))
-    # The C path holds no cost volume; its autograd graph is ~12 floats per pixel and candidate.
-    # Split it into bands recomputed in the backward pass (checkpointing) only when that graph
-    # would be large; otherwise one call (fewer, larger ops: much faster on a busy machine).
-    checkpoint_bands = H * W * ref.n_cand > _CHECKPOINT_ELEMENTS
-    if use_c_refine and not checkpoint_bands:
-        rows = H
     col_shift = pad + ref.offset - h
-    pieces = []
-    done = 0
-    while done < H:
-        start = min(done, H - rows)  # the last band is shifted up to keep its height
-        stop = start + rows
-        cand_band = ref.cand[start : stop + 2 * h]
-        if use_c_refine:
-            cand_band = (ref.cand_padded[start : stop + 2 * h], ref.cand_t[:, start : stop + 2 * h].contiguous())
-        args = (o_pad[start : stop + 2 * h], cand_band, ref.cand_sum[start:stop],
-                ref.cand_inv[start:stop], ref.cand_unknown[start:stop], osum[start:stop], oinv[start:stop],
-                k_int[start:stop], beta)  # fmt: skip
-        kwargs = dict(block=block, col_shift=col_shift, n_sub=int(n_sub), d_min=float(d_min), d_max=float(d_max))
-        if use_c_refine:
-            kwargs.update(use_c=True, soft=_compiled(_soft_argmax, compile_mode))
-        band = _run_refine(fn, args, kwargs, grad and (checkpoint_bands or not use_c_refine))
-        pieces.append(band[done - start :])
-        done = stop
-    disparity = torch.cat(pieces, dim=0)
+    use_c_refine = (kernel is not None and dev.type == "cpu" and dtype == torch.float32
+                    and ref.cand_padded is not None and ref.cand_padded.shape[-1] <= 64 and block <= 64)  # fmt: skip
+    if use_c_refine:
+        # Fused C kernel: no cost volume, no torch.compile; the backward recomputes bands of
+        # `rows` rows in C, so memory is bounded by the band. Results do not depend on `rows`.
+        geom = dict(block=block, col_shift=col_shift, S=S, d_lo=float(d_min) - 1e-6, d_hi=float(d_max) + 1e-6,
+                    rows=rows)  # fmt: skip
+        disparity = _RefineC.apply(o_pad, osum, oinv, beta, k_int.to(torch.int32).contiguous(), ref, geom)
+    else:
+        # torch: bands of equal height (uniform shapes for the compiled kernel), each
+        # recomputed in the backward pass (checkpointing).
+        fn = _compiled(_refine_band, _want_compile(dev, compile))
+        pieces = []
+        done = 0
+        while done < H:
+            start = min(done, H - rows)  # the last band is shifted up to keep its height
+            stop = start + rows
+            args = (o_pad[start : stop + 2 * h], ref.cand[start : stop + 2 * h], ref.cand_sum[start:stop],
+                    ref.cand_inv[start:stop], ref.cand_unknown[start:stop], osum[start:stop], oinv[start:stop],
+                    k_int[start:stop], beta)  # fmt: skip
+            kwargs = dict(block=block, col_shift=col_shift, n_sub=int(n_sub), d_min=float(d_min), d_max=float(d_max))
+            band = _run_refine(fn, args, kwargs, grad)
+            pieces.append(band[done - start :])
+            done = stop
+        disparity = torch.cat(pieces, dim=0)
 
     if quantize:
         quantised = torch.round(disparity.detach() * S) / S
@@ -895,7 +1095,4 @@ def _run_refine(fn, args, kwargs, use_checkpoint: bool):
             raise
         _COMPILE_FAILED = True
         log.warning("ddsgen matcher: torch.compile failed (%s); using eager mode", type(error).__name__)
-        eager = dict(kwargs)
-        if "soft" in eager:
-            eager["soft"] = _soft_argmax
-        return call(_refine_band, eager)
+        return call(_refine_band, kwargs)
