@@ -187,6 +187,49 @@ def _shift_cols(x: torch.Tensor, shift: int) -> torch.Tensor:
     return torch.cat([x[..., -shift:], nan], dim=-1)
 
 
+def _observed_stats(x: torch.Tensor, block: int):
+    """Padded normalised observed image and its window statistics (torch).
+    x: (H, W) -> o_pad (H + 2h, W + 2h) mirrored, osum (H, W) window sums, oinv (H, W)
+    1 / window std (with the variance floor)."""
+    h = block // 2
+    n = block * block
+    o_pad = _pad_cols_reflect(_pad_rows_reflect(x, h), h)
+    osum = _box_sum(o_pad, block)
+    osum2 = _box_sum(o_pad * o_pad, block)
+    oinv = torch.rsqrt((osum2 - osum * osum / n).clamp_min(0) + VARIANCE_FLOOR * n)
+    return o_pad, osum, oinv
+
+
+class _ObservedStatsC(torch.autograd.Function):
+    """:func:`_observed_stats` by one C kernel (float32 CPU). The backward recomputes the
+    torch version and differentiates it (the values agree to float round-off)."""
+
+    @staticmethod
+    def forward(ctx, x, block):
+        lib = _load_kernel()
+        xc = x.detach().contiguous()
+        H, W = xc.shape
+        o_pad = torch.empty(H + block - 1, W + block - 1, dtype=torch.float32)
+        osum, oinv = torch.empty(H, W, dtype=torch.float32), torch.empty(H, W, dtype=torch.float32)
+        scratch = torch.empty(2, H + block - 1, W, dtype=torch.float64)
+        lib.ddsgen_observed_stats(xc.data_ptr(), H, W, block, VARIANCE_FLOOR * block * block, o_pad.data_ptr(),
+                                  osum.data_ptr(), oinv.data_ptr(), scratch[0].data_ptr(), scratch[1].data_ptr(),
+                                  _n_threads())  # fmt: skip
+        ctx.save_for_backward(xc)
+        ctx.block = block
+        return o_pad, osum, oinv
+
+    @staticmethod
+    def backward(ctx, d_pad, d_sum, d_inv):
+        (xc,) = ctx.saved_tensors
+        with torch.enable_grad():
+            x = xc.detach().requires_grad_(True)
+            outs = _observed_stats(x, ctx.block)
+            pairs = [(o, g) for o, g in zip(outs, (d_pad, d_sum, d_inv)) if g is not None]
+            (d_x,) = torch.autograd.grad([o for o, _ in pairs], [x], [g for _, g in pairs], allow_unused=True)
+        return d_x, None
+
+
 # --------------------------------------------------------------------------------------
 # Prepared reference (normalised, padded, box statistics): constant per sensor, cached
 # --------------------------------------------------------------------------------------
@@ -304,6 +347,7 @@ _C_SOURCE = r"""/* Integer-disparity ZNCC search for ddsgen's block matcher (no 
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+#include <math.h>
 
 typedef float v8 __attribute__((vector_size(32)));
 typedef float v8u __attribute__((vector_size(32), aligned(4)));
@@ -318,6 +362,7 @@ static inline float hmax8(v8 m) {
 }
 
 typedef int32_t vi8 __attribute__((vector_size(32)));
+typedef uint8_t vu8 __attribute__((vector_size(8)));
 
 static inline v8 vsel8(vi8 mask, v8 a, v8 b) { /* mask ? a : b, lane-wise */
     return (v8)((mask & (vi8)a) | (~mask & (vi8)b));
@@ -453,6 +498,61 @@ static inline v8 vexp8(v8 x) {
     return y * (v8)scale;
 }
 
+/* Observed-image window statistics. X is the (H, W) normalised observed image; writes the
+ * mirrored (no edge repeat) padded image Opad (H + b - 1, W + b - 1), and per output pixel the
+ * window sums OSUM = sum Opad, OINV = 1 / sqrt(max(sum Opad^2 - OSUM^2 / n, 0) + floor) over
+ * b x b windows (sums in double: running along each padded row, then direct over the b rows,
+ * so every value is computed in a fixed order, whatever the thread count). RS, RS2 are
+ * scratch of (H + b - 1) x W doubles. */
+static inline int mirror(int i, int n) { return i < 0 ? -i : (i >= n ? 2 * n - 2 - i : i); }
+
+void ddsgen_observed_stats(const float *restrict X, int H, int W, int b, float floor_, float *restrict Opad,
+                           float *restrict OSUM, float *restrict OINV, double *restrict RS,
+                           double *restrict RS2, int n_threads)
+{
+    const int h = b / 2, Hp = H + b - 1, Wp = W + b - 1;
+    const float nf = (float)(b * b);
+#pragma omp parallel num_threads(n_threads)
+    {
+#pragma omp for schedule(static)
+        for (int y = 0; y < Hp; y++) {
+            const float *restrict x = X + (size_t)mirror(y - h, H) * W;
+            float *restrict o = Opad + (size_t)y * Wp;
+            for (int c = 0; c < Wp; c++) o[c] = x[mirror(c - h, W)];
+            double s = 0.0, s2 = 0.0;
+            for (int j = 0; j < b; j++) {
+                s += (double)o[j];
+                s2 += (double)(o[j] * o[j]);
+            }
+            double *restrict rs = RS + (size_t)y * W, *restrict rs2 = RS2 + (size_t)y * W;
+            rs[0] = s;
+            rs2[0] = s2;
+            for (int u = 1; u < W; u++) {
+                const float a = o[u + b - 1], d = o[u - 1];
+                s += (double)a - (double)d;
+                s2 += (double)(a * a) - (double)(d * d);
+                rs[u] = s;
+                rs2[u] = s2;
+            }
+        }
+#pragma omp for schedule(static)
+        for (int v = 0; v < H; v++) {
+            for (int u = 0; u < W; u++) {
+                double s = 0.0, s2 = 0.0;
+                for (int i = 0; i < b; i++) {
+                    s += RS[(size_t)(v + i) * W + u];
+                    s2 += RS2[(size_t)(v + i) * W + u];
+                }
+                const float os = (float)s, os2 = (float)s2;
+                float var = os2 - os * os / nf;
+                var = var > 0.0f ? var : 0.0f;
+                OSUM[(size_t)v * W + u] = os;
+                OINV[(size_t)v * W + u] = 1.0f / sqrtf(var + floor_);
+            }
+        }
+    }
+}
+
 /* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0+j][8q..8q+7], q < nq (F rows of 8 nq floats).
  * NR window rows are accumulated side by side into separate sums (independent dependency
  * chains: an FMA's latency, not its throughput, would otherwise bound the loop). */
@@ -531,7 +631,9 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
         for (int q = 0; q < nq; q++) {
             const v8 dt = kf + A->OFF[q];
             vi8 x = (dt < A->d_lo) | (dt > A->d_hi) | A->PADL[q];
-            for (int l = 0; l < 8; l++) x[l] |= -(int32_t)(cu[8 * q + l] != 0);
+            vu8 unk;
+            memcpy(&unk, cu + 8 * q, 8);
+            x |= __builtin_convertvector(unk, vi8) != 0;
             const v8 zz = vsel8(x, m3, ((cr[q] - a * LOADU(cs + 8 * q)) * io) * LOADU(ci + 8 * q));
             z[q] = zz;
             ex[q] = x;
@@ -603,8 +705,8 @@ void ddsgen_refine(const float *restrict O, int Wo, const float *restrict Fc, in
 #pragma omp parallel for schedule(dynamic, 4) num_threads(n_threads)
     for (int v = v0; v < v1; v++) {
         switch (nq) {  /* constant trip counts: the accumulators stay in registers */
-        case 1: refine_row(&A, v, 1, 4); break;
-        case 2: refine_row(&A, v, 2, 4); break;
+        case 1: if (b % 3 == 0) refine_row(&A, v, 1, 3); else refine_row(&A, v, 1, 4); break;
+        case 2: if (b % 3 == 0) refine_row(&A, v, 2, 3); else refine_row(&A, v, 2, 4); break;
         case 3: refine_row(&A, v, 3, 2); break;
         case 4: refine_row(&A, v, 4, 2); break;
         case 5: refine_row(&A, v, 5, 1); break;
@@ -737,8 +839,9 @@ def _load_kernel():
             f = ctypes.c_float
             lib.ddsgen_refine.argtypes = [p, i, p, i, i, i, p, i, i, i, i, i, p, p, p, i, p, p, f, i, f, f, p,
                                           p, p, p, p, p, i]  # fmt: skip
+            lib.ddsgen_observed_stats.argtypes = [p, i, i, i, f, p, p, p, p, p, i]
             lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, p, i, i, i, i, i, p, i, i]
-            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad):
+            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad, lib.ddsgen_observed_stats):
                 fn.restype = None
             _KERNEL = lib
         except (OSError, subprocess.SubprocessError) as error:
@@ -1013,19 +1116,22 @@ def match(
 
     # Observed: normalised to zero mean, unit variance (ZNCC is invariant; this makes the
     # variance floor relative and float32 sums well conditioned), mirrored at the borders.
-    o_mean = observed.mean()
-    o_std = observed.std().clamp_min(1e-12)
-    o_pad = _pad_cols_reflect(_pad_rows_reflect((observed - o_mean) / o_std, h), h)  # (H + 2h, W + 2h)
-    osum = _box_sum(o_pad, block)  # (H, W)
-    osum2 = _box_sum(o_pad * o_pad, block)
-    oinv = torch.rsqrt((osum2 - osum * osum / n).clamp_min(0) + VARIANCE_FLOOR * n)
-
-    # Stage 1: integer search. Window start column for candidate c (k = k_hi - c) at pixel u.
-    r0 = pad + ref.offset - h - k_hi
     use_c = backend == "c" or (backend == "auto" and dev.type == "cpu")
     kernel = _load_kernel() if use_c else None
     if backend == "c" and kernel is None:
         raise RuntimeError("C integer-search kernel unavailable")
+
+    # Observed: normalised to zero mean, unit variance (ZNCC is invariant; this makes the
+    # variance floor relative and float32 sums well conditioned), mirrored at the borders;
+    # window sums and 1 / window std: (H + 2h, W + 2h), (H, W), (H, W).
+    x = (observed - observed.mean()) / observed.std().clamp_min(1e-12)
+    if kernel is not None and dev.type == "cpu" and dtype == torch.float32:
+        o_pad, osum, oinv = _ObservedStatsC.apply(x, block)
+    else:
+        o_pad, osum, oinv = _observed_stats(x, block)
+
+    # Stage 1: integer search. Window start column for candidate c (k = k_hi - c) at pixel u.
+    r0 = pad + ref.offset - h - k_hi
     with torch.no_grad():
         if kernel is not None and dev.type == "cpu":
             best, second, arg = _integer_search_c(kernel, o_pad, ref, osum, oinv, block, r0, n_disp)
