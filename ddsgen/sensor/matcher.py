@@ -177,11 +177,11 @@ def _pad_cols_reflect(x: torch.Tensor, h: int) -> torch.Tensor:
     return torch.cat([left, x, right], dim=-1)
 
 
-def _shift_cols(x: torch.Tensor, shift: int) -> torch.Tensor:
-    """y[..., j] = x[..., j - shift], NaN where j - shift is outside."""
+def _shift_cols(x: torch.Tensor, shift: int, fill=float("nan")) -> torch.Tensor:
+    """y[..., j] = x[..., j - shift], ``fill`` where j - shift is outside."""
     if shift == 0:
         return x
-    nan = torch.full_like(x[..., : abs(shift)], float("nan"))
+    nan = torch.full_like(x[..., : abs(shift)], fill)
     if shift > 0:
         return torch.cat([nan, x[..., :-shift]], dim=-1)
     return torch.cat([x[..., -shift:], nan], dim=-1)
@@ -310,11 +310,20 @@ def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, ext
     cand = torch.stack(cands, dim=-1)  # (H + 2h, Wr, C)
     unknown = torch.isnan(cand)
     cand = torch.where(unknown, torch.zeros_like(cand), cand)
-    cand_chw = cand.permute(2, 0, 1)
-    csum = _box_sum(cand_chw, block)
-    csum2 = _box_sum(cand_chw * cand_chw, block)
-    cinv = torch.rsqrt((csum2 - csum * csum / n).clamp_min(0) + floor)
-    cunk = _box_sum(unknown.permute(2, 0, 1).to(cand.dtype), block) > 0.5
+    # Window statistics of the S phases, then shifted like the candidates (a candidate's
+    # window statistics are its phase's, shifted; windows reaching the shifted-in columns are
+    # unknown): S box filters instead of C.
+    known = torch.isnan(ext)
+    filled = torch.where(known, torch.zeros_like(ext), ext)
+    psum = _box_sum(filled, block)  # (S, H, Ws)
+    psum2 = _box_sum(filled * filled, block)
+    pinv = torch.rsqrt((psum2 - psum * psum / n).clamp_min(0) + floor)
+    punk = _box_sum(known.to(filled.dtype), block) > 0.5
+
+    def shifted(x, fill):
+        return torch.stack([_shift_cols(x[t % S], t // S, fill) for t in range(-T, T + 1)])
+
+    csum, cinv, cunk = shifted(psum, 0.0), shifted(pinv, 0.0), shifted(punk, True)  # (C, H, Ws)
     padded = transposed = None
     if cand.device.type == "cpu" and not cand.requires_grad:
         with torch.no_grad():
