@@ -47,7 +47,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     2. analyse the residual (bias and validity) by depth, incidence angle, image radius, row,
        column, distance to depth edges and IR signal;
     3. fit every library effect not yet in the model and measure the held-out gap it removes;
-    4. accept the best only if it removes at least 10 % of the held-out gap beyond the change of
+    4. accept the best only if it removes at least 5 % of the held-out gap beyond the change of
        the noise floor and a bootstrap over held-out frames confirms it; add it, refit, repeat;
     5. report residual structure that no effect explains, by axis.
 

@@ -10,7 +10,7 @@ The loop (:func:`diagnose`):
    IR signal; per axis the structure beyond noise (bootstrap over frames).
 3. **Candidates.** Every library effect not yet in the model is added in turn and its
    parameters are fitted on the fit frames by a coarse grid plus a local refinement
-   (forward passes), minimising the *excess* of the gap over the noise floor (below); then
+   (forward passes), maximising the credited fall of the gap (below); then
    the held-out gap and noise floor it leaves are measured.
 4. **Acceptance** (:data:`RULE`). Accepted: named, added, the base parameters refitted with it,
    and the loop repeats with the remaining effects; otherwise it stops.
@@ -20,13 +20,15 @@ The loop (:func:`diagnose`):
 
 Two things make the comparison fair to every candidate:
 
-* **Excess over the noise floor.** The gap metric can be lowered by *hiding* noise: a
+* **Credit only what the noise floor does not explain.** The gap metric can be lowered by *hiding* noise: a
   dropout effect that removes the noisiest pixels from the simulation lowers the depth and
-  texture terms by more than it costs in validity, even on data that has no such dropout. The
-  noise floor (the gap between two noise draws of the same model, ``compare``'s
-  ``noise_floor``) falls by the same amount, while a genuinely missing effect lowers the gap
-  and leaves the floor. So candidates are fitted and judged by ``excess = gap - noise_floor``
-  (per frame, same noise draws for every model).
+  texture terms by more than it costs in validity, even on data that has no such dropout.
+  The noise floor -- the depth and texture terms between two noise draws of the same model,
+  counted where the real sensor has depth (:func:`frame_evaluation`) -- falls by the same
+  amount, while a genuinely missing effect lowers the gap and leaves the floor. So a
+  candidate is credited, per frame and with the same noise draws for every model, with the
+  fall of its gap minus any fall of its own floor (:func:`frame_falls`) -- and gets nothing
+  for making its own noise draws disagree more. The gaps reported are the ``compare`` gaps.
 * **The support plane is re-estimated under each model** (:func:`replane`). It is fitted to
   the real depth, so it already contains any bias that keeps planes planar (a disparity
   offset, a depth scale error); a model with that effect would apply it twice.
@@ -48,14 +50,14 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from ddsgen.fit.compare import gap
+from ddsgen.fit.compare import frame_gap, gap
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.residuals import AXIS_WORDS, analyse, pixel_residuals
 from ddsgen.fit.simulate import simulate
 from ddsgen.sensor.effects import REGISTRY
 
-#: A candidate must remove at least this fraction of the held-out gap from its excess over the noise floor ...
-MIN_RELATIVE_GAIN = 0.10
+#: A candidate's credited fall (frame_falls) must be at least this fraction of the held-out gap ...
+MIN_RELATIVE_GAIN = 0.05
 #: ... and the BOOTSTRAP_QUANTILE-quantile of that gain over resamples of the held-out frames must stay above zero.
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_QUANTILE = 0.05
@@ -67,8 +69,9 @@ BASE_PARAMS = tuple(p for p in DEFAULT_PARAMS if p != "baseline")
 UNEXPLAINED_MIN_MM = 1.0
 
 RULE = (
-    f"Each round, the candidate whose held-out excess (gap minus noise floor, paired per frame, same noise draws) "
-    f"falls most is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
+    f"Each round, the candidate with the largest credited fall of the held-out gap -- per frame, the fall of the "
+    f"gap minus any fall of the model's own noise floor (noise it hides rather than explains), same noise draws "
+    f"for every model -- is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
     f"and (b) it is not carried by a few frames: over {BOOTSTRAP_RESAMPLES} bootstrap resamples of the held-out "
     f"frames (with replacement), the {100 * BOOTSTRAP_QUANTILE:.0f}th percentile of that relative fall stays above "
     f"zero. Residual structure along an axis counts as unexplained when it exceeds twice its bootstrap noise and "
@@ -258,7 +261,7 @@ class Evaluation:
 class Candidate:
     effect: str
     params: dict
-    fit_excess: float
+    fit_score: float
     held: Evaluation
     gain: float = 0.0
     gain_low: float = 0.0
@@ -321,15 +324,32 @@ def replaned(sensor, frames, seed: int, steps: int = 1) -> list:
     return frames
 
 
+def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float]:
+    """(gap, noise floor) of one frame: the ``compare`` gap, and the depth + texture terms between two
+    noise draws of ``sensor`` counted where the real sensor has depth.
+
+    The floor differs from ``compare``'s ``noise_floor`` in one way: the second draw only counts where the
+    real scan is valid. A dropout effect then changes the floor only by what it removes from pixels the
+    real sensor keeps (noise it hides), not by pixels the real sensor drops anyway (which it explains).
+    """
+    sim = simulate(sensor, frame, seed)
+    other = simulate(sensor, frame, seed + 1000)
+    g = frame_gap(sim, frame)
+    twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid & frame.real_valid)
+    f = frame_gap(sim, twin)
+    return float(g["gap"] or 0.0), float((f["depth_mm"] or 0.0) + (f["gradient_mm"] or 0.0))
+
+
 def evaluate(sensor, frames, seed: int, replane_steps: int = 0) -> Evaluation:
-    """Per-frame gap and noise floor (``compare`` metric) of ``sensor``, planes re-estimated first if asked."""
+    """Per-frame gap and noise floor (:func:`frame_evaluation`) of ``sensor``, planes re-estimated first if asked."""
     if replane_steps:
         frames = replaned(sensor, frames, seed, replane_steps)
     gaps, floors = [], []
-    for f in frames:
-        report = gap(sensor, [f], seed=seed, noise_floor=True)
-        gaps.append(float(report.gap))
-        floors.append(float(report.noise_floor))
+    with torch.no_grad():
+        for f in frames:
+            g, fl = frame_evaluation(sensor, f, seed)
+            gaps.append(g)
+            floors.append(fl)
     return Evaluation(gaps, floors)
 
 
@@ -350,18 +370,27 @@ def with_effect(sensor, name: str, values: dict):
     return new
 
 
+def frame_falls(before: Evaluation, after: Evaluation) -> np.ndarray:
+    """Per-frame credited fall of the gap: ``(gap_before - gap_after) - max(0, floor_before - floor_after)``.
+
+    A candidate gets no credit for the part of its gap fall that its own noise floor falls too (noise it
+    hides, e.g. by dropping the noisiest pixels), and no credit either for making its own draws noisier.
+    """
+    gb, ga = np.asarray(before.frame_gaps), np.asarray(after.frame_gaps)
+    fb, fa = np.asarray(before.frame_floors), np.asarray(after.frame_floors)
+    return (gb - ga) - np.maximum(0.0, fb - fa)
+
+
 def relative_fall(before: Evaluation, after: Evaluation) -> float:
-    """Fall of the excess (gap - floor), paired per frame, as a fraction of the gap before."""
-    b = np.asarray(before.frame_gaps) - np.asarray(before.frame_floors)
-    a = np.asarray(after.frame_gaps) - np.asarray(after.frame_floors)
-    return float((b - a).sum() / max(float(np.sum(before.frame_gaps)), 1e-12))
+    """Credited fall (:func:`frame_falls`) summed over frames, as a fraction of the gap before."""
+    return float(frame_falls(before, after).sum() / max(float(np.sum(before.frame_gaps)), 1e-12))
 
 
 def bootstrap_fall(before: Evaluation, after: Evaluation, rng: np.random.Generator,
                    resamples: int = BOOTSTRAP_RESAMPLES) -> float:  # fmt: skip
     """The BOOTSTRAP_QUANTILE-quantile of :func:`relative_fall` over resamples of the frames."""
     gb = np.asarray(before.frame_gaps)
-    d = (gb - np.asarray(before.frame_floors)) - (np.asarray(after.frame_gaps) - np.asarray(after.frame_floors))
+    d = frame_falls(before, after)
     n = len(d)
     if n == 0:
         return 0.0
@@ -370,15 +399,15 @@ def bootstrap_fall(before: Evaluation, after: Evaluation, rng: np.random.Generat
     return float(np.quantile(falls, BOOTSTRAP_QUANTILE))
 
 
-def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig) -> tuple[object, dict, float]:
+def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation) -> tuple[object, dict, float]:
     """Add effect ``name`` to (a copy of) ``sensor`` and fit its parameters on ``frames``.
 
-    ``frames`` are fit frames re-planed under ``sensor``. The objective is the mean excess of
-    the gap over the noise floor for dropout effects (they can hide noise, which lowers the floor
-    too); for effects that change depth it is the gap with the support plane re-estimated under
-    every trial value (their floor hardly moves, and its extra simulation would re-run the matcher). The first parameter is searched on a coarse grid,
+    ``frames`` are fit frames re-planed under ``sensor`` and ``base`` is ``sensor``'s evaluation on
+    them. The objective is the acceptance criterion itself: the credited fall of the gap
+    (:func:`frame_falls`), with the support plane re-estimated under every trial value of an
+    effect that changes depth. The first parameter is searched on a coarse grid,
     then by ``refine_rounds`` rounds of halving the interval around the best value; the other
-    parameters on :data:`SECONDARY_GRIDS`. Returns (sensor with the effect, values, excess).
+    parameters on :data:`SECONDARY_GRIDS`. Returns (sensor with the effect, values, -credited fall).
     """
     cls = REGISTRY[name]
     candidate = with_effect(sensor, name, {})
@@ -390,11 +419,8 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig) -> tuple[ob
         key = tuple(round(values[k], 9) for k in cls.params)
         if key not in tried:
             effect.set_values(**values)
-            if moves_depth:  # re-plane; the floor barely moves with a depth bias, skip its extra simulation
-                tried[key] = float(np.mean([float(gap(candidate, [f], seed=config.seed, noise_floor=False).gap)
-                                            for f in replaned(candidate, frames, config.seed)]))  # fmt: skip
-            else:  # dropout: the floor moves with it (hiding noisy pixels), so judge the excess
-                tried[key] = evaluate(candidate, frames, config.seed).excess
+            trial_frames = replaned(candidate, frames, config.seed) if moves_depth else frames
+            tried[key] = -relative_fall(base, evaluate(candidate, trial_frames, config.seed))
         return tried[key]
 
     neutral = {k: spec.neutral for k, spec in cls.params.items()}
@@ -457,8 +483,8 @@ def step_sentence(name: str, params: dict, before: float, after: float) -> str:
 def refit(sensor, frames, config: DiagnoseConfig, progress: bool) -> None:
     """Refit the base parameters (and, by Adam, the parameters of accepted effects that change depth) in place.
 
-    Dropout thresholds are left where their excess-based search put them: the fit loss, unlike
-    the excess, rewards dropping noisy pixels.
+    Dropout thresholds are left where their search put them: the fit loss, unlike the credited
+    fall, rewards dropping noisy pixels.
     """
     names = list(config.base_params) + [f"effect:{e.name}" for e in sensor.effects if changes_depth(e.name)]
     fit_sensor(sensor, frames, names, steps=config.refit_steps, lr=config.lr, progress=progress, seed=config.seed,
@@ -519,16 +545,17 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             echo(f"[3/5] round {len(rounds) + 1}: fitting {len(todo)} candidate effect(s) on the fit frames")
             grid_frames = fit_frames[: config.grid_frames] if config.grid_frames else fit_frames
             grid_frames = replaned(sensor, grid_frames, config.seed)
+            grid_base = evaluate(sensor, grid_frames, config.seed)
             results = []
             for name in todo:
-                cand_sensor, values, fit_excess = fit_candidate(sensor, name, grid_frames, config)
+                cand_sensor, values, fit_score = fit_candidate(sensor, name, grid_frames, config, grid_base)
                 held_eval = evaluate(cand_sensor, held, held_seed, replane_steps=2)
-                c = Candidate(name, values, fit_excess, held_eval, sensor=cand_sensor)
+                c = Candidate(name, values, fit_score, held_eval, sensor=cand_sensor)
                 c.gain = relative_fall(current, held_eval)
                 c.gain_low = bootstrap_fall(current, held_eval, rng)
                 results.append(c)
                 echo(f"      {name:20s} held-out gap {held_eval.gap:7.2f} mm (floor {held_eval.floor:5.2f})  "
-                     f"excess falls by {100 * c.gain:+6.1f} % of the gap (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)"
+                     f"credited fall {100 * c.gain:+6.1f} % (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)"
                      f"  {_fmt(values)}")  # fmt: skip
             rounds.append(results)
             best = max(results, key=lambda c: c.gain)
@@ -538,9 +565,9 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 break
             echo(f"[4/5] accepted {best.effect}; refitting the base parameters with it")
             new = best.sensor
-            fit_before = evaluate(new, grid_frames, config.seed, replane_steps=1).excess
+            fit_before = evaluate(new, grid_frames, config.seed, replane_steps=1)
             refit(new, replaned(new, fit_frames, config.seed), config, progress)
-            if evaluate(new, grid_frames, config.seed, replane_steps=1).excess > fit_before:
+            if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
                 new = with_effect(sensor, best.effect, best.params)  # the refit did not help: undo it
                 after = best.held
             else:
