@@ -362,7 +362,9 @@ def test_band_rows_bound_the_cost_volume():
     height, width, d_max = 160, 120, 40
     observed, phases, pad, _ = _scene(height, width, 20.0, n_sub=2, pad=d_max + 16, seed=2)
     M._REF_CACHE.clear()
-    M._prepare_reference(phases, pad, 9, 2, 4 + 8)  # reference tensors are per sensor, not per frame
+    # Reference tensors (and the torch path's per-candidate layout, built on its first use)
+    # are per sensor, not per frame: build them before measuring.
+    M._prepare_reference(phases, pad, 9, 2, 4 + 8).torch_candidates()
     peaks = {}
     for rows in (4, 16, height):
         with _PeakTensorMemory() as mode:

@@ -235,26 +235,90 @@ class _ObservedStatsC(torch.autograd.Function):
 # --------------------------------------------------------------------------------------
 @dataclass
 class _Reference:
+    """The prepared reference, constant per sensor (cached per phases tensor).
+
+    The refinement's candidate t = -T..T (d = K + t / S) reads phase t mod S shifted by
+    floor(t / S) columns. No per-candidate copy is kept: on the C path (float32 CPU, reference
+    not requiring grad) the kernels index the S phases directly, in two layouts of the same
+    values (each the size of the phases):
+
+    * ``fwd`` (H + 2h, FL + Wr S + FR): the phases interleaved along each row in reversed
+      column order, element ``FL + (Wr - 1 - c) S + s`` = phase s, column c. Candidate t at
+      column c is element ``fwd_base - c S + (t + T)``: the C candidates of a column are
+      contiguous (the forward kernel vectorises over them). Zero outside the phases.
+    * ``bwd`` (S, H + 2h, BL + Wr + BR): the phases with zero columns on both sides; candidate
+      t at column c is ``bwd[t mod S, :, BL + c - floor(t / S)]`` (the backward kernel
+      vectorises over window columns).
+
+    Window statistics are per phase too, shifted by index: ``stat_sum``, ``stat_inv`` (float32)
+    and ``stat_unk`` (uint8, 1 outside) are (H, SL + Ws S + SR) in the interleaved reversed
+    layout. The torch refinement's per-candidate arrays ((H + 2h, Wr, C) candidates and
+    (H, Ws, C) statistics) are built only when that path runs (:meth:`torch_candidates`).
+    """
+
     r0_int: torch.Tensor  # (H + 2h, Wr) float32, phase 0, normalised, unknown -> 0 (integer stage)
     rs_int: torch.Tensor  # (H, Ws) window sums of r0_int
     inv_int: torch.Tensor  # (H, Ws) 1 / window std of r0_int (0 where unknown)
     pen_int: torch.Tensor  # (H, Ws) 0, or _EXCLUDED_INT where the window touches unknown reference
-    cand: torch.Tensor  # (H + 2h, Wr, C) candidate references, normalised, NaN -> 0
-    cand_sum: torch.Tensor  # (H, Ws, C) window sums
-    cand_inv: torch.Tensor  # (H, Ws, C) 1 / window std
-    cand_unknown: torch.Tensor  # (H, Ws, C) bool: window touches unknown reference
-    cand_padded: torch.Tensor | None  # (H + 2h, Wr, CP) float32, C padded to a multiple of 8 (C kernel)
-    cand_t: torch.Tensor | None  # (C, H + 2h, Wr) float32 (C kernel backward)
+    filled: torch.Tensor  # (S, H + 2h, Wr) normalised phases, unknown -> 0 (a view of ``bwd`` on the C path)
+    phase_stats: tuple | None  # (sum, 1/std, unknown) per phase, (S, H, Ws); None on the C path
+    S: int
+    T: int
+    block: int
     offset: int  # extended column index = reference column j + offset
     n_cand: int
+    fwd: torch.Tensor | None = None
+    fwd_base: int = 0
+    bwd: torch.Tensor | None = None
+    bwd_left: int = 0
+    stat_sum: torch.Tensor | None = None
+    stat_inv: torch.Tensor | None = None
+    stat_unk: torch.Tensor | None = None
+    stat_base: int = 0
+    _torch: tuple | None = None
+
+    @property
+    def n_cand_padded(self) -> int:
+        return -(-self.n_cand // 8) * 8
+
+    def _stats(self):
+        """Per-phase window statistics (S, H, Ws): stored, or read back from the C layout."""
+        if self.phase_stats is not None:
+            return self.phase_stats
+        S, T = self.S, self.T
+        ws = self.filled.shape[-1] - self.block + 1
+        lo = self.stat_base + T - (ws - 1) * S  # element of column ws - 1, phase 0
+
+        def back(x):
+            return x[:, lo : lo + ws * S].view(x.shape[0], ws, S).flip(1).permute(2, 0, 1)
+
+        return back(self.stat_sum), back(self.stat_inv), back(self.stat_unk).bool()
+
+    def torch_candidates(self):
+        """(cand (H + 2h, Wr, C), cand_sum, cand_inv, cand_unknown (H, Ws, C)) for the torch
+        refinement; built on first use (cached with the reference unless it needs grad)."""
+        if self._torch is not None:
+            return self._torch
+        S, T = self.S, self.T
+        psum, pinv, punk = self._stats()
+
+        def shifted(x, fill, dim):
+            return torch.stack([_shift_cols(x[t % S], t // S, fill) for t in range(-T, T + 1)], dim=dim)
+
+        cand = shifted(self.filled, 0.0, -1).contiguous()  # (H + 2h, Wr, C)
+        csum, cinv, cunk = (shifted(x, f, -1).contiguous() for x, f in ((psum, 0.0), (pinv, 0.0), (punk, True)))
+        out = (cand, csum, cinv, cunk)
+        if not self.filled.requires_grad:
+            self._torch = out
+        return out
 
 
-def _with_slack(x: torch.Tensor, slack: int = 8) -> torch.Tensor:
-    """``x`` contiguous, in a buffer with ``slack`` zero elements after its end (the C kernel
-    reads whole vectors of 8 candidates)."""
-    flat = torch.zeros(x.numel() + slack, dtype=x.dtype, device=x.device)
-    flat[: x.numel()] = x.reshape(-1)
-    return flat[: x.numel()].view(x.shape)
+def _interleave_reversed(rows: int, width: int, S: int, left: int, right: int, dtype, fill=0) -> tuple:
+    """An (rows, left + width S + right) buffer filled with ``fill`` and its (rows, width, S)
+    view of the middle in reversed column order: ``view[:, c, s]`` is element
+    ``left + (width - 1 - c) S + s``; write ``x.flip(-1)`` into ``view[:, :, s]``."""
+    buf = torch.full((rows, left + width * S + right), fill, dtype=dtype)
+    return buf, buf[:, left : left + width * S].view(rows, width, S)
 
 
 _REF_CACHE: dict = {}
@@ -270,6 +334,9 @@ def _prepare_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, e
             hit = _REF_CACHE.get(key)
         if hit is not None and hit[0]() is phases:
             return hit[1]
+    with _REF_LOCK:
+        if key is not None:
+            _REF_CACHE.clear()  # one sensor at a time is the common case: free the old one first
     ref = _build_reference(phases, pad, block, n_sub, extra)
     if key is not None:
         with _REF_LOCK:
@@ -286,15 +353,29 @@ def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, ext
     finite = phases[torch.isfinite(phases)]
     if finite.numel() < 2:
         raise ValueError("reference_phases has no finite values")
-    norm = (phases - finite.mean()) / finite.std().clamp_min(1e-12)  # differentiable if phases need it
-    # Extended columns: 1 unknown column on the left, `extra` on the right.
-    left = torch.full_like(norm[..., :1], float("nan"))
-    right = torch.full_like(norm[..., :1], float("nan")).expand(*norm.shape[:-1], extra)
-    ext = torch.cat([left, norm, right], dim=-1)
-    ext = _pad_rows_reflect(ext, h)  # (S, H + 2h, Wr)
+    mean, std = finite.mean(), finite.std().clamp_min(1e-12)  # differentiable if phases need it
+    del finite
     floor = VARIANCE_FLOOR * n
+
+    def ext_phase(x):
+        """Normalised phase(s) (..., H, W + pad) -> (..., H + 2h, Wr): 1 unknown column on
+        the left, ``extra`` on the right, mirrored rows."""
+        norm = (x - mean) / std
+        left = torch.full_like(norm[..., :1], float("nan"))
+        right = torch.full_like(norm[..., :1], float("nan")).expand(*norm.shape[:-1], extra)
+        return _pad_rows_reflect(torch.cat([left, norm, right], dim=-1), h)
+
+    def stats(ext):
+        unknown = torch.isnan(ext)
+        filled = torch.where(unknown, torch.zeros_like(ext), ext)
+        psum = _box_sum(filled, block)
+        psum2 = _box_sum(filled * filled, block)
+        pinv = torch.rsqrt((psum2 - psum * psum / n).clamp_min(0) + floor)
+        punk = _box_sum(unknown.to(filled.dtype), block) > 0.5
+        return filled, psum, pinv, punk
+
     with torch.no_grad():
-        r0 = ext[0].float()
+        r0 = ext_phase(phases[0].detach()).float()
         r0_unknown = torch.isnan(r0)
         r0 = torch.where(r0_unknown, torch.zeros_like(r0), r0).contiguous()
         rs = _box_sum(r0, block)
@@ -305,36 +386,38 @@ def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, ext
         rs = torch.where(r0_bad, zero, rs)
         inv = torch.where(r0_bad, zero, inv)
         penalty = torch.where(r0_bad, torch.full_like(rs, _EXCLUDED_INT), zero)
-    # Candidate t reads phase t mod S shifted by floor(t / S) columns.
-    cands = [_shift_cols(ext[t % S], t // S) for t in range(-T, T + 1)]
-    cand = torch.stack(cands, dim=-1)  # (H + 2h, Wr, C)
-    unknown = torch.isnan(cand)
-    cand = torch.where(unknown, torch.zeros_like(cand), cand)
-    # Window statistics of the S phases, then shifted like the candidates (a candidate's
-    # window statistics are its phase's, shifted; windows reaching the shifted-in columns are
-    # unknown): S box filters instead of C.
-    known = torch.isnan(ext)
-    filled = torch.where(known, torch.zeros_like(ext), ext)
-    psum = _box_sum(filled, block)  # (S, H, Ws)
-    psum2 = _box_sum(filled * filled, block)
-    pinv = torch.rsqrt((psum2 - psum * psum / n).clamp_min(0) + floor)
-    punk = _box_sum(known.to(filled.dtype), block) > 0.5
+    common = dict(r0_int=r0, rs_int=rs.contiguous(), inv_int=inv.contiguous(), pen_int=penalty.contiguous(), S=S, T=T,
+                  block=block, offset=1, n_cand=2 * T + 1)  # fmt: skip
 
-    def shifted(x, fill):
-        return torch.stack([_shift_cols(x[t % S], t // S, fill) for t in range(-T, T + 1)])
+    if not (phases.device.type == "cpu" and phases.dtype == torch.float32 and not phases.requires_grad):
+        # torch refinement only: per-phase arrays (differentiable if the phases need it).
+        filled, psum, pinv, punk = stats(ext_phase(phases))
+        return _Reference(filled=filled, phase_stats=(psum, pinv, punk), **common)
 
-    csum, cinv, cunk = shifted(psum, 0.0), shifted(pinv, 0.0), shifted(punk, True)  # (C, H, Ws)
-    padded = transposed = None
-    if cand.device.type == "cpu" and not cand.requires_grad:
-        with torch.no_grad():
-            c32 = cand.float()
-            padded = F.pad(c32, (0, (-c32.shape[-1]) % 8)).contiguous()
-            transposed = c32.permute(2, 0, 1).contiguous()
+    # C kernels: the two layouts of the phases and the interleaved statistics, built one phase
+    # at a time (no transient of more than a phase or two).
+    hp, wr = r0.shape
+    H, ws = rs.shape
+    cp = -(-(2 * T + 1) // 8) * 8
+    lead = -(-(T + 1) // 8) * 8  # >= T zero elements before the first candidate read
+    tail = cp + 8  # >= cp - T elements after the last
+    fwd, fwd_v = _interleave_reversed(hp, wr, S, lead, tail, torch.float32)
+    ssum, ssum_v = _interleave_reversed(H, ws, S, lead, tail, torch.float32)
+    sinv, sinv_v = _interleave_reversed(H, ws, S, lead, tail, torch.float32)
+    sunk, sunk_v = _interleave_reversed(H, ws, S, lead, tail, torch.uint8, fill=1)
+    b_left, b_right = 8, 16  # shifts floor(t / S) in [-2, 1]; the kernel reads 8-column vectors
+    bwd = torch.zeros(S, hp, b_left + wr + b_right, dtype=torch.float32)
+    with torch.no_grad():
+        for s in range(S):
+            filled, psum, pinv, punk = stats(ext_phase(phases[s]))
+            bwd[s, :, b_left : b_left + wr] = filled
+            fwd_v[:, :, s] = filled.flip(-1)
+            ssum_v[:, :, s] = psum.flip(-1)
+            sinv_v[:, :, s] = pinv.flip(-1)
+            sunk_v[:, :, s] = punk.flip(-1)
     return _Reference(
-        r0_int=r0, rs_int=rs.contiguous(), inv_int=inv.contiguous(), pen_int=penalty.contiguous(), cand=cand.contiguous(),
-        cand_sum=_with_slack(csum.permute(1, 2, 0)), cand_inv=_with_slack(cinv.permute(1, 2, 0)),
-        cand_unknown=_with_slack(cunk.permute(1, 2, 0)), offset=1, n_cand=2 * T + 1,
-        cand_padded=padded, cand_t=transposed,
+        filled=bwd[:, :, b_left : b_left + wr], phase_stats=None, fwd=fwd, fwd_base=lead + (wr - 1) * S - T, bwd=bwd,
+        bwd_left=b_left, stat_sum=ssum, stat_inv=sinv, stat_unk=sunk, stat_base=lead + (ws - 1) * S - T, **common,
     )  # fmt: skip
 
 
@@ -353,6 +436,7 @@ _C_SOURCE = r"""/* Integer-disparity ZNCC search for ddsgen's block matcher (no 
  * best (the "second peak"), and the best candidate index (-1 if every candidate is
  * excluded). Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
  */
+#include <stddef.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -562,12 +646,14 @@ void ddsgen_observed_stats(const float *restrict X, int H, int W, int b, float f
     }
 }
 
-/* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0+j][8q..8q+7], q < nq (F rows of 8 nq floats).
- * NR window rows are accumulated side by side into separate sums (independent dependency
- * chains: an FMA's latency, not its throughput, would otherwise bound the loop). */
+/* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * FX[v+i][xoff - j S + 8q .. + 7], q < nq (FX: the
+ * phases interleaved in reversed column order, row stride WX; xoff - j S is the first
+ * candidate of window column j). NR window rows are accumulated side by side into separate
+ * sums (independent dependency chains: an FMA's latency, not its throughput, would otherwise
+ * bound the loop). */
 static inline __attribute__((always_inline)) void window_cross(
-    const float *restrict O, int Wo, const float *restrict Fc, int Wr, int v, int u, int c0, int b,
-    v8 *restrict out, const int nq, const int NR)
+    const float *restrict O, int Wo, const float *restrict FX, size_t WX, ptrdiff_t xoff, int S, int v, int u,
+    int b, v8 *restrict out, const int nq, const int NR)
 {
     v8 acc[4][8];
     for (int r = 0; r < NR; r++)
@@ -575,23 +661,25 @@ static inline __attribute__((always_inline)) void window_cross(
     int i = 0;
     for (; i + NR <= b; i += NR) {
         const float *restrict o[4];
-        const v8 *f[4];
+        const float *f[4];
         for (int r = 0; r < NR; r++) {
             o[r] = O + (size_t)(v + i + r) * Wo + u;
-            f[r] = (const v8 *)(Fc + ((size_t)(v + i + r) * Wr + c0) * (8 * nq));
+            f[r] = FX + (size_t)(v + i + r) * WX + xoff;
         }
         for (int j = 0; j < b; j++)
             for (int r = 0; r < NR; r++) {
                 const float oj = o[r][j];
-                for (int q = 0; q < nq; q++) acc[r][q] += oj * f[r][j * nq + q];
+                const float *fj = f[r] - (ptrdiff_t)j * S;
+                for (int q = 0; q < nq; q++) acc[r][q] += oj * LOADU(fj + 8 * q);
             }
     }
     for (; i < b; i++) {
         const float *restrict o = O + (size_t)(v + i) * Wo + u;
-        const v8 *f = (const v8 *)(Fc + ((size_t)(v + i) * Wr + c0) * (8 * nq));
+        const float *f = FX + (size_t)(v + i) * WX + xoff;
         for (int j = 0; j < b; j++) {
             const float oj = o[j];
-            for (int q = 0; q < nq; q++) acc[0][q] += oj * f[j * nq + q];
+            const float *fj = f - (ptrdiff_t)j * S;
+            for (int q = 0; q < nq; q++) acc[0][q] += oj * LOADU(fj + 8 * q);
         }
     }
     for (int q = 0; q < nq; q++) {
@@ -608,9 +696,9 @@ static inline float hsum8(v8 x) {
 }
 
 typedef struct {
-    const float *O; int Wo; const float *Fc; int Wr; int C; int CP;
+    const float *O; int Wo; const float *FX; size_t WX; ptrdiff_t XB; int S; int C; int CP;
     const int32_t *K; int col_shift; int v0; int W; int b;
-    const float *CSUM; const float *CINV; const uint8_t *CUNK; int Ws;
+    const float *CSUM; const float *CINV; const uint8_t *CUNK; size_t WS; ptrdiff_t SB;
     const float *OSUM; const float *OINV; float beta; float d_lo; float d_hi;
     float *disp; const float *GD; float *G; float *dOSUM; float *dOINV; float *dBETA;
     v8 OFF[8]; vi8 PADL[8];  /* candidate offsets (t - T) / S; -1 in lanes t >= C */
@@ -623,16 +711,15 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
     const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
     const v8 vlow = {-3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f};
     const float nf = (float)(A->b * A->b), beta = A->beta;
-    const int C = A->C;
     for (int u = 0; u < A->W; u++) {
         const size_t p = (size_t)v * A->W + u;
         const int k = A->K[p];
         const int c0 = u + A->col_shift - k;
         v8 cr[8], z[8], e[8];
         vi8 ex[8];
-        window_cross(A->O, A->Wo, A->Fc, A->Wr, v, u, c0, A->b, cr, nq, NR);
+        window_cross(A->O, A->Wo, A->FX, A->WX, A->XB - (ptrdiff_t)c0 * A->S, A->S, v, u, A->b, cr, nq, NR);
         const float a = A->OSUM[p] / nf, io = A->OINV[p];
-        const size_t s = ((size_t)v * A->Ws + c0) * C;
+        const size_t s = (size_t)v * A->WS + (size_t)(A->SB - (ptrdiff_t)c0 * A->S);
         const float *cs = A->CSUM + s, *ci = A->CINV + s;  /* read 8 nq floats: arrays have slack */
         const uint8_t *cu = A->CUNK + s;
         const float kf = (float)k;
@@ -683,28 +770,32 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
 /* Sub-pixel refinement, fused (no cost volume is written). For each pixel (v, u) of rows
  * [v0, v1) with integer disparity k = K[v][u] and candidates t = 0..C-1 (d_t = k + (t - T)/S,
  * T = (C - 1) / 2), window start column c0 = u + col_shift - k:
- *   cross_t = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0 + j][t]
+ *   cross_t = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0 + j][t],  F[y][c][t] = FX[y][XB - c S + t]
  *   z_t     = ((cross_t - OSUM/n * CSUM_t) * OINV) * CINV_t, or -3 if excluded (CUNK, or d_t
  *             outside [d_lo, d_hi])
  *   d       = k + sum_t e_t (t - T)/S / sum_t e_t,  e_t = exp(beta z_t - max beta z)
- * F is (H+2h) x Wr x CP (candidates zero-padded to CP, a multiple of 8, at most 64); CSUM,
- * CINV, CUNK are H x Ws x C, read at [v][c0] (8 nq values: the arrays need CP - C elements of
- * slack at the end). Forward (GD == NULL): writes disp[v][u]. Backward (GD given): recomputes
+ * FX holds the S phases interleaved in reversed column order (row stride WX): candidate t of
+ * column c is phase (t - T) mod S, shifted by floor((t - T) / S) columns, so the C candidates
+ * of a column are contiguous and no per-candidate copy exists; CP (a multiple of 8, at most
+ * 64) values are read per column. CSUM, CINV, CUNK (row stride WS) are the phases' window
+ * statistics in the same layout: candidate t of window start column c is [v][SB - c S + t].
+ * All arrays have zero (CUNK: 1) elements around the phases for the reads that fall outside. Forward (GD == NULL): writes disp[v][u]. Backward (GD given): recomputes
  * the same and writes, for dL/dd = GD[v][u], the gradients w.r.t. cross_t into
  * G[(v - v0)][u][t] (band-local, CP per pixel, 0 in padding lanes), w.r.t. OSUM, OINV into
  * dOSUM, dOINV and the pixel's contribution to dL/dbeta into dBETA (all H x W). Every pixel is
  * computed on its own, in a fixed order: results depend neither on the thread count nor on the
  * band split. */
-void ddsgen_refine(const float *restrict O, int Wo, const float *restrict Fc, int Wr, int C, int CP,
+void ddsgen_refine(const float *restrict O, int Wo, const float *restrict FX, int64_t WX, int64_t XB, int C, int CP,
                    const int32_t *restrict K, int col_shift, int v0, int v1, int W, int b,
-                   const float *restrict CSUM, const float *restrict CINV, const uint8_t *restrict CUNK, int Ws,
+                   const float *restrict CSUM, const float *restrict CINV, const uint8_t *restrict CUNK, int64_t WS,
+                   int64_t SB,
                    const float *restrict OSUM, const float *restrict OINV, float beta, int S,
                    float d_lo, float d_hi, float *restrict disp,
                    const float *restrict GD, float *restrict G, float *restrict dOSUM,
                    float *restrict dOINV, float *restrict dBETA, int n_threads)
 {
-    refine_args A = {O, Wo, Fc, Wr, C, CP, K, col_shift, v0, W, b, CSUM, CINV, CUNK, Ws, OSUM, OINV, beta,
-                     d_lo, d_hi, disp, GD, G, dOSUM, dOINV, dBETA};
+    refine_args A = {O, Wo, FX, (size_t)WX, (ptrdiff_t)XB, S, C, CP, K, col_shift, v0, W, b, CSUM, CINV, CUNK,
+                     (size_t)WS, (ptrdiff_t)SB, OSUM, OINV, beta, d_lo, d_hi, disp, GD, G, dOSUM, dOINV, dBETA};
     const int T = (C - 1) / 2;
     for (int t = 0; t < 64; t++) {
         A.OFF[t / 8][t % 8] = (float)(t - T) / (float)S;
@@ -726,11 +817,11 @@ void ddsgen_refine(const float *restrict O, int Wo, const float *restrict Fc, in
     }
 }
 
-/* acc[q] = sum_t g[t] * ft[t * tstride + 8q .. 8q + 7], q < nbq; NR candidates side by side
+/* acc[q] = sum_t g[t] * ft[toff[t] + 8q .. 8q + 7], q < nbq; NR candidates side by side
  * into separate sums (independent dependency chains). */
 static inline __attribute__((always_inline)) void cross_grad(
-    const float *restrict g, const float *restrict ft, size_t tstride, int C, v8 *restrict out, const int nbq,
-    const int NR)
+    const float *restrict g, const float *restrict ft, const ptrdiff_t *restrict toff, int C, v8 *restrict out,
+    const int nbq, const int NR)
 {
     v8 acc[4][8];
     for (int r = 0; r < NR; r++)
@@ -739,12 +830,12 @@ static inline __attribute__((always_inline)) void cross_grad(
     for (; t + NR <= C; t += NR)
         for (int r = 0; r < NR; r++) {
             const float gt = g[t + r];
-            const float *restrict f = ft + (size_t)(t + r) * tstride;
+            const float *restrict f = ft + toff[t + r];
             for (int q = 0; q < nbq; q++) acc[r][q] += gt * LOADU(f + 8 * q);
         }
     for (; t < C; t++) {
         const float gt = g[t];
-        const float *restrict f = ft + (size_t)t * tstride;
+        const float *restrict f = ft + toff[t];
         for (int q = 0; q < nbq; q++) acc[0][q] += gt * LOADU(f + 8 * q);
     }
     for (int q = 0; q < nbq; q++) {
@@ -756,15 +847,24 @@ static inline __attribute__((always_inline)) void cross_grad(
 
 /* Backward of the window cross-correlation w.r.t. O, for the band of rows [v0, v1): adds
  *   dO[y][u+j] += sum_t G[v - v0][u][t] * FT[t][y][c0 + j]   (G: CG floats per pixel)   for v = y - i in [v0, v1), all u, j
- * (c0 = u + col_shift - K[v][u]). FT is the candidates transposed to C x Hft x Wr, readable 7
- * columns beyond the last window column. Each row y is owned by one thread (no races,
+ * (c0 = u + col_shift - K[v][u]), where FT[t][y][c] = P[s][y][PL + c - q] for candidate t - T
+ * = q S + s (0 <= s < S): P holds the S phases (S x Hp x WP) with PL zero columns on the left,
+ * and is readable 7 columns beyond the last window column of every shift. Each row y is owned by one thread (no races,
  * deterministic). Bands are called in order and each dO element receives its terms in order
  * of (v, u) whatever the band split, so the result is bit-identical for any split. */
-void ddsgen_window_cross_grad(const float *restrict G, int CG, const float *restrict FT, int Wr, int C, int Hft,
-                              const int32_t *restrict K, int col_shift, int v0, int v1, int W, int b,
-                              float *restrict dO, int Wo, int n_threads)
+void ddsgen_window_cross_grad(const float *restrict G, int CG, const float *restrict P, int WP, int PL, int Hp,
+                              int S, int C, const int32_t *restrict K, int col_shift, int v0, int v1, int W,
+                              int b, float *restrict dO, int Wo, int n_threads)
 {
     const int nbq = (b + 7) / 8;
+    const int T = (C - 1) / 2;
+    ptrdiff_t toff[64];  /* element offset of candidate t from P[0][y][c0] */
+    for (int t = 0; t < C && t < 64; t++) {
+        const int tt = t - T;
+        const int q = tt >= 0 ? tt / S : -((-tt + S - 1) / S);
+        const int s = tt - q * S;
+        toff[t] = (ptrdiff_t)s * Hp * WP + PL - q;
+    }
 #pragma omp parallel num_threads(n_threads)
     {
         v8 acc[8];
@@ -777,17 +877,16 @@ void ddsgen_window_cross_grad(const float *restrict G, int CG, const float *rest
                 for (int u = 0; u < W; u++) {
                     const float *restrict g = G + ((size_t)(v - v0) * W + u) * CG;
                     const int c0 = u + col_shift - K[(size_t)v * W + u];
-                    const float *restrict ft = FT + (size_t)y * Wr + c0;
-                    const size_t tstride = (size_t)Hft * Wr;
+                    const float *restrict ft = P + (size_t)y * WP + c0;
                     switch (nbq) {  /* constant trip counts: the accumulators stay in registers */
-                    case 1: cross_grad(g, ft, tstride, C, acc, 1, 4); break;
-                    case 2: cross_grad(g, ft, tstride, C, acc, 2, 4); break;
-                    case 3: cross_grad(g, ft, tstride, C, acc, 3, 2); break;
-                    case 4: cross_grad(g, ft, tstride, C, acc, 4, 2); break;
-                    case 5: cross_grad(g, ft, tstride, C, acc, 5, 1); break;
-                    case 6: cross_grad(g, ft, tstride, C, acc, 6, 1); break;
-                    case 7: cross_grad(g, ft, tstride, C, acc, 7, 1); break;
-                    default: cross_grad(g, ft, tstride, C, acc, 8, 1); break;
+                    case 1: cross_grad(g, ft, toff, C, acc, 1, 4); break;
+                    case 2: cross_grad(g, ft, toff, C, acc, 2, 4); break;
+                    case 3: cross_grad(g, ft, toff, C, acc, 3, 2); break;
+                    case 4: cross_grad(g, ft, toff, C, acc, 4, 2); break;
+                    case 5: cross_grad(g, ft, toff, C, acc, 5, 1); break;
+                    case 6: cross_grad(g, ft, toff, C, acc, 6, 1); break;
+                    case 7: cross_grad(g, ft, toff, C, acc, 7, 1); break;
+                    default: cross_grad(g, ft, toff, C, acc, 8, 1); break;
                     }
                     const float *restrict sv = (const float *)acc;
                     float *restrict d = drow + u;
@@ -846,10 +945,11 @@ def _load_kernel():
             p, i = ctypes.c_void_p, ctypes.c_int
             lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, i]
             f = ctypes.c_float
-            lib.ddsgen_refine.argtypes = [p, i, p, i, i, i, p, i, i, i, i, i, p, p, p, i, p, p, f, i, f, f, p,
-                                          p, p, p, p, p, i]  # fmt: skip
+            q = ctypes.c_int64
+            lib.ddsgen_refine.argtypes = [p, i, p, q, q, i, i, p, i, i, i, i, i, p, p, p, q, q, p, p, f, i, f, f,
+                                          p, p, p, p, p, p, i]  # fmt: skip
             lib.ddsgen_observed_stats.argtypes = [p, i, i, i, f, p, p, p, p, p, i]
-            lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, p, i, i, i, i, i, p, i, i]
+            lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, i, i, p, i, i, i, i, i, p, i, i]
             for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad, lib.ddsgen_observed_stats):
                 fn.restype = None
             _KERNEL = lib
@@ -926,8 +1026,8 @@ class _RefineC(torch.autograd.Function):
     ``oinv`` and ``beta``; the backward recomputes each band of ``rows`` rows in C.
 
     o: (H + b - 1, W + b - 1) float32 normalised padded observed image; osum, oinv: (H, W);
-    beta: 0-dim; k: (H, W) int32 integer disparities; ref: the prepared reference (its
-    ``cand_padded``, ``cand_t``, ``cand_sum``, ``cand_inv``, ``cand_unknown``). Returns (H, W)."""
+    beta: 0-dim; k: (H, W) int32 integer disparities; ref: the prepared reference (its C
+    layouts ``fwd``, ``bwd``, ``stat_sum``, ``stat_inv``, ``stat_unk``). Returns (H, W)."""
 
     @staticmethod
     def forward(ctx, o, osum, oinv, beta, k, ref, geom):
@@ -951,12 +1051,13 @@ class _RefineC(torch.autograd.Function):
         d_o = torch.zeros_like(o_c)
         d_os, d_oi, d_beta = (torch.empty(H, W, dtype=torch.float32) for _ in range(3))
         rows = geom["rows"]
-        g_band = torch.empty(min(rows, H), W, ref.cand_padded.shape[2], dtype=torch.float32)
+        g_band = torch.empty(min(rows, H), W, ref.n_cand_padded, dtype=torch.float32)
+        bwd = ref.bwd
         for v0 in range(0, H, rows):  # the (rows, W, C) gradient buffer bounds the memory
             v1 = min(H, v0 + rows)
             _call_refine(lib, o_c, os_c, oi_c, float(beta.detach()), k, ref, geom, v0, v1, grad=(gd, g_band, d_os, d_oi, d_beta))  # fmt: skip
-            lib.ddsgen_window_cross_grad(g_band.data_ptr(), g_band.shape[2], ref.cand_t.data_ptr(), ref.cand_t.shape[2], C,
-                                         ref.cand_t.shape[1], k.data_ptr(), geom["col_shift"], v0, v1, W,
+            lib.ddsgen_window_cross_grad(g_band.data_ptr(), g_band.shape[2], bwd.data_ptr(), bwd.shape[2], ref.bwd_left,
+                                         bwd.shape[1], ref.S, C, k.data_ptr(), geom["col_shift"], v0, v1, W,
                                          geom["block"], d_o.data_ptr(), d_o.shape[1], _n_threads())  # fmt: skip
         d_beta_total = d_beta.double().sum().to(beta.dtype) if ctx.needs_input_grad[3] else None
         return d_o, d_os, d_oi, d_beta_total, None, None, None
@@ -966,10 +1067,10 @@ def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: dict
     null = None
     gd, g_band, d_os, d_oi, d_beta = grad if grad is not None else (null,) * 5
     ptr = lambda x: None if x is None else x.data_ptr()  # noqa: E731
-    cand = ref.cand_padded
-    lib.ddsgen_refine(o.data_ptr(), o.shape[1], cand.data_ptr(), cand.shape[1], ref.n_cand, cand.shape[2],
-                      k.data_ptr(), geom["col_shift"], v0, v1, k.shape[1], geom["block"], ref.cand_sum.data_ptr(),
-                      ref.cand_inv.data_ptr(), ref.cand_unknown.data_ptr(), ref.cand_sum.shape[1],
+    lib.ddsgen_refine(o.data_ptr(), o.shape[1], ref.fwd.data_ptr(), ref.fwd.shape[1], ref.fwd_base, ref.n_cand,
+                      ref.n_cand_padded, k.data_ptr(), geom["col_shift"], v0, v1, k.shape[1], geom["block"],
+                      ref.stat_sum.data_ptr(), ref.stat_inv.data_ptr(), ref.stat_unk.data_ptr(), ref.stat_sum.shape[1],
+                      ref.stat_base,
                       osum.data_ptr(), oinv.data_ptr(), beta, geom["S"], geom["d_lo"], geom["d_hi"], ptr(disp),
                       ptr(gd), ptr(g_band), ptr(d_os), ptr(d_oi), ptr(d_beta), _n_threads())  # fmt: skip
 
@@ -1154,7 +1255,7 @@ def match(
     rows = max(1, min(int(band_rows), H))
     col_shift = pad + ref.offset - h
     use_c_refine = (kernel is not None and dev.type == "cpu" and dtype == torch.float32
-                    and ref.cand_padded is not None and ref.cand_padded.shape[-1] <= 64 and block <= 64)  # fmt: skip
+                    and ref.fwd is not None and ref.n_cand_padded <= 64 and block <= 64)  # fmt: skip
     if use_c_refine:
         # Fused C kernel: no cost volume, no torch.compile; the backward recomputes bands of
         # `rows` rows in C, so memory is bounded by the band. Results do not depend on `rows`.
@@ -1165,13 +1266,14 @@ def match(
         # torch: bands of equal height (uniform shapes for the compiled kernel), each
         # recomputed in the backward pass (checkpointing).
         fn = _compiled(_refine_band, _want_compile(dev, compile))
+        cand, cand_sum, cand_inv, cand_unknown = ref.torch_candidates()
         pieces = []
         done = 0
         while done < H:
             start = min(done, H - rows)  # the last band is shifted up to keep its height
             stop = start + rows
-            args = (o_pad[start : stop + 2 * h], ref.cand[start : stop + 2 * h], ref.cand_sum[start:stop],
-                    ref.cand_inv[start:stop], ref.cand_unknown[start:stop], osum[start:stop], oinv[start:stop],
+            args = (o_pad[start : stop + 2 * h], cand[start : stop + 2 * h], cand_sum[start:stop],
+                    cand_inv[start:stop], cand_unknown[start:stop], osum[start:stop], oinv[start:stop],
                     k_int[start:stop], beta)  # fmt: skip
             kwargs = dict(block=block, col_shift=col_shift, n_sub=int(n_sub), d_min=float(d_min), d_max=float(d_max))
             band = _run_refine(fn, args, kwargs, grad)
