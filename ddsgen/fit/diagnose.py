@@ -89,6 +89,27 @@ GRIDS: dict[str, list[dict]] = {
 }
 
 
+def lattice_offset(sensor, frames) -> float:
+    """Fractional disparity offset (px, in [0, s)) of the real depth's quantisation lattice, s = 2^-n_sub.
+
+    A quantising sensor reports disparities k s + offset, so the phase of mean exp(2 pi i (f b / z) / s)
+    over the real valid pixels is 2 pi offset / s. A disparity offset can only be matched on that lattice
+    (off it, every depth step of the simulation sits between the real ones), so its search grid is put there.
+    """
+    step = 2.0 ** -sensor.preset.subpixel_level
+    fb = float(sensor.baseline.detach()) * float(sensor.focal_scale.detach())
+    phases = []
+    for f in frames:
+        sel = f.region & f.real_valid
+        z = f.real_depth[sel].double().numpy()
+        if z.size:
+            phases.append(np.exp(2j * np.pi * (f.intrinsics.fx * fb / z) / step))
+    if not phases:
+        return 0.0
+    phase = float(np.angle(np.concatenate(phases).mean()))
+    return (phase / (2.0 * np.pi) % 1.0) * step
+
+
 def default_grid(name: str) -> list[dict]:
     """The search grid of an effect: :data:`GRIDS`, or multiples of each parameter's typical value."""
     if name in GRIDS:
@@ -424,7 +445,13 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evalu
         return tried[key]
 
     neutral = {k: spec.neutral for k, spec in cls.params.items()}
-    grid = [dict(neutral, **point) for point in default_grid(name)]
+    points = default_grid(name)
+    if name == "disparity_offset":  # on the real depth's quantisation lattice (see lattice_offset)
+        step = 2.0 ** -sensor.preset.subpixel_level
+        frac = lattice_offset(sensor, frames)
+        points = [{"offset_px": frac + k * step} for k in range(-int(1.0 / step), int(1.0 / step) + 1)
+                  if abs(frac + k * step) <= 1.0 and abs(frac + k * step) > 1e-6]  # fmt: skip
+    grid = [dict(neutral, **point) for point in points]
     scores = [objective(v) for v in grid]
     best = dict(grid[int(np.argmin(scores))])
     first = next(iter(cls.params))
