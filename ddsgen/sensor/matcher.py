@@ -399,12 +399,14 @@ def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, ext
     hp, wr = r0.shape
     H, ws = rs.shape
     cp = -(-(2 * T + 1) // 8) * 8
-    lead = -(-(T + 1) // 8) * 8  # >= T zero elements before the first candidate read
-    tail = cp + 8  # >= cp - T elements after the last
-    fwd, fwd_v = _interleave_reversed(hp, wr, S, lead, tail, torch.float32)
-    ssum, ssum_v = _interleave_reversed(H, ws, S, lead, tail, torch.float32)
-    sinv, sinv_v = _interleave_reversed(H, ws, S, lead, tail, torch.float32)
-    sunk, sunk_v = _interleave_reversed(H, ws, S, lead, tail, torch.uint8, fill=1)
+    # >= T zero elements before the first candidate read, >= cp - T after the last; first
+    # candidates (lead - T + c S) and rows 32-byte aligned where S allows (S >= 8: all columns).
+    lead = T + 8
+    tail = {w: cp + 8 + (-(lead + w * S + cp + 8)) % 8 for w in (wr, ws)}
+    fwd, fwd_v = _interleave_reversed(hp, wr, S, lead, tail[wr], torch.float32)
+    ssum, ssum_v = _interleave_reversed(H, ws, S, lead, tail[ws], torch.float32)
+    sinv, sinv_v = _interleave_reversed(H, ws, S, lead, tail[ws], torch.float32)
+    sunk, sunk_v = _interleave_reversed(H, ws, S, lead, tail[ws], torch.uint8, fill=1)
     b_left, b_right = 8, 16  # shifts floor(t / S) in [-2, 1]; the kernel reads 8-column vectors
     bwd = torch.zeros(S, hp, b_left + wr + b_right, dtype=torch.float32)
     with torch.no_grad():
