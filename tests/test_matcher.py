@@ -395,6 +395,31 @@ def test_c_path_memory_does_not_grow_with_the_disparity_range():
     assert peaks[60] < 16 * height * width * 13 * 4, peaks
 
 
+def test_reference_cache_grows_with_the_phases_not_with_the_candidates():
+    """The cached reference holds the S phases in a few layouts (and their window statistics),
+    not one copy per refinement candidate (C = 3S + 1 of them: 13 at n_sub 2, 49 at n_sub 4).
+    Measured bytes of the tensors the cache keeps, and the build's peak, in units of the
+    phases' own size: a per-candidate layout would be ~C/S copies per layout (the previous
+    one held 19-21 and peaked at 40-43)."""
+    height, width = 64, 160
+    held, peak = {}, {}
+    for n_sub in (2, 4):
+        observed, phases, pad, _ = _scene(height, width, 15.0, n_sub=n_sub, pad=40, seed=2)
+        M._REF_CACHE.clear()
+        with _PeakTensorMemory() as mode:
+            ref = M._prepare_reference(phases, pad, 9, n_sub, 4 + 8)
+        size = phases.numel() * phases.element_size()
+        held[n_sub], peak[n_sub] = mode.live, mode.peak
+        # two layouts of the phases, two float statistics, a byte mask, the integer stage
+        assert mode.live < 7 * size, (n_sub, mode.live / size)
+        assert mode.peak < 12 * size, (n_sub, mode.peak / size)  # built one phase at a time
+        if M.integer_search_backend() == "c":  # the C path never builds the torch layout
+            match(observed, phases, pad, 0, 20, 9, 15.0, n_sub, 32, 0.05)
+            assert M._prepare_reference(phases, pad, 9, n_sub, 4 + 8) is ref and ref._torch is None
+    assert held[4] <= 1.05 * 4 * held[2], held  # S grows 4x, C = 3S + 1 would too: bytes follow S
+    M._REF_CACHE.clear()
+
+
 # ---------------------------------------------------------------------------------------
 # Reference phases and input checks
 # ---------------------------------------------------------------------------------------
