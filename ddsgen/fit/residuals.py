@@ -25,6 +25,7 @@ explains beyond noise.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -236,7 +237,8 @@ def axis_structure(stats: AxisStats, rng: np.random.Generator, n_boot: int = 200
         boots_b.append(p["bias_mm"])
         boots_v.append(p["valid_diff"])
     base = stats.profile()
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # bins empty in every resample: NaN, ignored below
         se_b = np.nanstd(np.array(boots_b), axis=0)
         se_v = np.nanstd(np.array(boots_v), axis=0) * VALIDITY_MM
     wb = np.where(np.isfinite(base["bias_mm"]) & (base["n_err"] >= 30), base["n_err"], 0.0)
