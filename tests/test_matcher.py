@@ -410,8 +410,9 @@ def test_reference_cache_grows_with_the_phases_not_with_the_candidates():
             ref = M._prepare_reference(phases, pad, 9, n_sub, 4 + 8)
         size = phases.numel() * phases.element_size()
         held[n_sub], peak[n_sub] = mode.live, mode.peak
-        # two layouts of the phases, two float statistics, a byte mask, the integer stage
-        assert mode.live < 7 * size, (n_sub, mode.live / size)
+        # two layouts of the phases (the forward one 8 / S copies for S < 8: aligned vectors),
+        # two float statistics, a byte mask, the integer stage: measured 7.3 (S = 4), 5.2 (S = 16)
+        assert mode.live < 8 * size, (n_sub, mode.live / size)
         assert mode.peak < 12 * size, (n_sub, mode.peak / size)  # built one phase at a time
         if M.integer_search_backend() == "c":  # the C path never builds the torch layout
             match(observed, phases, pad, 0, 20, 9, 15.0, n_sub, 32, 0.05)

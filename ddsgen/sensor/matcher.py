@@ -240,12 +240,15 @@ class _Reference:
     The refinement's candidate t = -T..T (d = K + t / S) reads phase t mod S shifted by
     floor(t / S) columns. No per-candidate copy is kept: on the C path (float32 CPU, reference
     not requiring grad) the kernels index the S phases directly, in two layouts of the same
-    values (each the size of the phases):
+    values (each the size of the phases, or 8 / S times it for S < 8):
 
     * ``fwd`` (H + 2h, FL + Wr S + FR): the phases interleaved along each row in reversed
       column order, element ``FL + (Wr - 1 - c) S + s`` = phase s, column c. Candidate t at
       column c is element ``fwd_base - c S + (t + T)``: the C candidates of a column are
-      contiguous (the forward kernel vectorises over them). Zero outside the phases.
+      contiguous (the forward kernel vectorises over them). Zero outside the phases. For
+      S < 8, where these vectors would straddle 32-byte boundaries, ``fwd`` holds instead the
+      first 8 candidates of every column (8 floats per column, reversed order): vector q of
+      column c is vector 0 of column c - 8q / S (``fwd_strides``).
     * ``bwd`` (S, H + 2h, BL + Wr + BR): the phases with zero columns on both sides; candidate
       t at column c is ``bwd[t mod S, :, BL + c - floor(t / S)]`` (the backward kernel
       vectorises over window columns).
@@ -269,6 +272,7 @@ class _Reference:
     n_cand: int
     fwd: torch.Tensor | None = None
     fwd_base: int = 0
+    fwd_strides: tuple = (0, 8)  # (column, vector) strides in floats, see the C kernel
     bwd: torch.Tensor | None = None
     bwd_left: int = 0
     stat_sum: torch.Tensor | None = None
@@ -417,8 +421,14 @@ def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, ext
             ssum_v[:, :, s] = psum.flip(-1)
             sinv_v[:, :, s] = pinv.flip(-1)
             sunk_v[:, :, s] = punk.flip(-1)
+    fwd_base, fwd_strides = lead + (wr - 1) * S - T, (S, 8)
+    if S < 8:  # the first 8 candidates of each column (8 / S copies of the phases): aligned vectors
+        step = 8 // S
+        fwd = fwd[:, lead - T :].unfold(1, 8, S)[:, : wr + (cp // 8 - 1) * step].contiguous().view(hp, -1)
+        fwd_base, fwd_strides = (wr - 1) * 8, (8, 8 * step)
     return _Reference(
-        filled=bwd[:, :, b_left : b_left + wr], phase_stats=None, fwd=fwd, fwd_base=lead + (wr - 1) * S - T, bwd=bwd,
+        filled=bwd[:, :, b_left : b_left + wr], phase_stats=None, fwd=fwd, fwd_base=fwd_base, fwd_strides=fwd_strides,
+        bwd=bwd,
         bwd_left=b_left, stat_sum=ssum, stat_inv=sinv, stat_unk=sunk, stat_base=lead + (ws - 1) * S - T, **common,
     )  # fmt: skip
 
@@ -648,14 +658,14 @@ void ddsgen_observed_stats(const float *restrict X, int H, int W, int b, float f
     }
 }
 
-/* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * FX[v+i][xoff - j S + 8q .. + 7], q < nq (FX: the
- * phases interleaved in reversed column order, row stride WX; xoff - j S is the first
- * candidate of window column j). NR window rows are accumulated side by side into separate
+/* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * FX[v+i][xoff - j CS + q VS .. + 7], q < nq (FX: the
+ * candidates of window column j start at xoff - j CS, vector q of them VS floats further;
+ * row stride WX). NR window rows are accumulated side by side into separate
  * sums (independent dependency chains: an FMA's latency, not its throughput, would otherwise
  * bound the loop). */
 static inline __attribute__((always_inline)) void window_cross(
-    const float *restrict O, int Wo, const float *restrict FX, size_t WX, ptrdiff_t xoff, int S, int v, int u,
-    int b, v8 *restrict out, const int nq, const int NR)
+    const float *restrict O, int Wo, const float *restrict FX, size_t WX, ptrdiff_t xoff, int CS, int VS, int v,
+    int u, int b, v8 *restrict out, const int nq, const int NR)
 {
     v8 acc[4][8];
     for (int r = 0; r < NR; r++)
@@ -671,8 +681,8 @@ static inline __attribute__((always_inline)) void window_cross(
         for (int j = 0; j < b; j++)
             for (int r = 0; r < NR; r++) {
                 const float oj = o[r][j];
-                const float *fj = f[r] - (ptrdiff_t)j * S;
-                for (int q = 0; q < nq; q++) acc[r][q] += oj * LOADU(fj + 8 * q);
+                const float *fj = f[r] - (ptrdiff_t)j * CS;
+                for (int q = 0; q < nq; q++) acc[r][q] += oj * LOADU(fj + (ptrdiff_t)q * VS);
             }
     }
     for (; i < b; i++) {
@@ -680,8 +690,8 @@ static inline __attribute__((always_inline)) void window_cross(
         const float *f = FX + (size_t)(v + i) * WX + xoff;
         for (int j = 0; j < b; j++) {
             const float oj = o[j];
-            const float *fj = f - (ptrdiff_t)j * S;
-            for (int q = 0; q < nq; q++) acc[0][q] += oj * LOADU(fj + 8 * q);
+            const float *fj = f - (ptrdiff_t)j * CS;
+            for (int q = 0; q < nq; q++) acc[0][q] += oj * LOADU(fj + (ptrdiff_t)q * VS);
         }
     }
     for (int q = 0; q < nq; q++) {
@@ -698,7 +708,7 @@ static inline float hsum8(v8 x) {
 }
 
 typedef struct {
-    const float *O; int Wo; const float *FX; size_t WX; ptrdiff_t XB; int S; int C; int CP;
+    const float *O; int Wo; const float *FX; size_t WX; ptrdiff_t XB; int XCS; int XVS; int S; int C; int CP;
     const int32_t *K; int col_shift; int v0; int W; int b;
     const float *CSUM; const float *CINV; const uint8_t *CUNK; size_t WS; ptrdiff_t SB;
     const float *OSUM; const float *OINV; float beta; float d_lo; float d_hi;
@@ -719,7 +729,7 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
         const int c0 = u + A->col_shift - k;
         v8 cr[8], z[8], e[8];
         vi8 ex[8];
-        window_cross(A->O, A->Wo, A->FX, A->WX, A->XB - (ptrdiff_t)c0 * A->S, A->S, v, u, A->b, cr, nq, NR);
+        window_cross(A->O, A->Wo, A->FX, A->WX, A->XB - (ptrdiff_t)c0 * A->XCS, A->XCS, A->XVS, v, u, A->b, cr, nq, NR);
         const float a = A->OSUM[p] / nf, io = A->OINV[p];
         const size_t s = (size_t)v * A->WS + (size_t)(A->SB - (ptrdiff_t)c0 * A->S);
         const float *cs = A->CSUM + s, *ci = A->CINV + s;  /* read 8 nq floats: arrays have slack */
@@ -772,14 +782,17 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
 /* Sub-pixel refinement, fused (no cost volume is written). For each pixel (v, u) of rows
  * [v0, v1) with integer disparity k = K[v][u] and candidates t = 0..C-1 (d_t = k + (t - T)/S,
  * T = (C - 1) / 2), window start column c0 = u + col_shift - k:
- *   cross_t = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0 + j][t],  F[y][c][t] = FX[y][XB - c S + t]
+ *   cross_t = sum_{i<b, j<b} O[v+i][u+j] * F[v+i][c0 + j][t],
+ *             F[y][c][8q + l] = FX[y][XB - c XCS + q XVS + l]
  *   z_t     = ((cross_t - OSUM/n * CSUM_t) * OINV) * CINV_t, or -3 if excluded (CUNK, or d_t
  *             outside [d_lo, d_hi])
  *   d       = k + sum_t e_t (t - T)/S / sum_t e_t,  e_t = exp(beta z_t - max beta z)
- * FX holds the S phases interleaved in reversed column order (row stride WX): candidate t of
- * column c is phase (t - T) mod S, shifted by floor((t - T) / S) columns, so the C candidates
- * of a column are contiguous and no per-candidate copy exists; CP (a multiple of 8, at most
- * 64) values are read per column. CSUM, CINV, CUNK (row stride WS) are the phases' window
+ * Candidate t of column c is phase (t - T) mod S, shifted by floor((t - T) / S) columns; FX
+ * holds the S phases interleaved in reversed column order (XCS = S, XVS = 8: the C candidates
+ * of a column are contiguous), or for S < 8 the first 8 candidates of every column (XCS = 8,
+ * XVS = 64 / S: vector q of column c is vector 0 of column c - 8q / S), so that vectors are
+ * 32-byte aligned; no per-candidate copy exists. CP (a multiple of 8, at most 64) values are
+ * read per column. CSUM, CINV, CUNK (row stride WS) are the phases' window
  * statistics in the same layout: candidate t of window start column c is [v][SB - c S + t].
  * All arrays have zero (CUNK: 1) elements around the phases for the reads that fall outside. Forward (GD == NULL): writes disp[v][u]. Backward (GD given): recomputes
  * the same and writes, for dL/dd = GD[v][u], the gradients w.r.t. cross_t into
@@ -787,7 +800,8 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
  * dOSUM, dOINV and the pixel's contribution to dL/dbeta into dBETA (all H x W). Every pixel is
  * computed on its own, in a fixed order: results depend neither on the thread count nor on the
  * band split. */
-void ddsgen_refine(const float *restrict O, int Wo, const float *restrict FX, int64_t WX, int64_t XB, int C, int CP,
+void ddsgen_refine(const float *restrict O, int Wo, const float *restrict FX, int64_t WX, int64_t XB, int XCS, int XVS,
+                   int C, int CP,
                    const int32_t *restrict K, int col_shift, int v0, int v1, int W, int b,
                    const float *restrict CSUM, const float *restrict CINV, const uint8_t *restrict CUNK, int64_t WS,
                    int64_t SB,
@@ -796,7 +810,7 @@ void ddsgen_refine(const float *restrict O, int Wo, const float *restrict FX, in
                    const float *restrict GD, float *restrict G, float *restrict dOSUM,
                    float *restrict dOINV, float *restrict dBETA, int n_threads)
 {
-    refine_args A = {O, Wo, FX, (size_t)WX, (ptrdiff_t)XB, S, C, CP, K, col_shift, v0, W, b, CSUM, CINV, CUNK,
+    refine_args A = {O, Wo, FX, (size_t)WX, (ptrdiff_t)XB, XCS, XVS, S, C, CP, K, col_shift, v0, W, b, CSUM, CINV, CUNK,
                      (size_t)WS, (ptrdiff_t)SB, OSUM, OINV, beta, d_lo, d_hi, disp, GD, G, dOSUM, dOINV, dBETA};
     const int T = (C - 1) / 2;
     for (int t = 0; t < 64; t++) {
@@ -948,7 +962,7 @@ def _load_kernel():
             lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, i]
             f = ctypes.c_float
             q = ctypes.c_int64
-            lib.ddsgen_refine.argtypes = [p, i, p, q, q, i, i, p, i, i, i, i, i, p, p, p, q, q, p, p, f, i, f, f,
+            lib.ddsgen_refine.argtypes = [p, i, p, q, q, i, i, i, i, p, i, i, i, i, i, p, p, p, q, q, p, p, f, i, f, f,
                                           p, p, p, p, p, p, i]  # fmt: skip
             lib.ddsgen_observed_stats.argtypes = [p, i, i, i, f, p, p, p, p, p, i]
             lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, i, i, p, i, i, i, i, i, p, i, i]
@@ -1069,7 +1083,7 @@ def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: dict
     null = None
     gd, g_band, d_os, d_oi, d_beta = grad if grad is not None else (null,) * 5
     ptr = lambda x: None if x is None else x.data_ptr()  # noqa: E731
-    lib.ddsgen_refine(o.data_ptr(), o.shape[1], ref.fwd.data_ptr(), ref.fwd.shape[1], ref.fwd_base, ref.n_cand,
+    lib.ddsgen_refine(o.data_ptr(), o.shape[1], ref.fwd.data_ptr(), ref.fwd.shape[1], ref.fwd_base, *ref.fwd_strides, ref.n_cand,
                       ref.n_cand_padded, k.data_ptr(), geom["col_shift"], v0, v1, k.shape[1], geom["block"],
                       ref.stat_sum.data_ptr(), ref.stat_inv.data_ptr(), ref.stat_unk.data_ptr(), ref.stat_sum.shape[1],
                       ref.stat_base,
