@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 
 from ddsgen.errors import InputError, where
+from ddsgen.yamlfile import read_yaml
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 PRESET_DIR = PROJECT_ROOT / "presets"
@@ -283,19 +284,7 @@ def load_preset(path: str | Path) -> SensorPreset:
     path = Path(path)
     if not path.exists() and (PRESET_DIR / f"{path.name}.yaml").exists() and len(path.parts) == 1:
         path = PRESET_DIR / f"{path.name}.yaml"
-    if not path.is_file():
-        raise InputError(f"{path}: preset file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"{path}: cannot read preset ({error.__class__.__name__}: {error})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark else ""
-        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-        raise InputError(f"{path}: malformed YAML{at}: {problem}") from None
+    data = read_yaml(path, "preset")
     return preset_from_dict(data, source=path)
 
 

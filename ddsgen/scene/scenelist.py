@@ -54,10 +54,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ddsgen.errors import InputError, where
 from ddsgen.scene import shapes
+from ddsgen.yamlfile import read_yaml
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 DEFAULT_SOURCE = "<built-in default scene list>"
@@ -541,19 +541,7 @@ def load_scene_list(path: str | Path | None) -> SceneList:
             _DEFAULT = scene_list_from_dict(default_scene_list_dict(), source=DEFAULT_SOURCE)
         return _DEFAULT
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: scene list file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"{path}: cannot read scene list ({error.__class__.__name__}: {error})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark else ""
-        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-        raise InputError(f"{path}: malformed YAML{at}: {problem}") from None
+    data = read_yaml(path, "scene list")
     if data is None:
         raise InputError(f"{path}: scene list is empty (expected `scenes:` with at least one scene)")
     return scene_list_from_dict(data, source=path, base_dir=path.parent)
