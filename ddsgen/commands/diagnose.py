@@ -6,14 +6,8 @@ from pathlib import Path
 
 import click
 
+from ddsgen.commands import split_names
 from ddsgen.errors import InputError
-
-
-def _names(values) -> list[str]:
-    out = []
-    for value in values:
-        out += [v.strip() for v in value.split(",") if v.strip()]
-    return out
 
 
 @click.command("diagnose")
@@ -76,7 +70,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise click.BadParameter("must be in (0, 1)", param_hint="--holdout")
     if apply_path is not None and Path(apply_path).suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--apply: {apply_path}: the extended preset must be a .yaml file")
-    names = _names(candidates)
+    names = split_names(candidates)
     unknown = [n for n in names if n not in REGISTRY]
     if unknown:
         raise InputError(f"--candidates: unknown effect(s) {', '.join(unknown)} (known: {', '.join(sorted(REGISTRY))})")

@@ -7,15 +7,9 @@ from pathlib import Path
 
 import click
 
+from ddsgen.commands import split_names
 from ddsgen.commands.compare import common_options, load_inputs
 from ddsgen.errors import InputError
-
-
-def _param_list(values) -> list[str]:
-    out = []
-    for value in values:
-        out += [v.strip() for v in value.split(",") if v.strip()]
-    return out
 
 
 @click.command("fit")
@@ -60,7 +54,7 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if not lr > 0:
         raise click.BadParameter("must be > 0", param_hint="--lr")
-    names = _param_list(params) or list(DEFAULT_PARAMS)
+    names = split_names(params) or list(DEFAULT_PARAMS)
     out_path = Path(out)
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
