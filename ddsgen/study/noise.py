@@ -487,6 +487,15 @@ def quantisation_table(points: list[NoisePoint], preset: SensorPreset, real: Rea
     return "\n".join(lines) + "\n"
 
 
+def _label_panel(ax, xlabel: str, ylabel: str, title: str, legend_columns: int = 1, minor_grid: bool = False) -> None:
+    """Axis labels, title, legend and grid of one study plot panel."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=7, ncol=legend_columns)
+    ax.grid(True, which="both" if minor_grid else "major", alpha=0.3)
+
+
 def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQuantisation, path: Path | str) -> None:
     """One PNG, six panels: std vs z per alpha with Nguyen / Khoshelham; std / Nguyen; std vs alpha;
     quantisation step vs z with the real device's values; bias vs z; valid fraction vs z."""
@@ -521,11 +530,8 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
                     label="Nguyen ±30 %")  # fmt: skip
     ax.plot(z_line, 1000 * khoshelham_sigma(z_line), "k:", lw=2, label="Khoshelham 2012 1.425e-3 z²")
     ax.set_yscale("log")
-    ax.set_xlabel("plane distance z (m)")
-    ax.set_ylabel("axial noise std (mm, plane removed)\nhollow: without outlier matches")
-    ax.set_title(f"{preset.name}: axial noise vs distance")
-    ax.legend(fontsize=7)
-    ax.grid(True, which="both", alpha=0.3)
+    _label_panel(ax, "plane distance z (m)", "axial noise std (mm, plane removed)\nhollow: without outlier matches",
+                 f"{preset.name}: axial noise vs distance", minor_grid=True)
 
     ax = axes[0, 1]
     for colour, angle in zip(colours, angles):
@@ -535,11 +541,8 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
     ax.axhspan(0.7, 1.3, color="g", alpha=0.1, label="goal ±30 %")
     ax.axhline(1.0, color="k", lw=1)
     ax.set_yscale("log")
-    ax.set_xlabel("plane distance z (m)")
-    ax.set_ylabel("simulated std / Nguyen (10°–60° curve)")
-    ax.set_title("ratio to Nguyen 2012")
-    ax.legend(fontsize=7)
-    ax.grid(True, which="both", alpha=0.3)
+    _label_panel(ax, "plane distance z (m)", "simulated std / Nguyen (10°–60° curve)", "ratio to Nguyen 2012",
+                 minor_grid=True)
 
     ax = axes[0, 2]
     picks = [z for z in (0.5, 1.0, 2.0, 3.0, 3.5) if z in zs] or zs[:: max(len(zs) // 4, 1)]
@@ -550,11 +553,7 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
             ax.plot([r[0] for r in rows], [1000 * r[1] for r in rows], "o-", color=colour, label=f"simulated z={z:g} m")
         ax.plot(theta, 1000 * nguyen_sigma(z, theta), "--", color=colour, lw=1, label=f"Nguyen+angle z={z:g} m")
     ax.set_yscale("log")
-    ax.set_xlabel("tilt α (deg)")
-    ax.set_ylabel("axial noise std (mm)")
-    ax.set_title("axial noise vs tilt")
-    ax.legend(fontsize=7, ncol=2)
-    ax.grid(True, which="both", alpha=0.3)
+    _label_panel(ax, "tilt α (deg)", "axial noise std (mm)", "axial noise vs tilt", legend_columns=2, minor_grid=True)
 
     ax = axes[1, 0]
     f, b, n = preset.focal_px, preset.baseline_m, preset.subpixel_level
@@ -575,11 +574,7 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
     ax.set_xlim(0.0, max(zs + [4.0]) + 0.25)
     ax.set_ylim(0.3, None)
     ax.set_yscale("log")
-    ax.set_xlabel("depth z (m)")
-    ax.set_ylabel("quantisation step (mm)")
-    ax.set_title("depth quantisation step")
-    ax.legend(fontsize=7)
-    ax.grid(True, which="both", alpha=0.3)
+    _label_panel(ax, "depth z (m)", "quantisation step (mm)", "depth quantisation step", minor_grid=True)
 
     ax = axes[1, 1]
     for colour, angle in zip(colours, angles):
@@ -587,22 +582,14 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
         ax.plot(z, 1000 * s, "o-", color=colour, ms=4, label=f"α={angle:g}°")
     ax.axhline(0.0, color="k", lw=1)
     ax.set_yscale("symlog", linthresh=1.0)
-    ax.set_xlabel("plane distance z (m)")
-    ax.set_ylabel("bias: mean(depth − true) (mm, symlog)")
-    ax.set_title("bias")
-    ax.legend(fontsize=7)
-    ax.grid(True, alpha=0.3)
+    _label_panel(ax, "plane distance z (m)", "bias: mean(depth − true) (mm, symlog)", "bias")
 
     ax = axes[1, 2]
     for colour, angle in zip(colours, angles):
         z, s = series(angle, "valid_fraction")
         ax.plot(z, s, "o-", color=colour, ms=4, label=f"α={angle:g}°")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_xlabel("plane distance z (m)")
-    ax.set_ylabel("valid fraction of the region")
-    ax.set_title("valid pixels")
-    ax.legend(fontsize=7)
-    ax.grid(True, alpha=0.3)
+    _label_panel(ax, "plane distance z (m)", "valid fraction of the region", "valid pixels")
 
     fig.tight_layout()
     with atomic_path(path) as tmp:
