@@ -99,8 +99,10 @@ def test_identical_settings_at_noise_floor_perturbed_clearly_larger(small):
     # Identical settings: the simulation is another noise draw of the same sensor, so its gap is
     # the noise floor (the floor is itself one draw: allow 30 %).
     assert same.gap <= 1.3 * same.noise_floor + 0.5
-    # eta_c x3 / noise x2 / beta +40 % / baseline +3 mm: clearly larger (measured ~2x).
-    assert other.gap >= 1.5 * same.gap
+    # eta_c x3 / noise x2 / beta +40 % / baseline +3 mm: clearly beyond the floor. The floor is what
+    # no model can remove, so "clearly larger" is judged on the excess over it: the perturbed model's
+    # excess is at least 3x that of the identical one (measured 3.1 vs 0.55 mm at 160 px).
+    assert other.gap - same.noise_floor >= 3.0 * max(same.gap - same.noise_floor, 0.5)
     # Parts are there and consistent.
     parts = same.parts
     assert abs(parts["depth_mm"] + parts["gradient_mm"] + parts["validity_mm"] - same.gap) < 1e-2

@@ -77,9 +77,10 @@ def compare(preset, real_dir, report_dir, no_plane, crop, plausible_px, region, 
     frame's meshes are placed at their ground-truth poses and simulated through the full
     sensor; only pixels where modelled geometry is visible and plausible count.
 
-    The headline gap (mm) = systematic depth error (Huber of the 5x5 local median of sim - real)
-    + noise-texture mismatch (|Sobel| roughness per depth bin) + validity disagreement
-    (20 mm x squared difference of local valid rates), averaged over frames; the noise floor
+    The headline gap (mm) = systematic depth error (Huber of the local mean of sim - real over
+    1.5 deg of view, 15 px at 640 x 480) + noise-texture mismatch (|Sobel| roughness per depth
+    bin) + validity disagreement (100 mm x squared difference of local valid rates), averaged
+    over frames; the noise floor
     is the same metric between two noise draws of the simulated sensor. Writes
     REPORT/comparison.json (gap, noise_floor, per-frame values, parts binned by depth, incidence
     angle and image radius, validity confusion) and PNG plots, and prints a short table.

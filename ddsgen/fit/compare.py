@@ -7,15 +7,18 @@ For each frame, on its comparison region R (modelled geometry visible and plausi
 
     gap_f = D_f + G_f + V_f                                    (mm)
 
-* D_f -- **systematic depth error**: mean Huber (delta 5 mm) of the 5x5 masked local median
-  of sim - real over pixels valid in both. The local median keeps what is systematic
-  (bias, scale, edge and shadow structure, quantisation staircases) and removes what is
-  independent per pixel (noise, isolated mismatches), which no simulator can reproduce
-  pixel for pixel.
+* D_f -- **systematic depth error**: mean Huber (delta 5 mm) of the masked local mean of
+  sim - real (clipped to +-50 mm) over pixels valid in both, in a window spanning 1.5 deg of
+  view (15 px at 640 x 480, at least 5 px; :func:`ddsgen.fit.losses.local_window`). The
+  local mean keeps what is systematic (bias, scale, distortion, edge and shadow structure,
+  pixel locking over a surface) and averages away what is independent from one scan to the
+  next (noise, whose blobs are a matching block wide, and isolated mismatches), which no
+  simulator can reproduce pixel for pixel.
 * G_f -- **noise-texture mismatch**: Huber of the difference between the mean |Sobel| of
   (sim - clean) and of (real - clean), per 0.25 m depth bin, pixel-weighted.
-* V_f -- **validity disagreement**: 20 mm x mean over R of the squared difference of the
-  local (5x5) valid rates of sim and real.
+* V_f -- **validity disagreement**: 100 mm x mean over R of the squared difference of the
+  local valid rates (same window) of sim and real: where one sensor has depth and the other
+  has none, the disagreement costs like a gross depth error.
 
     gap = mean over frames of gap_f.
 
@@ -76,9 +79,10 @@ class GapReport:
 
 
 DEFINITION = (
-    "gap = mean over frames of D + G + V (mm) on the modelled, plausible region: D = mean Huber(5 mm) of the 5x5 "
-    "local median of sim - real (both valid); G = Huber of the difference of mean |Sobel(depth - clean)| of sim "
-    "and real per 0.25 m depth bin; V = 20 mm x mean squared difference of 5x5 local valid rates. "
+    "gap = mean over frames of D + G + V (mm) on the modelled, plausible region: D = mean Huber(5 mm) of the local "
+    "mean of sim - real (both valid, clipped to +-50 mm) over a window of 1.5 deg of view (15 px at 640 x 480, "
+    "at least 5 px); G = Huber of the difference of mean |Sobel(depth - clean)| of sim and real per 0.25 m depth "
+    "bin; V = 100 mm x mean squared difference of the local valid rates (same window). "
     "noise_floor = the same between two noise draws of the simulated sensor; excess = gap - noise_floor."
 )
 

@@ -5,23 +5,33 @@ All terms are computed on one frame's comparison region (see
 :data:`VALIDITY_MM`), so they add up and read like depth errors.
 
 * :func:`huber` -- the paper's robust penalty, ~e^2/(2 delta) below delta, ~|e| above.
-* ``depth``: Huber of the depth error sim - real on pixels valid in both, after a masked
-  ``k x k`` local mean. Two scans of the same surface by the same sensor have independent
-  noise; a per-pixel loss is minimised by a *noise-free* simulation (E|a - b| grows with the
-  spread of either), so per-pixel fitting drives noise parameters to zero. The local mean
-  keeps what is systematic (bias, scale, edges, pixel locking over a surface) and averages
-  the independent noise down by ~k.
+* ``depth``: Huber of the depth error sim - real on pixels valid in both (clipped to
+  +-:data:`CLIP_MM`), after a masked ``k x k`` local mean. Two scans of the same surface by
+  the same sensor have independent noise; a per-pixel loss is minimised by a *noise-free*
+  simulation (E|a - b| grows with the spread of either), so per-pixel fitting drives noise
+  parameters to zero. The local mean keeps what is systematic (bias, scale, distortion,
+  pixel locking over a surface) and averages the independent noise down by ~k; the clip
+  bounds what one mismatched or flying pixel can add to a window.
+* The window ``k`` (:func:`local_window`) spans a fixed viewing angle,
+  :data:`LOCAL_WINDOW_DEG`, not a fixed number of pixels: "systematic" means "the same over a
+  patch of the scene", and the disparity noise of a structured-light sensor is correlated
+  over its matching block (9 px), so a 5-px window at 640 px keeps whole noise blobs -- at
+  640 x 480 the gap between two noise draws of one sensor fell from 1.67 to 0.65 mm with a
+  15-px window while the bias of a 0.3-px disparity offset stayed.
 * ``gradient``: Sobel-gradient term. The roughness ``mean |Sobel(z - z_clean)|`` of sim
   and real is compared per depth bin (Huber of the difference) -- the distributional form
   of the paper's gradient loss, which matches the *amount* of depth noise and pixel locking
   rather than its (random) per-pixel values.
 * ``validity``: squared difference of the local (k x k) valid rates of sim (soft validity,
-  differentiable where the sensor's validity is) and real, on the region.
+  differentiable where the sensor's validity is) and real, on the region, priced at
+  :data:`VALIDITY_MM`: a patch where one sensor has depth and the other has none costs like
+  a gross depth error (a flying pixel), not like a few millimetres of noise.
 * ``pixel`` (weight 0 by default): the paper's per-pixel Huber, for completeness.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -29,10 +39,21 @@ import torch.nn.functional as F
 
 #: Huber threshold (mm).
 HUBER_DELTA_MM = 5.0
-#: Local-mean window (px) of the depth and validity terms.
+#: Local-mean window of the depth and validity terms: this viewing angle (deg) ...
+LOCAL_WINDOW_DEG = 1.5
+#: ... and at least this many px (odd).
 LOCAL_WINDOW = 5
+#: Per-pixel depth errors are clipped to +- this (mm) before the local mean.
+CLIP_MM = 50.0
 #: A validity-rate difference of 1 costs like this depth error (mm).
-VALIDITY_MM = 20.0
+VALIDITY_MM = 100.0
+
+
+def local_window(focal_px: float) -> int:
+    """The local window (odd, px) spanning :data:`LOCAL_WINDOW_DEG` for a camera of focal length ``focal_px``
+    (15 px for the Kinect's 580 px, :data:`LOCAL_WINDOW` below ~190 px)."""
+    k = int(round(focal_px * math.tan(math.radians(LOCAL_WINDOW_DEG))))
+    return max(LOCAL_WINDOW, k + 1 - k % 2)
 #: Depth bins of the roughness statistic (m).
 ROUGHNESS_BIN_M = 0.25
 
@@ -53,20 +74,6 @@ def huber(x: torch.Tensor, delta: float = HUBER_DELTA_MM) -> torch.Tensor:
     return torch.where(a <= delta, 0.5 * x * x / delta, a - 0.5 * delta)
 
 
-def masked_local_median(x: torch.Tensor, mask: torch.Tensor, k: int = LOCAL_WINDOW) -> tuple[torch.Tensor, torch.Tensor]:
-    """Median of ``x`` over the masked pixels of each k x k window (differentiable: the gradient
-    goes to the selected pixel). Returns (median (H, W), support = masked fraction of the window)."""
-    h, w = x.shape
-    big = torch.finfo(x.dtype).max
-    cols = F.unfold(F.pad(torch.where(mask, x, torch.full_like(x, big))[None, None], (k // 2,) * 4, value=big), k)[0]
-    count = (cols < big).sum(0)  # masked pixels per window, (H*W,)
-    ordered = cols.sort(dim=0).values  # masked values first
-    index = ((count - 1).clamp_min(0) // 2)[None]
-    med = ordered.gather(0, index)[0]
-    med = torch.where(count > 0, med, torch.zeros_like(med)).reshape(h, w)
-    return med, (count.to(x.dtype) / (k * k)).reshape(h, w)
-
-
 def masked_local_mean(x: torch.Tensor, mask: torch.Tensor, k: int = LOCAL_WINDOW) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean of ``x`` over the masked pixels of each k x k window.
 
@@ -74,9 +81,21 @@ def masked_local_mean(x: torch.Tensor, mask: torch.Tensor, k: int = LOCAL_WINDOW
         (mean (H, W), support (H, W) = fraction of the window that is masked).
     """
     m = mask.to(x.dtype)[None, None]
-    num = F.avg_pool2d((x * mask.to(x.dtype))[None, None], k, stride=1, padding=k // 2, count_include_pad=True)
-    den = F.avg_pool2d(m, k, stride=1, padding=k // 2, count_include_pad=True)
+    num = box_mean((x * mask.to(x.dtype))[None, None], k)
+    den = box_mean(m, k)
     return (num / den.clamp_min(1e-6))[0, 0], den[0, 0]
+
+
+def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
+    """k x k mean of (N, C, H, W) ``x`` with zero padding (same size), from a summed-area table.
+
+    torch's pooling costs k^2 per pixel (54 ms for k = 15 at 640 x 480); the table costs the
+    same for any k (~4 ms). It is summed in float64 so that differences of large sums stay exact.
+    """
+    r = k // 2
+    table = F.pad(x.double(), (r + 1, r, r + 1, r)).cumsum(-1).cumsum(-2)
+    box = table[..., k:, k:] - table[..., :-k, k:] - table[..., k:, :-k] + table[..., :-k, :-k]
+    return (box / (k * k)).to(x.dtype)
 
 
 _SOBEL_X = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
@@ -118,12 +137,13 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
     clean = frame.geometry.clean_depth * 1000.0
     simd = sim.depth * 1000.0
     both = region & sim.valid & frame.real_valid
+    k = local_window(frame.intrinsics.fx)
     zero = simd.sum() * 0.0
     terms = {"depth": zero, "gradient": zero, "validity": zero, "pixel": zero}
     if bool(both.any()):
         err = torch.where(both, simd - real, torch.zeros_like(simd))
-        local, support = masked_local_median(err, both)
-        keep = both & (support >= 0.4)
+        local, support = masked_local_mean(err.clamp(-CLIP_MM, CLIP_MM), both, k)
+        keep = both & (support >= 0.3)
         if bool(keep.any()):
             terms["depth"] = huber(local[keep]).mean()
         terms["pixel"] = huber(err[both]).mean()
@@ -146,8 +166,8 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
                 terms["gradient"] = total / count
     if bool(region.any()):
         soft = sim.valid_soft.to(simd.dtype)
-        ls, _ = masked_local_mean(soft, region)
-        lr, _ = masked_local_mean(frame.real_valid.to(simd.dtype), region)
+        ls, _ = masked_local_mean(soft, region, k)
+        lr, _ = masked_local_mean(frame.real_valid.to(simd.dtype), region, k)
         terms["validity"] = VALIDITY_MM * ((ls - lr)[region] ** 2).mean()
     terms["total"] = (weights.depth * terms["depth"] + weights.gradient * terms["gradient"]
                       + weights.validity * terms["validity"] + weights.pixel * terms["pixel"])  # fmt: skip
