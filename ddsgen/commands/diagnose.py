@@ -24,6 +24,8 @@ from ddsgen.errors import InputError
               help="Adam steps of the refit after each accepted effect.")
 @click.option("--candidates", multiple=True, metavar="NAMES",
               help="Effects to try (comma-separated or repeated). Default: the whole library.")
+@click.option("--grid-frames", type=int, default=4, show_default=True,
+              help="Fit frames on which each candidate effect's parameters are searched (0: all of them).")
 @click.option("--max-effects", type=int, default=4, show_default=True, help="Stop after adding this many effects.")
 @click.option("--no-plane", is_flag=True, help="Do not add a RANSAC support plane fitted to the real depth.")
 @click.option("--plausible-px", type=float, default=2.0, show_default=True,
@@ -33,8 +35,8 @@ from ddsgen.errors import InputError
               help="Torch threads. The diagnosis runs many small simulations: on a shared machine one thread per "
                    "process is usually fastest.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
-def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_steps, candidates, max_effects, no_plane,
-             plausible_px, seed, threads, quiet):  # fmt: skip
+def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_steps, candidates, grid_frames,
+             max_effects, no_plane, plausible_px, seed, threads, quiet):  # fmt: skip
     """Find where the sensor PRESET and the real scans in REAL_DIR disagree and name the missing effect.
 
     1. fit the base sensor parameters on the fit frames;
@@ -62,6 +64,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if refit_steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--refit-steps")
+    if grid_frames < 0:
+        raise click.BadParameter("must be >= 0", param_hint="--grid-frames")
     if max_effects < 0:
         raise click.BadParameter("must be >= 0", param_hint="--max-effects")
     if threads < 1:
@@ -87,7 +91,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     if len(frames) < 2:
         raise InputError(f"{real_dir}: diagnose needs at least 2 frames (fit and held-out), found {len(frames)}")
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
-                            seed=seed, candidates=tuple(names) or None)  # fmt: skip
+                            seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames)  # fmt: skip
     result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)
     del torch
 

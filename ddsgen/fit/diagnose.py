@@ -4,14 +4,16 @@ The loop (:func:`diagnose`):
 
 1. **Base fit.** The base sensor parameters are fitted on the fit frames with the fit
    machinery (:func:`ddsgen.fit.fitting.fit_sensor`); the held-out gap (the ``compare``
-   metric, :func:`ddsgen.fit.compare.gap`) of that model is the baseline.
+   metric, :func:`ddsgen.fit.compare.gap`, and its noise floor) of that model is the baseline.
 2. **Residual analysis** (:mod:`ddsgen.fit.residuals`): bias and validity disagreement
    binned by depth, incidence angle, image radius, row, column, distance to depth edges and
    IR signal; per axis the structure beyond noise (bootstrap over frames).
 3. **Candidates.** Every library effect not yet in the model is added in turn and its
-   parameters are fitted on the fit frames by a coarse grid plus a local refinement
-   (forward passes), maximising the credited fall of the gap (below); then
-   the held-out gap and noise floor it leaves are measured.
+   parameters are fitted on the fit frames, maximising the credited fall of the gap (below):
+   depth effects start from their signature read off the residual (:func:`signature_guess`:
+   a median or a least-squares fit, no extra simulation), validity effects from a coarse
+   grid; a local search refines either. Then the held-out gap and noise floor it leaves are
+   measured.
 4. **Acceptance** (:data:`RULE`). Accepted: named, added, the base parameters refitted with it,
    and the loop repeats with the remaining effects; otherwise it stops.
 5. **What remains**: axes whose residual structure is still beyond noise (and at least
@@ -20,15 +22,20 @@ The loop (:func:`diagnose`):
 
 Two things make the comparison fair to every candidate:
 
-* **Credit only what the noise floor does not explain.** The gap metric can be lowered by *hiding* noise: a
-  dropout effect that removes the noisiest pixels from the simulation lowers the depth and
-  texture terms by more than it costs in validity, even on data that has no such dropout.
-  The noise floor -- the depth and texture terms between two noise draws of the same model,
-  counted where the real sensor has depth (:func:`frame_evaluation`) -- falls by the same
-  amount, while a genuinely missing effect lowers the gap and leaves the floor. So a
-  candidate is credited, per frame and with the same noise draws for every model, with the
-  fall of its gap minus any fall of its own floor (:func:`frame_falls`) -- and gets nothing
-  for making its own noise draws disagree more. The gaps reported are the ``compare`` gaps.
+* **Credit only what the noise floor does not explain.** Two noise draws of one sensor do not
+  score 0: the ``compare`` gap has a noise floor (its ``noise_floor``, measured between two
+  draws of the model under test), and a model can lower the gap by *hiding* noise -- a
+  dropout effect that removes the noisiest pixels lowers gap and floor alike, even on data
+  without such dropout -- while a genuinely missing effect lowers the gap and leaves the
+  floor. So a candidate is credited, per frame and with the same noise draws for every model,
+  with the fall of its gap minus any fall of its floor (:func:`frame_falls`), and gets
+  nothing for making its own draws disagree more.
+* **Gaps are reported beyond the noise floor.** ``diagnosis.json``'s gaps are ``compare``'s
+  ``excess``: held-out gap minus noise floor (mean over held-out frames), what a better
+  model could still remove -- the true sensor scores about 0, so "the gap halves" means half
+  of the explainable disagreement is gone. (At 640 x 480 the floor is ~1.5 mm, and a missing
+  4-px edge band adds ~0.5 mm to it; in raw gaps no validity effect could ever halve the gap.)
+  The raw gaps and floors are printed and in ``report.html``.
 * **The support plane is re-estimated under each model** (:func:`replane`). It is fitted to
   the real depth, so it already contains any bias that keeps planes planar (a disparity
   offset, a depth scale error); a model with that effect would apply it twice.
@@ -36,7 +43,8 @@ Two things make the comparison fair to every candidate:
 Speed: effects that act after block matching (disparity, depth and validity stages) do not
 change the matcher's input, so :func:`reuse_matches` serves the matcher's result from a cache
 keyed by the IR image; validity effects do not move the plane either, so their whole search
-runs without the matcher. Grids use at most :attr:`DiagnoseConfig.grid_frames` fit frames.
+runs without the matcher and uses every fit frame; depth effects are searched on at most
+:attr:`DiagnoseConfig.grid_frames` fit frames.
 """
 
 from __future__ import annotations
@@ -108,6 +116,74 @@ def lattice_offset(sensor, frames) -> float:
         return 0.0
     phase = float(np.angle(np.concatenate(phases).mean()))
     return (phase / (2.0 * np.pi) % 1.0) * step
+
+
+def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
+    """Starting points of an effect's search, read off the current model's residual (no extra simulation).
+
+    The depth effects of the library leave a residual of known shape, so their parameters follow
+    from the residual of the model without them by a robust average or a least-squares fit,
+    where ``d = f b / z`` is the disparity (px) and ``x, y`` the normalised image coordinates:
+
+    * ``disparity_offset``: delta = median of d_real - d_sim on the objects' pixels (the support
+      plane was fitted to the real depth and already carries the offset); put on the real
+      depth's quantisation lattice (:func:`lattice_offset`) with its two neighbours;
+    * ``depth_scale``: epsilon = median of z_real / z_sim - 1 on the objects' pixels;
+    * ``lens_distortion``: a pixel sees the ideal image displaced by du = x f (k1 r^2 + k2 r^4),
+      so d_real - d_sim = -du; (k1, k2) by trimmed least squares over every pixel, with an
+      affine term per frame on the support plane (its fit absorbed the affine part there).
+
+    Returns a few parameter sets around the estimate, or None for effects without a shape
+    (the validity effects: their grids are cheap, the matcher's result being reused).
+    """
+    fb = float(sensor.baseline.detach()) * float(sensor.focal_scale.detach())
+    rows, targets = [], []
+    for i, (f, sim) in enumerate(zip(frames, sims)):
+        both = f.region & sim.valid & f.real_valid
+        if name != "lens_distortion":
+            both = both & (f.instance > 0)
+        if not bool(both.any()):
+            continue
+        z_real, z_sim = f.real_depth[both].double(), sim.depth.detach()[both].double()
+        if name == "disparity_offset":
+            targets.append((f.intrinsics.fx * fb * (1.0 / z_real - 1.0 / z_sim)).numpy())
+        elif name == "depth_scale":
+            targets.append((z_real / z_sim - 1.0).numpy())
+        elif name == "lens_distortion":
+            h, w = f.shape
+            x = ((torch.arange(w, dtype=torch.float64) - f.intrinsics.cx) / f.intrinsics.fx)[None, :].expand(h, w)[both]
+            y = ((torch.arange(h, dtype=torch.float64) - f.intrinsics.cy) / f.intrinsics.fy)[:, None].expand(h, w)[both]
+            plane = (f.instance[both] == 0).double()
+            r2 = x * x + y * y
+            design = torch.zeros(x.shape[0], 2 + 3 * len(frames), dtype=torch.float64)
+            design[:, 0] = -f.intrinsics.fx * x * r2
+            design[:, 1] = -f.intrinsics.fx * x * r2 * r2
+            design[:, 2 + 3 * i : 5 + 3 * i] = torch.stack([plane, plane * x, plane * y], 1)
+            rows.append(design.numpy())
+            targets.append((f.intrinsics.fx * fb * (1.0 / z_real - 1.0 / z_sim)).numpy())
+        else:
+            return None
+    if not targets:
+        return None
+    t = np.concatenate(targets)
+    if name == "lens_distortion":
+        a = np.concatenate(rows)
+        keep = np.ones(t.shape, bool)
+        coef = np.zeros(a.shape[1])
+        for _ in range(3):  # trimmed least squares: mismatches and edge pixels are not distortion
+            coef = np.linalg.lstsq(a[keep], t[keep], rcond=None)[0]
+            dev = np.abs(t - a @ coef)
+            keep = dev <= np.quantile(dev, 0.8)
+        k1, k2 = (float(np.clip(c, -0.1, 0.1)) for c in coef[:2])
+        return [{"k1": m * k1, "k2": m * k2} for m in (0.5, 1.0, 1.5)]
+    estimate = float(np.median(t))
+    if name == "depth_scale":
+        estimate = float(np.clip(estimate, -0.1, 0.1))
+        return [{"scale_error": m * estimate} for m in (0.5, 1.0, 1.5)]
+    step = 2.0 ** -sensor.preset.subpixel_level
+    frac = lattice_offset(sensor, frames)
+    k = round((estimate - frac) / step)
+    return [{"offset_px": float(np.clip(frac + j * step, -3.0, 3.0))} for j in (k - 1, k, k + 1)]
 
 
 def default_grid(name: str) -> list[dict]:
@@ -231,6 +307,10 @@ def replane_all(sensor, frames, seed: int) -> list:
     return out
 
 
+#: Validity effects that a lower SNR mimics (both drop the pixels of low signal first): the base fit lowers
+#: the SNR to explain such dropout, so their search refits the SNR with the effect in (fit_candidate).
+CONFOUNDED_WITH_SNR = ("low_signal_dropout",)
+
 #: Values tried for the other parameters of an effect, one at a time, after its first parameter is set.
 SECONDARY_GRIDS: dict[str, dict[str, tuple]] = {
     "lens_distortion": {"k2": (-0.02, -0.01, 0.01, 0.02)},
@@ -266,6 +346,10 @@ class Evaluation:
     frame_floors: list[float]
 
     @property
+    def frame_excess(self) -> np.ndarray:
+        return np.asarray(self.frame_gaps) - np.asarray(self.frame_floors)
+
+    @property
     def gap(self) -> float:
         return float(np.mean(self.frame_gaps)) if self.frame_gaps else float("nan")
 
@@ -291,10 +375,15 @@ class Candidate:
 
 @dataclasses.dataclass
 class Step:
+    """One accepted effect. ``gap_before``/``gap_after``: held-out gap beyond the noise floor (mm);
+    ``before``/``after``: the evaluations (compare gap and floor per frame)."""
+
     effect: str
     params: dict
     gap_before: float
     gap_after: float
+    before: Evaluation
+    after: Evaluation
     axis: str
     sentence: str
     analysis_before: dict
@@ -316,19 +405,21 @@ class Diagnosis:
 
     @property
     def baseline_gap(self) -> float:
-        return self.baseline.gap
+        """Held-out gap of the fitted base sensor beyond the noise floor (mm)."""
+        return self.baseline.excess
 
     @property
     def final_gap(self) -> float:
-        return self.final.gap
+        """Held-out gap of the final model beyond the noise floor (mm)."""
+        return self.final.excess
 
     def to_dict(self) -> dict:
-        """The ``diagnosis.json`` document (exactly this shape)."""
+        """The ``diagnosis.json`` document (exactly this shape; gaps beyond the noise floor, mm)."""
         return {
-            "baseline_gap": _f(self.baseline.gap),
+            "baseline_gap": _f(self.baseline_gap),
             "steps": [{"effect": s.effect, "params": {k: _f(v) for k, v in s.params.items()},
                        "gap_before": _f(s.gap_before), "gap_after": _f(s.gap_after)} for s in self.steps],  # fmt: skip
-            "final_gap": _f(self.final.gap),
+            "final_gap": _f(self.final_gap),
             "unexplained": [{"axis": u["axis"], "strength": _f(u["strength"])} for u in self.unexplained],
         }
 
@@ -346,19 +437,14 @@ def replaned(sensor, frames, seed: int, steps: int = 1) -> list:
 
 
 def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float]:
-    """(gap, noise floor) of one frame: the ``compare`` gap, and the depth + texture terms between two
-    noise draws of ``sensor`` counted where the real sensor has depth.
-
-    The floor differs from ``compare``'s ``noise_floor`` in one way: the second draw only counts where the
-    real scan is valid. A dropout effect then changes the floor only by what it removes from pixels the
-    real sensor keeps (noise it hides), not by pixels the real sensor drops anyway (which it explains).
-    """
+    """(gap, noise floor) of one frame, exactly as ``compare`` measures them: the gap between the
+    simulation (noise draw ``seed``) and the real scan, and between that simulation and a second
+    draw (``seed + 1000``) of the same sensor."""
     sim = simulate(sensor, frame, seed)
     other = simulate(sensor, frame, seed + 1000)
     g = frame_gap(sim, frame)
-    twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid & frame.real_valid)
-    f = frame_gap(sim, twin)
-    return float(g["gap"] or 0.0), float((f["depth_mm"] or 0.0) + (f["gradient_mm"] or 0.0))
+    twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
+    return float(g["gap"] or 0.0), float(frame_gap(sim, twin)["gap"] or 0.0)
 
 
 def evaluate(sensor, frames, seed: int, replane_steps: int = 0) -> Evaluation:
@@ -420,7 +506,8 @@ def bootstrap_fall(before: Evaluation, after: Evaluation, rng: np.random.Generat
     return float(np.quantile(falls, BOOTSTRAP_QUANTILE))
 
 
-def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation) -> tuple[object, dict, float]:
+def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,
+                  sims=None) -> tuple[object, dict, float]:  # fmt: skip
     """Add effect ``name`` to (a copy of) ``sensor`` and fit its parameters on ``frames``.
 
     ``frames`` are fit frames re-planed under ``sensor`` and ``base`` is ``sensor``'s evaluation on
@@ -445,31 +532,49 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evalu
         return tried[key]
 
     neutral = {k: spec.neutral for k, spec in cls.params.items()}
-    points = default_grid(name)
-    if name == "disparity_offset":  # on the real depth's quantisation lattice (see lattice_offset)
-        step = 2.0 ** -sensor.preset.subpixel_level
-        frac = lattice_offset(sensor, frames)
-        points = [{"offset_px": frac + k * step} for k in range(-int(1.0 / step), int(1.0 / step) + 1)
-                  if abs(frac + k * step) <= 1.0 and abs(frac + k * step) > 1e-6]  # fmt: skip
+    points = signature_guess(name, sensor, frames, sims) if sims is not None else None
+    guessed = bool(points)
+    if not guessed:
+        points = default_grid(name)
+        if name == "disparity_offset":  # on the real depth's quantisation lattice (see lattice_offset)
+            step = 2.0 ** -sensor.preset.subpixel_level
+            frac = lattice_offset(sensor, frames)
+            points = [{"offset_px": frac + k * step} for k in range(-int(1.0 / step), int(1.0 / step) + 1)
+                      if abs(frac + k * step) <= 1.0 and abs(frac + k * step) > 1e-6]  # fmt: skip
     grid = [dict(neutral, **point) for point in points]
-    scores = [objective(v) for v in grid]
-    best = dict(grid[int(np.argmin(scores))])
     first = next(iter(cls.params))
-    values = sorted({g[first] for g in grid})
-    i = values.index(best[first])
-    lo = values[i - 1] if i > 0 else best[first]
-    hi = values[i + 1] if i + 1 < len(values) else best[first]
-    for _ in range(config.refine_rounds):
-        for x in (0.5 * (lo + best[first]), 0.5 * (hi + best[first])):
-            trial = dict(best, **{first: x})
-            if objective(trial) < objective(best):
-                best = trial
-        lo, hi = 0.5 * (lo + best[first]), 0.5 * (hi + best[first])
-    for key, options in SECONDARY_GRIDS.get(name, {}).items():
-        for x in options:
-            trial = dict(best, **{key: x})
-            if objective(trial) < objective(best):
-                best = trial
+
+    def search() -> dict:
+        """Best grid point, refined by halving the interval around it (first parameter), then the others."""
+        scores = [objective(v) for v in grid]
+        best = dict(grid[int(np.argmin(scores))])
+        values = sorted({g[first] for g in grid})
+        i = values.index(best[first])
+        lo = values[i - 1] if i > 0 else best[first]
+        hi = values[i + 1] if i + 1 < len(values) else best[first]
+        for _ in range(config.refine_rounds):
+            for x in (0.5 * (lo + best[first]), 0.5 * (hi + best[first])):
+                trial = dict(best, **{first: x})
+                if objective(trial) < objective(best):
+                    best = trial
+            lo, hi = 0.5 * (lo + best[first]), 0.5 * (hi + best[first])
+        for key, options in ({} if guessed else SECONDARY_GRIDS.get(name, {})).items():
+            for x in options:
+                trial = dict(best, **{key: x})
+                if objective(trial) < objective(best):
+                    best = trial
+        return best
+
+    best = search()
+    if name in CONFOUNDED_WITH_SNR:
+        # The base fit has lowered the SNR to mimic this dropout: search the SNR again with the effect
+        # in (the fit machinery's 1-D search), then the effect again at that SNR.
+        from ddsgen.fit.fitting import search_snr
+
+        effect.set_values(**best)
+        search_snr(candidate, frames[: config.grid_frames or None], "emitted_intensity", config.seed)
+        tried.clear()
+        best = search()
     effect.set_values(**best)
     return candidate, effect.values(), objective(best)
 
@@ -496,14 +601,15 @@ def unexplained_axes(analysis: dict) -> list[dict]:
     return sorted(out, key=lambda u: -u["strength"])
 
 
-def step_sentence(name: str, params: dict, before: float, after: float) -> str:
+def step_sentence(name: str, params: dict, before: Evaluation, after: Evaluation) -> str:
     cls = REGISTRY[name]
-    pct = 100.0 * (1.0 - after / before) if before > 0 else 0.0
+    pct = 100.0 * (1.0 - after.excess / before.excess) if before.excess > 0 else 0.0
     values = ", ".join(f"{k} = {v:.3g} {cls.params[k].unit}".rstrip() for k, v in params.items())
     return (
-        f"Missing effect: {name}. {cls.description} With it ({values}) the held-out gap falls from {before:.2f} mm "
-        f"to {after:.2f} mm ({pct:.0f} % less); the disagreement it removes varied {AXIS_WORDS.get(cls.axis, cls.axis)} "
-        f"({cls.signature})."
+        f"Missing effect: {name}. {cls.description} With it ({values}) the held-out gap beyond the noise floor "
+        f"falls from {before.excess:.2f} mm to {after.excess:.2f} mm ({pct:.0f} % less; compare gap {before.gap:.2f} "
+        f"-> {after.gap:.2f} mm, noise floor {after.floor:.2f} mm); the disagreement it removes varied "
+        f"{AXIS_WORDS.get(cls.axis, cls.axis)} ({cls.signature})."
     )
 
 
@@ -551,11 +657,12 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                seed=config.seed, batch_frames=config.batch_frames)  # fmt: skip
     current = evaluate(sensor, held, held_seed, replane_steps=2)
     baseline = current
-    echo(f"      held-out gap {current.gap:.2f} mm (noise floor {current.floor:.2f} mm)")
+    echo(f"      held-out gap {current.gap:.2f} mm, noise floor {current.floor:.2f} mm: "
+         f"{current.excess:.2f} mm beyond it")  # fmt: skip
 
     echo("[2/5] residual analysis (depth, incidence, radius, row, column, edge distance, IR signal) "
          "on the held-out and search frames")
-    analysis_frames = held + fit_frames[: config.grid_frames]
+    analysis_frames = held + fit_frames[: config.grid_frames or None]
     analysis = analysis_of(sensor, analysis_frames, held_seed, stride=analysis_stride)
     edges = {axis: stats.edges for axis, (stats, _) in analysis.items()}
     analysis_baseline = analysis
@@ -570,18 +677,27 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             if not todo:
                 break
             echo(f"[3/5] round {len(rounds) + 1}: fitting {len(todo)} candidate effect(s) on the fit frames")
-            grid_frames = fit_frames[: config.grid_frames] if config.grid_frames else fit_frames
-            grid_frames = replaned(sensor, grid_frames, config.seed)
-            grid_base = evaluate(sensor, grid_frames, config.seed)
+            # Depth-changing effects are searched on grid_frames (each trial re-planes and re-matches);
+            # validity effects on every fit frame (their trials reuse the matcher's results: cheap).
+            all_fit = replaned(sensor, fit_frames, config.seed)
+            grid_frames = all_fit[: config.grid_frames or None]
+            search_sets = {}
+            with torch.no_grad():
+                for moves, frames_ in ((True, grid_frames), (False, all_fit)):
+                    search_sets[moves] = (frames_, evaluate(sensor, frames_, config.seed),
+                                          [simulate(sensor, f, config.seed) for f in frames_])  # fmt: skip
             results = []
             for name in todo:
-                cand_sensor, values, fit_score = fit_candidate(sensor, name, grid_frames, config, grid_base)
+                search_frames, search_base, search_sims = search_sets[changes_depth(name)]
+                cand_sensor, values, fit_score = fit_candidate(sensor, name, search_frames, config, search_base,
+                                                               search_sims)  # fmt: skip
                 held_eval = evaluate(cand_sensor, held, held_seed, replane_steps=2)
                 c = Candidate(name, values, fit_score, held_eval, sensor=cand_sensor)
                 c.gain = relative_fall(current, held_eval)
                 c.gain_low = bootstrap_fall(current, held_eval, rng)
                 results.append(c)
-                echo(f"      {name:20s} held-out gap {held_eval.gap:7.2f} mm (floor {held_eval.floor:5.2f})  "
+                echo(f"      {name:20s} held-out gap {held_eval.gap:6.2f} mm (floor {held_eval.floor:5.2f}, beyond it "
+                     f"{held_eval.excess:5.2f})  "
                      f"credited fall {100 * c.gain:+6.1f} % (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)"
                      f"  {_fmt(values)}")  # fmt: skip
             rounds.append(results)
@@ -601,10 +717,11 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 after = evaluate(new, held, held_seed, replane_steps=2)
             params = next(e for e in new.effects if e.name == best.effect).values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
-            steps.append(Step(best.effect, params, current.gap, after.gap, REGISTRY[best.effect].axis,
-                              step_sentence(best.effect, params, current.gap, after.gap), analysis,
-                              after_analysis))  # fmt: skip
-            echo(f"      {best.effect}: held-out gap {current.gap:.2f} -> {after.gap:.2f} mm ({_fmt(params)})")
+            steps.append(Step(best.effect, params, current.excess, after.excess, current, after,
+                              REGISTRY[best.effect].axis, step_sentence(best.effect, params, current, after),
+                              analysis, after_analysis))  # fmt: skip
+            echo(f"      {best.effect}: held-out gap beyond the noise floor {current.excess:.2f} -> {after.excess:.2f} mm "
+                 f"(compare gap {current.gap:.2f} -> {after.gap:.2f} mm; {_fmt(params)})")  # fmt: skip
             sensor, current, analysis = new, after, after_analysis
             in_model.add(best.effect)
 

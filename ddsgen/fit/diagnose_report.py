@@ -101,13 +101,13 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
         parts.append(f"<h3>Step {i}: {e(step['effect'])}</h3>")
         parts.append(f"<p>{e(step['sentence'])}</p>")
         parts.append(
-            f"<p class='note'>parameters: {e(_fmt_params(step['params']))}; held-out gap "
+            f"<p class='note'>parameters: {e(_fmt_params(step['params']))}; held-out gap beyond the noise floor "
             f"{step['gap_before']:.2f} mm &rarr; {step['gap_after']:.2f} mm</p>"
         )
         parts.append(f"<img alt='residual along {e(step['axis'])}' src='data:image/png;base64,{step['figure']}'>")
     if rejected:
         parts.append("<h2>Candidates tried in the last round</h2><table><tr><th>effect</th><th>fitted parameters</th>"
-                     "<th>held-out gap (mm)</th><th>excess fall / gap</th><th>bootstrap 5 %</th></tr>")  # fmt: skip
+                     "<th>held-out gap beyond the floor (mm)</th><th>credited fall / gap</th><th>bootstrap 5 %</th></tr>")  # fmt: skip
         for c in rejected:
             parts.append(
                 f"<tr><td>{e(c['effect'])}</td><td>{e(_fmt_params(c['params']))}</td><td>{c['gap']:.2f}</td>"
@@ -138,13 +138,16 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     summary = list(notes or [])
     summary.append(
         f"{len(d.fit_frames)} frame(s) fitted, {len(d.held_frames)} held out. Held-out gap of the fitted base sensor: "
-        f"{d.baseline.gap:.2f} mm (noise floor {d.baseline.floor:.2f} mm: two noise draws of the same simulated "
-        f"sensor differ by this much)."
+        f"{d.baseline.gap:.2f} mm, of which {d.baseline.floor:.2f} mm is its noise floor (two noise draws of the same "
+        f"simulated sensor differ by this much, so no model can remove it): {d.baseline_gap:.2f} mm beyond it. "
+        f"The gaps below (and in diagnosis.json) are gaps beyond the noise floor."
     )
     if d.steps:
         names = ", ".join(s.effect for s in d.steps)
-        summary.append(f"Effects added, in order: {names}. Final held-out gap {d.final.gap:.2f} mm "
-                       f"(noise floor {d.final.floor:.2f} mm).")  # fmt: skip
+        pct = 100.0 * (1.0 - d.final_gap / d.baseline_gap) if d.baseline_gap > 0 else 0.0
+        summary.append(f"Effects added, in order: {names}. Final held-out gap beyond the noise floor "
+                       f"{d.final_gap:.2f} mm ({pct:.0f} % less; compare gap {d.final.gap:.2f} mm, noise floor "
+                       f"{d.final.floor:.2f} mm).")  # fmt: skip
     else:
         summary.append("No effect was added: the base sensor explains the scans as well as any library effect would.")
     steps = []
@@ -159,7 +162,7 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     rejected = []
     if d.rounds:
         for c in d.rounds[-1]:
-            rejected.append({"effect": c.effect, "params": c.params, "gap": c.held.gap, "gain": c.gain,
+            rejected.append({"effect": c.effect, "params": c.params, "gap": c.held.excess, "gain": c.gain,
                              "gain_low": c.gain_low})  # fmt: skip
     unexplained_text = [axis_sentence(u["axis"], u["strength"]) for u in d.unexplained]
     if not unexplained_text:
