@@ -33,8 +33,9 @@ demo: install
 	$(DDSGEN) render presets/kinect_v1.yaml -n 12 --out demo_out --workers $(WORKERS) --seed 0
 	@echo "demo dataset: demo_out/ (open demo_out/manifest.jsonl, depth/*.png, ir/*.png)"
 
+# Two pytest workers: the slow tests (diagnose, fit) run one torch thread each.
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PY) -m pytest -q -p no:cacheprovider -n 2
 
 bench: install
 	$(PY) bench/run_all.py
