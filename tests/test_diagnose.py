@@ -1,23 +1,13 @@
 """ddsgen diagnose: names the effect hidden in rendered scans, stays silent on clean ones, and says which axis
 an unknown distortion follows.
 
-Scans are rendered by ddsgen itself (160 x 120 px Kinect-like sensor, 1/8 px sub-pixel steps, 8 frames of
-``diagnose_scenes.yaml``: large objects on a floor, camera 0.9-1.4 m) with one library effect switched on and
-the base parameters perturbed a little (eta_c x 1.15, soft-argmax beta x 1.1), then diagnosed from the stock
-preset (5 fit frames, 3 held out). Strengths are realistic for this sensor; where an effect is specified in
-pixels (lens distortion, edge band) the value is chosen for the 160 px image.
+Scans are rendered by ddsgen itself with the Kinect V1 sensor at its full 640 x 480 (1/8 px sub-pixel steps like
+the device), 8 frames of ``diagnose_scenes.yaml`` (large objects on a floor, camera 0.8-2.4 m), one library effect
+switched on at a realistic strength and the base parameters perturbed a little (eta_c x 1.15, soft-argmax beta x
+1.1), then diagnosed from the stock preset (5 fit frames, 3 held out). Each case asserts what the issue asks:
+that effect is named first and the held-out gap falls by at least half.
 
-Known limits, encoded as strict xfails so that a change in behaviour shows up:
-
-* The issue asks for a >= 50 % fall of the held-out gap. On this small sensor the compare gap cannot fall
-  below its noise floor (two noise draws of the same sensor differ by ~9-12 mm at 160 px), and the baseline
-  gaps are only 1.1-1.9 x that floor, so the falls reached are 26-43 % for the depth effects and a few % for
-  the dropout effects. The hard assertions check what is reached; the 50 % bar is reported as an xfail.
-* ``edge_dropout`` (2 px) and ``low_signal_dropout`` are not named: a validity disagreement costs little in
-  the compare metric (20 mm x squared local valid-rate difference) next to the depth-noise floor, so their
-  credited fall stays under the 5 % acceptance bar (edge_dropout: 4.4 %; its axis is reported unexplained).
-
-The per-effect sweep is one parametrised test (marked slow: about 1-2 minutes per case on 2 shared cores).
+The cases are marked slow (about 2-3 minutes each on one core); the rendered scans are shared by the module.
 """
 
 from __future__ import annotations
@@ -44,22 +34,20 @@ from effects_geometry import small_preset
 
 SCENES = __import__("pathlib").Path(__file__).with_name("diagnose_scenes.yaml")
 FRAMES = 8
-#: Settings of the test runs: few Adam steps (the 1-D searches of the base fit still run), small search sets.
-CONFIG = DiagnoseConfig(base_steps=2, refit_steps=0, grid_frames=4, refine_rounds=2)
+#: Settings of the test runs: few Adam steps (the 1-D searches of the base fit still run), two frames for the
+#: candidates' searches.
+CONFIG = DiagnoseConfig(base_steps=2, refit_steps=0, grid_frames=2, refine_rounds=2)
 
-#: Effect of each case (realistic strengths for the 160 px test sensor) and the least fall of the held-out gap
-#: that the diagnosis reaches with it (the hard assertion; the issue's 50 % is checked as an xfail).
+#: The hidden effect of each case, at a realistic strength for the Kinect V1.
 CASES = {
-    "disparity_offset": ({"name": "disparity_offset", "offset_px": 0.3}, 0.35),
-    "depth_scale": ({"name": "depth_scale", "scale_error": 0.02}, 0.2),
-    "lens_distortion": ({"name": "lens_distortion", "k1": -0.02}, 0.2),
-    "grazing_dropout": ({"name": "grazing_dropout", "angle_deg": 65.0}, 0.03),
-    "edge_dropout": ({"name": "edge_dropout", "width_px": 2.0}, 0.03),
-    "low_signal_dropout": ({"name": "low_signal_dropout", "threshold_counts": 4.0}, 0.03),
+    "disparity_offset": {"name": "disparity_offset", "offset_px": 0.3},
+    "depth_scale": {"name": "depth_scale", "scale_error": 0.015},
+    "lens_distortion": {"name": "lens_distortion", "k1": -0.01},
+    "grazing_dropout": {"name": "grazing_dropout", "angle_deg": 65.0},
+    "edge_dropout": {"name": "edge_dropout", "width_px": 4.0},
+    "low_signal_dropout": {"name": "low_signal_dropout", "threshold_counts": 10.0},
 }
-NOT_NAMED = pytest.mark.xfail(strict=True, reason="dropout too cheap in the compare metric at 160 px: credited fall "
-                                                  "below the 5 % acceptance bar (see the module docstring)")
-#: Filled by the tests, printed at the end of the session (the table of the lead's closing note).
+#: Filled by the tests, printed at the end of the session (the table of the closing note).
 TABLE: list[str] = []
 
 
@@ -74,11 +62,26 @@ def one_thread():
         print("\n" + "\n".join(["case                 named                     held-out gap before -> after"] + TABLE))
 
 
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory):
+    """Scan folders rendered on demand, once per module: ``scans(name, effects, perturb, seed)``."""
+    root = tmp_path_factory.mktemp("diagnose_scans")
+    done: dict[str, object] = {}
+
+    def get(name: str, effects: list[dict], perturb: bool = True, seed: int = 11):
+        if name not in done:
+            done[name] = render_scans(root, name, effects, perturb, seed)
+        return done[name]
+
+    return get
+
+
 def stock():
-    return small_preset(160, 120, subpixel_level=3)
+    """The Kinect V1 preset with the device's 1/8 px sub-pixel steps."""
+    return small_preset(640, 480, subpixel_level=3)
 
 
-def render_scans(tmp_path, name: str, effects: list[dict], perturb: bool = True, seed: int = 11, n: int = FRAMES):
+def render_scans(root, name: str, effects: list[dict], perturb: bool = True, seed: int = 11, n: int = FRAMES):
     """Render ``n`` frames with ``effects`` (and perturbed base parameters) into a scan folder."""
     from ddsgen.runner import render_dataset
 
@@ -86,9 +89,9 @@ def render_scans(tmp_path, name: str, effects: list[dict], perturb: bool = True,
     truth = base.replace(effects=effects)
     if perturb:
         truth = truth.replace(emitted_intensity=base.emitted_intensity * 1.15, softargmax_beta=base.softargmax_beta * 1.1)
-    preset_path = tmp_path / f"{name}.yaml"
+    preset_path = root / f"{name}.yaml"
     save_preset(truth, preset_path)
-    out = tmp_path / name
+    out = root / name
     render_dataset(str(preset_path), str(SCENES), n, str(out), workers=1, seed=seed, progress=False)
     torch.set_num_threads(1)  # the in-process renderer pins torch to one thread too; keep it explicit
     return out
@@ -185,42 +188,48 @@ def test_replane_recovers_the_plane_a_disparity_offset_was_added_to():
 # The cases (rendered scans, full diagnosis)
 
 
+#: Known limit, a strict xfail so that a change shows: low-signal dropout is named first, but its threshold comes
+#: out at ~3.5 counts (true 10) and the gap beyond the floor falls ~22 %. The base fit lowers the SNR to mimic the
+#: dropout (a lower SNR also loses the low-signal pixels first), and one round of re-searching the SNR with the
+#: effect in does not undo that.
+SNR_CONFOUND = pytest.mark.xfail(strict=True, reason="low-signal dropout is confounded with the SNR of the base fit")
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "name",
-    [pytest.param(n, marks=NOT_NAMED) if n in ("edge_dropout", "low_signal_dropout") else n for n in CASES],
-)
-def test_diagnose_names_the_hidden_effect_first_and_shrinks_the_gap(tmp_path, name):
-    entry, least_fall = CASES[name]
+@pytest.mark.parametrize("name", [pytest.param(n, marks=SNR_CONFOUND) if n == "low_signal_dropout" else n
+                                  for n in CASES])  # fmt: skip
+def test_diagnose_names_the_hidden_effect_first_and_halves_the_gap(scans, name):
+    entry = CASES[name]
     log: list[str] = []
-    result = run(render_scans(tmp_path, name, [entry]), log)
+    result = run(scans(name, [entry]), log)
     record(name, result)
     assert result.steps, "\n".join(log)
     assert result.steps[0].effect == name, "\n".join(log)
-    fall = 1.0 - result.final_gap / result.baseline_gap
-    assert fall >= least_fall, "\n".join(log)
+    assert result.final_gap <= 0.5 * result.baseline_gap, "\n".join(log)
     # the fitted strength is of the right sign and size
-    truth = {k: v for k, v in entry.items() if k != "name"}
-    for key, value in truth.items():
-        fitted = result.steps[0].params[key]
-        assert fitted == pytest.approx(value, rel=0.5), (key, fitted, "\n".join(log))
-    if fall < 0.5:
-        pytest.xfail(f"held-out gap fell {100 * fall:.0f} % ({result.baseline_gap:.2f} -> {result.final_gap:.2f} mm), "
-                     f"not the issue's 50 %: the 160 px sensor's noise floor is "
-                     f"{result.final.floor:.2f} mm")  # fmt: skip
+    fitted = result.steps[0].params
+    if name == "lens_distortion":  # k1 and k2 trade off inside the image: compare the radial displacement
+        r2 = np.linspace(0.0, 0.47, 48)  # r^2 up to the corners of the Kinect image
+        true_radial = entry["k1"] * r2
+        fit_radial = fitted["k1"] * r2 + fitted["k2"] * r2 * r2
+        assert np.abs(fit_radial - true_radial).max() <= 0.3 * np.abs(true_radial).max(), (fitted, "\n".join(log))
+        return
+    for key, value in entry.items():
+        if key != "name":
+            assert fitted[key] == pytest.approx(value, rel=0.3), (key, fitted[key], "\n".join(log))
 
 
 @pytest.mark.slow
-def test_null_case_adds_nothing(tmp_path):
+def test_null_case_adds_nothing(scans):
     log: list[str] = []
-    result = run(render_scans(tmp_path, "null", [], perturb=False, seed=21), log)
+    result = run(scans("null", [], perturb=False, seed=21), log)
     record("null", result)
     assert result.steps == [], "\n".join(log)
     assert result.to_dict()["steps"] == []
     assert result.final_gap == result.baseline_gap
 
 
-def add_column_ripple(folder, amplitude: float = 0.02, periods: float = 3.0) -> None:
+def add_column_ripple(folder, amplitude: float = 0.01, periods: float = 3.0) -> None:
     """Out-of-library distortion: depth x (1 + a cos(2 pi periods (u - cx) / W)), written into the scans' files.
 
     A periodic error along image columns (like a banding of the depth sensor's reference), even about the image
@@ -243,8 +252,8 @@ def add_column_ripple(folder, amplitude: float = 0.02, periods: float = 3.0) -> 
 
 
 @pytest.mark.slow
-def test_out_of_library_distortion_is_reported_by_axis_not_named(tmp_path):
-    folder = render_scans(tmp_path, "ripple", [], perturb=True, seed=31)
+def test_out_of_library_distortion_is_reported_by_axis_not_named(scans):
+    folder = scans("ripple", [], perturb=True, seed=31)  # its own folder: the ripple is written into its files
     add_column_ripple(folder)
     log: list[str] = []
     result = run(folder, log)
@@ -260,16 +269,17 @@ def test_out_of_library_distortion_is_reported_by_axis_not_named(tmp_path):
 
 
 @pytest.mark.slow
-def test_diagnose_command_writes_the_report_and_the_extended_preset(tmp_path):
+def test_diagnose_command_writes_the_report_and_the_extended_preset(tmp_path, scans):
     from ddsgen.cli import main
     from ddsgen.preset import load_preset
 
-    folder = render_scans(tmp_path, "cmd", [CASES["disparity_offset"][0]])
+    folder = scans("disparity_offset", [CASES["disparity_offset"]])
     preset_path = tmp_path / "stock.yaml"
     save_preset(stock(), preset_path)
     report, extended = tmp_path / "report", tmp_path / "extended.yaml"
     code = main(["diagnose", str(preset_path), str(folder), "--report", str(report), "--apply", str(extended),
-                 "--steps", "2", "--refit-steps", "0", "--quiet"])  # fmt: skip
+                 "--steps", "2", "--refit-steps", "0", "--grid-frames", "2", "--quiet",
+                 "--candidates", "disparity_offset,depth_scale,edge_dropout"])  # fmt: skip
     assert code == 0
     doc = json.loads((report / "diagnosis.json").read_text())
     assert set(doc) == {"baseline_gap", "steps", "final_gap", "unexplained"}
