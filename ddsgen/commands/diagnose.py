@@ -115,7 +115,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
                                                   f"effects added: {added}")  # fmt: skip
         written.append(Path(apply_path))
     summary = ", ".join(f"{s.effect} ({s.gap_before:.2f} -> {s.gap_after:.2f} mm)" for s in result.steps) or "none"
-    click.echo(f"held-out gap {result.baseline.gap:.2f} -> {result.final.gap:.2f} mm; effects added: {summary}")
+    click.echo(f"held-out gap beyond the noise floor {result.baseline_gap:.2f} -> {result.final_gap:.2f} mm "
+               f"(compare gap {result.baseline.gap:.2f} -> {result.final.gap:.2f} mm); effects added: {summary}")
     for u in result.unexplained:
         click.echo(f"unexplained: residual varies along {u['axis']} ({u['strength']:.1f} mm beyond noise)")
     click.echo(f"wrote {', '.join(str(p) for p in written)}")

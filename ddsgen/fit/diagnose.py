@@ -63,6 +63,7 @@ from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.residuals import AXIS_WORDS, analyse, pixel_residuals
 from ddsgen.fit.simulate import simulate
 from ddsgen.sensor.effects import REGISTRY
+from ddsgen.sensor.effects.features import normalised_coordinates
 
 #: A candidate's credited fall (frame_falls) must be at least this fraction of the held-out gap ...
 MIN_RELATIVE_GAIN = 0.05
@@ -150,9 +151,9 @@ def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
         elif name == "depth_scale":
             targets.append((z_real / z_sim - 1.0).numpy())
         elif name == "lens_distortion":
-            h, w = f.shape
-            x = ((torch.arange(w, dtype=torch.float64) - f.intrinsics.cx) / f.intrinsics.fx)[None, :].expand(h, w)[both]
-            y = ((torch.arange(h, dtype=torch.float64) - f.intrinsics.cy) / f.intrinsics.fy)[:, None].expand(h, w)[both]
+            intr = f.intrinsics
+            xn, yn = normalised_coordinates(*f.shape, intr.fx, intr.fy, intr.cx, intr.cy)
+            x, y = xn[both].double(), yn[both].double()
             plane = (f.instance[both] == 0).double()
             r2 = x * x + y * y
             design = torch.zeros(x.shape[0], 2 + 3 * len(frames), dtype=torch.float64)
@@ -380,14 +381,20 @@ class Step:
 
     effect: str
     params: dict
-    gap_before: float
-    gap_after: float
     before: Evaluation
     after: Evaluation
     axis: str
     sentence: str
     analysis_before: dict
     analysis_after: dict
+
+    @property
+    def gap_before(self) -> float:
+        return self.before.excess
+
+    @property
+    def gap_after(self) -> float:
+        return self.after.excess
 
 
 @dataclasses.dataclass
@@ -680,12 +687,16 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             # Depth-changing effects are searched on grid_frames (each trial re-planes and re-matches);
             # validity effects on every fit frame (their trials reuse the matcher's results: cheap).
             all_fit = replaned(sensor, fit_frames, config.seed)
-            grid_frames = all_fit[: config.grid_frames or None]
-            search_sets = {}
+            all_base = evaluate(sensor, all_fit, config.seed)
             with torch.no_grad():
-                for moves, frames_ in ((True, grid_frames), (False, all_fit)):
-                    search_sets[moves] = (frames_, evaluate(sensor, frames_, config.seed),
-                                          [simulate(sensor, f, config.seed) for f in frames_])  # fmt: skip
+                all_sims = [simulate(sensor, f, config.seed) for f in all_fit]
+            n_grid = len(all_fit[: config.grid_frames or None])  # grid frames: the first n_grid fit frames
+            grid_frames = all_fit[:n_grid]
+            search_sets = {
+                True: (grid_frames, Evaluation(all_base.frame_gaps[:n_grid], all_base.frame_floors[:n_grid]),
+                       all_sims[:n_grid]),
+                False: (all_fit, all_base, all_sims),
+            }  # fmt: skip
             results = []
             for name in todo:
                 search_frames, search_base, search_sims = search_sets[changes_depth(name)]
@@ -717,7 +728,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 after = evaluate(new, held, held_seed, replane_steps=2)
             params = next(e for e in new.effects if e.name == best.effect).values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
-            steps.append(Step(best.effect, params, current.excess, after.excess, current, after,
+            steps.append(Step(best.effect, params, current, after,
                               REGISTRY[best.effect].axis, step_sentence(best.effect, params, current, after),
                               analysis, after_analysis))  # fmt: skip
             echo(f"      {best.effect}: held-out gap beyond the noise floor {current.excess:.2f} -> {after.excess:.2f} mm "

@@ -47,6 +47,8 @@ LOCAL_WINDOW = 5
 CLIP_MM = 50.0
 #: A validity-rate difference of 1 costs like this depth error (mm).
 VALIDITY_MM = 100.0
+#: Depth bins of the roughness statistic (m).
+ROUGHNESS_BIN_M = 0.25
 
 
 def local_window(focal_px: float) -> int:
@@ -54,8 +56,6 @@ def local_window(focal_px: float) -> int:
     (15 px for the Kinect's 580 px, :data:`LOCAL_WINDOW` below ~190 px)."""
     k = int(round(focal_px * math.tan(math.radians(LOCAL_WINDOW_DEG))))
     return max(LOCAL_WINDOW, k + 1 - k % 2)
-#: Depth bins of the roughness statistic (m).
-ROUGHNESS_BIN_M = 0.25
 
 
 @dataclass(frozen=True)
