@@ -1,0 +1,133 @@
+"""Statistics that tell a real structured-light depth frame from a simulated one.
+
+Plain numpy functions on one depth image, used by ``compare`` (real and simulated side by
+side), the realism benchmark and the presets' tuning. Definitions (the ones of
+``../shared/data/README.md`` and issue 12, so numbers are comparable with those measured
+there):
+
+* **isolated dropout**: a connected component (8-connected) of invalid pixels with fewer
+  than ``ISOLATED_MAX_PX`` = 20 pixels. Real PrimeSense frames have 21-46 per 640x480 frame
+  holding 0.1-0.6 % of the invalid pixels: their holes are clustered (shadows, dark and far
+  surfaces, edges), not salt-and-pepper.
+* **corner valid share**: the valid share of the pixels farther than ``CORNER_RADIUS`` = 0.7
+  of the half-diagonal from the image centre (real: 0.42-0.80, below the whole frame's
+  0.77-0.94: projector beam and lens vignetting).
+* **depth step at 1 m**: the spacing of the depth levels the device outputs, scaled to 1 m
+  with the step's z^2 law (1/8 px disparity at f = 572 px, b = 75 mm: 2.92 mm).
+
+A ``region`` (bool (H, W)) restricts every statistic to the pixels that count (e.g. the
+modelled geometry of a real frame); components are still found on the whole image, and a
+component counts for the region when any of its pixels lies in it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+ISOLATED_MAX_PX = 20
+CORNER_RADIUS = 0.7
+# Depth values are compared within this relative window around each reference depth.
+_STEP_WINDOW = 0.05
+_MIN_LEVELS = 4
+
+
+def _region(shape, region) -> np.ndarray:
+    return np.ones(shape, bool) if region is None else np.asarray(region, bool)
+
+
+def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
+                      max_pixels: int = ISOLATED_MAX_PX) -> tuple[int, float]:
+    """(count, share): invalid components smaller than ``max_pixels`` touching the region, and the
+    share of the region's invalid pixels that they hold.
+
+    Args:
+        valid: (H, W) bool, True where the sensor output depth.
+        region: (H, W) bool or None (whole image).
+    """
+    valid = np.asarray(valid, bool)
+    region = _region(valid.shape, region)
+    invalid = (~valid).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(invalid, connectivity=8)
+    small = np.zeros(n, bool)
+    small[1:] = stats[1:, cv2.CC_STAT_AREA] < max_pixels
+    in_region = np.zeros(n, bool)
+    in_region[np.unique(labels[region & (invalid > 0)])] = True
+    count = int((small & in_region).sum())
+    invalid_in_region = int((invalid.astype(bool) & region).sum())
+    isolated_pixels = int((small[labels] & region & invalid.astype(bool)).sum())
+    return count, (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
+
+
+def normalised_radius(height: int, width: int) -> np.ndarray:
+    """(H, W) distance of each pixel centre from the image centre, in units of the half-diagonal."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    du, dv = u - (width - 1) / 2.0, v - (height - 1) / 2.0
+    return np.hypot(du, dv) / np.hypot(width / 2.0, height / 2.0)
+
+
+def corner_valid_share(valid: np.ndarray, region: np.ndarray | None = None,
+                       corner_radius: float = CORNER_RADIUS) -> tuple[float | None, float | None]:
+    """(corner share, whole share) of valid pixels; None where the region has no such pixel."""
+    valid = np.asarray(valid, bool)
+    region = _region(valid.shape, region)
+    corner = region & (normalised_radius(*valid.shape) > corner_radius)
+    share = lambda mask: float(valid[mask].mean()) if mask.any() else None  # noqa: E731
+    return share(corner), share(region)
+
+
+def depth_step_at_1m(depth_m: np.ndarray, valid: np.ndarray | None = None, region: np.ndarray | None = None,
+                     resolution_m: float = 0.001) -> float | None:
+    """Median spacing of the output's depth levels, scaled to 1 m by the z^2 law (metres).
+
+    The distinct valid depth values are grouped in windows of +-5 % around each level; within
+    a window, consecutive differences larger than 1.5 x their median plus ``resolution_m``
+    (the file's rounding: a 16-bit PNG in mm alternates 2 and 3 mm steps near 1 m) are gaps,
+    levels nobody observed, and are left out. None when too few levels are seen.
+
+    Args:
+        depth_m: (H, W) metres, 0 = invalid.
+        valid, region: (H, W) bool or None.
+        resolution_m: the rounding unit of the values (0.001 for millimetre PNGs, 0 for EXR).
+    """
+    depth = np.asarray(depth_m, np.float64)
+    mask = _region(depth.shape, region) & (depth > 0)
+    if valid is not None:
+        mask &= np.asarray(valid, bool)
+    levels = np.unique(np.round(depth[mask], 6))
+    if len(levels) < _MIN_LEVELS:
+        return None
+    scaled = []
+    # Windows centred on every 8th level: enough samples, each window sees several steps.
+    for centre in levels[:: max(1, len(levels) // 64)]:
+        near = levels[np.abs(levels - centre) <= _STEP_WINDOW * centre]
+        if len(near) < _MIN_LEVELS:
+            continue
+        diffs = np.diff(near)
+        diffs = diffs[diffs <= 1.5 * np.median(diffs) + resolution_m]
+        if len(diffs):
+            scaled.append(diffs.mean() / centre**2)
+    return float(np.median(scaled)) if scaled else None
+
+
+def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, region: np.ndarray | None = None,
+                       resolution_m: float = 0.001) -> dict:
+    """The hole, validity and quantisation statistics of one frame, as a JSON-ready dict.
+
+    Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),
+    ``isolated_dropout_share`` (of the invalid pixels), ``depth_step_at_1m_mm``, ``pixels``.
+    """
+    depth = np.asarray(depth_m, np.float64)
+    valid = depth > 0 if valid is None else np.asarray(valid, bool)
+    region = _region(depth.shape, region)
+    count, share = isolated_dropouts(valid, region)
+    corner, whole = corner_valid_share(valid, region)
+    step = depth_step_at_1m(depth, valid, region, resolution_m)
+    return {
+        "valid_share": whole,
+        "corner_valid_share": corner,
+        "isolated_dropouts": count,
+        "isolated_dropout_share": share,
+        "depth_step_at_1m_mm": None if step is None else step * 1000.0,
+        "pixels": int(region.sum()),
+    }

@@ -1,0 +1,63 @@
+"""Hole, validity and quantisation statistics (ddsgen.depth_statistics) on made-up and real frames."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ddsgen.depth_statistics import corner_valid_share, depth_step_at_1m, isolated_dropouts, realism_statistics
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def test_isolated_dropouts_count_small_components_only():
+    valid = np.ones((100, 100), bool)
+    valid[10, 10] = False  # 1 px speck
+    valid[50:53, 50:53] = False  # 9 px
+    valid[70:90, 0:40] = False  # a 800 px hole: clustered, not isolated
+    count, share = isolated_dropouts(valid)
+    assert count == 2
+    assert share == pytest.approx(10 / 810)
+    # A region that sees only the big hole counts no isolated dropout.
+    region = np.zeros_like(valid)
+    region[60:100, :] = True
+    assert isolated_dropouts(valid, region) == (0, 0.0)
+
+
+def test_corner_valid_share_sees_only_the_corners():
+    valid = np.ones((120, 160), bool)
+    valid[:20, :20] = False
+    corner, whole = corner_valid_share(valid)
+    assert whole == pytest.approx(1 - 400 / (120 * 160))
+    assert corner < whole - 0.05  # the hole sits in a corner
+    valid[:20, :20] = True
+    valid[50:70, 70:90] = False  # same hole at the centre: corners untouched
+    assert corner_valid_share(valid)[0] == 1.0
+
+
+@pytest.mark.parametrize("n_sub, resolution", [(3, 0.0), (3, 0.001), (2, 0.001)])
+def test_depth_step_of_a_quantised_ramp(n_sub, resolution):
+    """A ramp 0.7-1.5 m quantised to 2^-n_sub px of disparity (f 572.41 px, b 75 mm) -> z^2/(2^n f b) at 1 m."""
+    fb = 572.41 * 0.075
+    z = np.linspace(0.7, 1.5, 200 * 300).reshape(200, 300)
+    d = np.round(fb / z * 2**n_sub) / 2**n_sub
+    depth = fb / d
+    if resolution:
+        depth = np.round(depth / resolution) * resolution  # millimetre PNG
+    expected = 1.0 / (2**n_sub * fb)
+    assert depth_step_at_1m(depth, resolution_m=resolution) == pytest.approx(expected, rel=0.03)
+
+
+@pytest.mark.skipif(not (SHARED / "icbin_primesense_unpaired").is_dir(), reason="../shared/data is absent")
+def test_real_primesense_frames_have_clustered_holes_and_eighth_pixel_steps():
+    import cv2
+
+    files = sorted((SHARED / "icbin_primesense_unpaired").glob("seq*/depth/*.png"))
+    assert files
+    for path in files:
+        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
+        s = realism_statistics(depth)
+        assert 15 <= s["isolated_dropouts"] <= 60, path
+        assert s["isolated_dropout_share"] < 0.01, path
+        assert s["corner_valid_share"] < s["valid_share"] - 0.1, path
+        assert s["depth_step_at_1m_mm"] == pytest.approx(2.92, rel=0.03), path
