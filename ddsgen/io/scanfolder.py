@@ -15,8 +15,15 @@
   with several splits, ``test`` is used). Models ``models/obj_NNNNNN.ply``
   (millimetres -> ``mesh_scale`` 0.001) are found next to the scene folder or
   up to 3 parent levels above it. ``cam_t_m2c`` is in mm and is converted to
-  metres; depth in metres is ``png * depth_scale / 1000``. ``world_T_cam``
-  comes from ``cam_R_w2c``/``cam_t_w2c`` when present, else None.
+  metres; depth in metres is ``png * depth_scale / 1000`` with each image's own
+  ``depth_scale``. ``world_T_cam`` comes from ``cam_R_w2c``/``cam_t_w2c`` when
+  present, else None. Read as BOP datasets are published: every scene of a split
+  is read (frame names keep scene and image id, ``"000002/000017"``); ``rgb/`` is
+  never needed; rotations are stored rounded, so any within
+  :data:`BOP_ROTATION_TOL` of orthonormal is replaced by the nearest rotation
+  (polar decomposition); ``scene_gt_info.json``, when present, gives each
+  object's ``visible_fraction`` (``visib_fract``), and objects with
+  ``visib_fract`` 0 (fully occluded or out of view) are left out of the frame.
 
 Depth images are loaded **lazily**: reading a folder checks that every depth
 file exists, is a readable 16-bit single-channel PNG (or EXR) and has the
@@ -39,13 +46,16 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.exr import read_exr
-from ddsgen.io.manifest import as_rigid, read_manifest
+from ddsgen.io.manifest import read_manifest
 from ddsgen.io.png import read_depth_png
 from ddsgen.preset import Intrinsics
 
 #: How many parent levels above a BOP scene folder are searched for ``models/``.
 BOP_MODEL_SEARCH_LEVELS = 3
 BOP_SPLIT_PREFERENCE = ("test", "val", "train")
+#: Largest max |R R^T - I| of a BOP rotation that is accepted (and re-orthonormalised). Published ground
+#: truth is rounded (LineMOD-Occluded: 3e-4); a real error (a wrong matrix, a transposed row) is far above.
+BOP_ROTATION_TOL = 1e-2
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -59,6 +69,8 @@ class ScanObject:
     mesh_path: mesh file (absolute path) or a ``"shape:NAME"`` procedural reference.
     mesh_scale: metres per mesh unit (0.001 for BOP's millimetre models, else 1.0 unless the manifest says).
     cam_T_obj: float64 (4, 4) rigid transform, object -> camera, translation in metres.
+    visible_fraction: share of the object's silhouette that is visible in [0, 1] (BOP: ``visib_fract``
+        of scene_gt_info.json; ddsgen: the record's ``visible_fraction``), None if not given.
     """
 
     id: int
@@ -67,6 +79,7 @@ class ScanObject:
     mesh_scale: float
     cam_T_obj: np.ndarray
     obj_id: int | None = None
+    visible_fraction: float | None = None
 
 
 class _LazyDepth:
@@ -248,6 +261,7 @@ def _read_ddsgen(folder: Path) -> list[ScanFrame]:
                     mesh_path=mesh,
                     mesh_scale=float(scale),
                     cam_T_obj=np.array(obj["cam_T_obj"], dtype=np.float64),
+                    visible_fraction=None if obj.get("visible_fraction") is None else float(obj["visible_fraction"]),
                 )
             )
         world = record.get("world_T_cam")
@@ -319,6 +333,42 @@ def _bop_camera_size(path: Path) -> tuple[int, int] | None:
     return height, width
 
 
+def _bop_rotation(path: Path, key: str, value) -> np.ndarray:
+    """A BOP rotation (9 numbers, row-major) -> the nearest rotation matrix float64 (3, 3).
+
+    Accepted when max |R R^T - I| <= :data:`BOP_ROTATION_TOL` and det > 0; the polar factor
+    U V^T of R's SVD is the orthonormal matrix closest to R (Frobenius norm).
+    """
+    rotation = _numbers(path, key, value, 9).reshape(3, 3)
+    error = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+    if error > BOP_ROTATION_TOL:
+        raise InputError(f"{path}: {key}: rotation is not orthonormal (max |R R^T - I| = {error:.2g} > "
+                         f"{BOP_ROTATION_TOL:g})")  # fmt: skip
+    det = float(np.linalg.det(rotation))
+    if det <= 0:
+        raise InputError(f"{path}: {key}: rotation determinant is {det:.6g}, must be +1 (a reflection?)")
+    u, _, vt = np.linalg.svd(rotation)
+    return u @ vt
+
+
+def _bop_visibility(info_path: Path, infos: dict | None, image_id: int, count: int) -> list[float | None]:
+    """``visib_fract`` of each of the ``count`` ground-truth objects of an image (None without scene_gt_info)."""
+    if infos is None:
+        return [None] * count
+    key = str(image_id)
+    entries = infos.get(image_id)
+    if not isinstance(entries, list) or len(entries) != count:
+        got = "missing" if entries is None else f"{len(entries)} entries" if isinstance(entries, list) else "not a list"
+        raise InputError(f"{info_path}: {key}: must list one entry per object of scene_gt.json ({count}), got {got}")
+    fractions = []
+    for index, entry in enumerate(entries):
+        value = entry.get("visib_fract") if isinstance(entry, dict) else None
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+            raise InputError(f"{info_path}: {key}[{index}].visib_fract: must be a number in [0, 1], got {value!r}")
+        fractions.append(float(value))
+    return fractions
+
+
 def _read_bop_scene(scene: Path) -> list[ScanFrame]:
     camera_path, gt_path = scene / "scene_camera.json", scene / "scene_gt.json"
     for path in (camera_path, gt_path):
@@ -326,6 +376,8 @@ def _read_bop_scene(scene: Path) -> list[ScanFrame]:
             raise InputError(f"{path}: not found (a BOP scene folder needs scene_camera.json and scene_gt.json)")
     cameras = _bop_image_ids(camera_path, _load_json(camera_path))
     gts = _bop_image_ids(gt_path, _load_json(gt_path))
+    info_path = scene / "scene_gt_info.json"
+    infos = _bop_image_ids(info_path, _load_json(info_path)) if info_path.is_file() else None
     if not cameras:
         raise InputError(f"{camera_path}: no images")
     models = _find_models(scene)
@@ -368,9 +420,8 @@ def _read_bop_scene(scene: Path) -> list[ScanFrame]:
         world_T_cam = None
         if "cam_R_w2c" in camera or "cam_t_w2c" in camera:
             cam_T_world = np.eye(4)
-            cam_T_world[:3, :3] = _numbers(camera_path, f"{key}.cam_R_w2c", camera.get("cam_R_w2c"), 9).reshape(3, 3)
+            cam_T_world[:3, :3] = _bop_rotation(camera_path, f"{key}.cam_R_w2c", camera.get("cam_R_w2c"))
             cam_T_world[:3, 3] = _numbers(camera_path, f"{key}.cam_t_w2c", camera.get("cam_t_w2c"), 3) / 1000.0
-            as_rigid(cam_T_world, f"{camera_path}: ", f"{key}.cam_R_w2c")
             world_T_cam = np.eye(4)  # the rigid inverse
             world_T_cam[:3, :3] = cam_T_world[:3, :3].T
             world_T_cam[:3, 3] = -cam_T_world[:3, :3].T @ cam_T_world[:3, 3]
@@ -380,6 +431,7 @@ def _read_bop_scene(scene: Path) -> list[ScanFrame]:
         entries = gts[image_id]
         if not isinstance(entries, list):
             raise InputError(f"{gt_path}: {key}: must be a list of {{obj_id, cam_R_m2c, cam_t_m2c}}")
+        visibility = _bop_visibility(info_path, infos, image_id, len(entries))
         objects = []
         for index, entry in enumerate(entries):
             where = f"{key}[{index}]"
@@ -392,12 +444,13 @@ def _read_bop_scene(scene: Path) -> list[ScanFrame]:
             if isinstance(obj_id, bool) or not isinstance(obj_id, int) or obj_id < 0:
                 raise InputError(f"{gt_path}: {where}.obj_id: must be an int >= 0, got {obj_id!r}")
             cam_T_obj = np.eye(4)
-            cam_T_obj[:3, :3] = _numbers(gt_path, f"{where}.cam_R_m2c", entry["cam_R_m2c"], 9).reshape(3, 3)
+            cam_T_obj[:3, :3] = _bop_rotation(gt_path, f"{where}.cam_R_m2c", entry["cam_R_m2c"])
             cam_T_obj[:3, 3] = _numbers(gt_path, f"{where}.cam_t_m2c", entry["cam_t_m2c"], 3) / 1000.0  # mm -> m
-            as_rigid(cam_T_obj, f"{gt_path}: ", f"{where}.cam_R_m2c")
             mesh = models / f"obj_{obj_id:06d}.ply"
             if not mesh.is_file():
                 raise InputError(f"{mesh}: model of obj_id {obj_id} not found ({gt_path.name} {where})")
+            if visibility[index] == 0.0:
+                continue  # fully occluded or out of view: nothing of it is in the image (ids keep BOP's index)
             objects.append(
                 ScanObject(
                     id=index + 1,
@@ -406,6 +459,7 @@ def _read_bop_scene(scene: Path) -> list[ScanFrame]:
                     mesh_scale=0.001,
                     cam_T_obj=cam_T_obj,
                     obj_id=obj_id,
+                    visible_fraction=visibility[index],
                 )
             )
         frames.append(
