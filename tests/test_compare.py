@@ -249,3 +249,32 @@ def test_full_frame_pastes_a_crop_back():
     np.testing.assert_array_equal(full[2:7, 3:7], crop)
     whole = np.ones((8, 10))
     assert full_frame(whole, frame) is whole
+
+
+def test_compare_real_cat_cropped_statistics_on_whole_frames(linemod, tmp_path, capsys):
+    """The real LineMOD cat with --crop: the real statistics are the whole 640x480 image's (those of
+    shared/data/README.md), the sim's depth step is its preset's disparity quantum, the saved frame is full size."""
+    from ddsgen.depth_statistics import realism_statistics
+    from ddsgen.io.exr import read_exr
+
+    report, saved = tmp_path / "report", tmp_path / "sim"
+    assert main(["compare", "kinect_v1", str(linemod), "--crop", "--report", str(report), "--save-sim", str(saved),
+                 "--quiet"]) == 0  # fmt: skip
+    realism = json.loads((report / "comparison.json").read_text())["realism"]
+    (frame,) = realism["frames"]
+    (scan,) = read_scan_folder(linemod)
+    whole = realism_statistics(scan.depth, resolution_m=0.001)
+    assert frame["real"]["whole_frame"]["pixels"] == 640 * 480
+    assert frame["real"]["whole_frame"]["isolated_dropouts"] == whole["isolated_dropouts"]
+    assert 21 <= whole["isolated_dropouts"] <= 46  # README: 21-46 on the ten real frames
+    assert frame["real"]["whole_frame"]["depth_step_at_1m_mm"] == pytest.approx(2.92, abs=0.02)  # 1/8 px
+    assert frame["real"]["whole_frame"]["corner_valid_share"] < frame["real"]["whole_frame"]["valid_share"]
+    preset = load_preset("kinect_v1")
+    quantum_mm = 1000.0 / (2**preset.subpixel_level * preset.focal_px * preset.baseline_m)
+    assert frame["sim"]["region"]["depth_step_at_1m_mm"] == pytest.approx(quantum_mm, rel=0.1)
+    assert frame["sim"]["modelled"]["pixels"] < frame["real"]["whole_frame"]["pixels"] / 10  # the crop only
+    (sim,) = read_scan_folder(saved)
+    depth = read_exr(saved / sim.record["depth_exr"])
+    x0, y0, w, h = sim.record["crop"]
+    assert depth.shape == (480, 640) and (depth > 0).sum() == (depth[y0 : y0 + h, x0 : x0 + w] > 0).sum() > 1000
+    assert sim.objects[0].visible_fraction > 0.9 and sim.record["source"] == "000006/000000"

@@ -27,7 +27,8 @@ SCOPES = {
     "real.whole_frame": "real frame, every pixel of the image",
     "sim.region": "simulated frame, compare region",
     "sim.modelled": "simulated frame: its whole frame is the modelled region only (pixels where modelled geometry "
-                    "is hit; the simulation has no depth elsewhere)",
+                    "is hit; the simulation has no depth elsewhere; with --crop, inside the crop window less the "
+                    "border the matcher cannot reach)",
 }  # fmt: skip
 STATISTICS = ("valid_share", "corner_valid_share", "isolated_dropouts", "isolated_dropout_share",
               "depth_step_at_1m_mm")  # fmt: skip
@@ -51,7 +52,8 @@ def full_frame(array, frame, fill=0) -> np.ndarray:
     return out
 
 
-def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real_resolution_m: float) -> dict:
+def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real_resolution_m: float,
+                  crop_border_px: int = 0) -> dict:  # fmt: skip
     """The statistics of one frame, real and simulated (see the module docstring).
 
     Args:
@@ -60,9 +62,15 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
         region: bool (h, w), the compare region of ``frame``.
         real_depth_m: float32 (H, W) the whole real image, metres, 0 = invalid.
         real_resolution_m: the rounding unit of the real values (PNG: its depth_scale; EXR: 0).
+        crop_border_px: with ``--crop``, the border of the crop window the matcher cannot reach
+            (half a block + 1 px; the compare region leaves it out too), not counted as modelled.
     """
     region = full_frame(region, frame, False)
-    modelled = full_frame(frame.geometry.hit, frame, False)
+    hit = np.asarray(frame.geometry.hit).copy()
+    if crop_border_px:
+        b = crop_border_px
+        hit[:b], hit[-b:], hit[:, :b], hit[:, -b:] = False, False, False, False
+    modelled = full_frame(hit, frame, False)
     sim_depth = full_frame(sim.depth.detach(), frame, 0.0)
     sim_valid = full_frame(sim.valid, frame, False)
     real = np.asarray(real_depth_m, dtype=np.float32)

@@ -105,7 +105,7 @@ class SimFolderWriter:
             "objects": objects,
             "seed": self.seed,
             "source": scan.name,
-            "source_depth": str(scan.source_depth_path),
+            "source_depth": str(Path(scan.source_depth_path).resolve()),
             "crop": list(frame.crop),
             "support_plane": None if frame.plane is None else frame.plane.as_dict(),
             "valid_fraction": round(float((depth > 0).mean()), 6),
