@@ -110,4 +110,5 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
         report = gap(sensor, frames, region=region, seed=seed, keep_maps=True, progress=not quiet, on_frame=outputs)
     written = outputs.finish(report, title)
     click.echo(table(report, title))
-    click.echo(f"wrote {', '.join(str(p) for p in written)}" + (f"; simulated frames in {save_sim}" if save_sim else ""))
+    saved = f"; simulated frames in {save_sim}" if save_sim else ""
+    click.echo(f"wrote {', '.join(str(p) for p in written)}{saved}")

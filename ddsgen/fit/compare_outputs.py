@@ -67,6 +67,6 @@ class FrameOutputs:
 
         report.realism = realism.aggregate(self.statistics)
         written = write_report(report, self.report_dir)
-        index = write_index(self.report_dir, title, table(report, title),
-                            self.pictures, [p.relative_to(self.report_dir).as_posix() for p in written[1:]])  # fmt: skip
+        plots = [p.relative_to(self.report_dir).as_posix() for p in written[1:]]
+        index = write_index(self.report_dir, title, table(report, title), self.pictures, plots)
         return [*written, self.report_dir / FRAMES_FOLDER, index]

@@ -121,7 +121,8 @@ def write_index(folder: str | Path, title: str, summary_text: str, pictures: lis
     parts = [f"<!doctype html>\n<html><head><meta charset='utf-8'><title>{esc(title)}</title>",
              "<style>body{font-family:sans-serif;margin:1em} img{max-width:none;display:block;margin:.3em 0 1.5em}"
              " pre{background:#f4f4f4;padding:.6em;overflow-x:auto}</style></head><body>",
-             f"<h1>{esc(title)}</h1>", f"<pre>{esc(summary_text)}</pre>", "<h2>Binned errors and valid rates</h2>"]  # fmt: skip
+             f"<h1>{esc(title)}</h1>", f"<pre>{esc(summary_text)}</pre>",
+             "<h2>Binned errors and valid rates; residual maps</h2>"]  # fmt: skip
     parts += [f"<img src='{esc(p)}' alt='{esc(p)}'>" for p in plots]
     parts.append("<h2>Frames: real | simulated | difference (full resolution)</h2>")
     for name, picture in pictures:
