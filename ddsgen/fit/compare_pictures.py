@@ -84,7 +84,7 @@ def side_by_side(path: str | Path, title: str, real_m: np.ndarray, sim_m: np.nda
     fig = plt.figure(figsize=(fig_w / DPI, fig_h / DPI), dpi=DPI)
     fig.suptitle(title, fontsize=10, y=1 - 4 / fig_h, va="top")
     panels = (("real", colour_depth(real)), ("simulated", colour_depth(sim)),
-              (f"difference sim - real (compare region, {int(both.sum())} px)", diff_rgb))  # fmt: skip
+              (f"difference sim - real ({int(both.sum())} px of the compare region valid in both)", diff_rgb))  # fmt: skip
     for i, (label, image) in enumerate(panels):
         left = GAP_PX + i * (width + GAP_PX)
         ax = fig.add_axes([left / fig_w, BAR_PX / fig_h, width / fig_w, height / fig_h])
