@@ -100,6 +100,8 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
 
     if save_sim is not None:
         check_target(save_sim)  # before any work
+        if Path(save_sim).resolve() == Path(report_dir).resolve():
+            raise InputError(f"{save_sim}: --save-sim: must differ from the --report folder")
     _, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
                                                   plausible_px=plausible_px, seed=seed, progress=not quiet)  # fmt: skip
     sensor = DepthSensor(camera_preset).eval()
