@@ -24,13 +24,13 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_write_text
+from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import append_record, dumps_record, read_manifest, repair_manifest, sorted_records
 from ddsgen.preset import SensorPreset, load_preset, save_preset
 from ddsgen.scene.scenelist import SceneList, load_scene_list
 
 MANIFEST = "manifest.jsonl"
 RUN_FILE = "run.json"
-DEPTH_SCALE = 0.001  # metres per PNG unit (millimetres)
 OUTPUT_FORMATS = ("ddsgen", "bop")
 
 # Random streams of a frame: rng([seed, frame, STREAM]).
@@ -58,18 +58,6 @@ class RenderSummary:
     @property
     def frames_per_second(self) -> float:
         return self.frames_rendered / self.seconds if self.seconds > 0 else float("nan")
-
-
-def frame_paths(frame: int) -> dict[str, str]:
-    """Relative paths of a frame's files (DESIGN.md §3)."""
-    name = f"{frame:06d}"
-    return {
-        "depth": f"depth/{name}.png",
-        "depth_exr": f"depth/{name}.exr",
-        "clean": f"clean/{name}.exr",
-        "ir": f"ir/{name}.png",
-        "mask": f"mask/{name}.png",
-    }
 
 
 # ---- per-process state: built once per worker, not per frame ---------------------------
@@ -102,8 +90,6 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     """Render frame ``frame`` and write its files; return its manifest record."""
     import torch
 
-    from ddsgen.io.exr import write_exr
-    from ddsgen.io.png import write_depth_png, write_png8, write_png16
     from ddsgen.raycast import cast, object_labels
     from ddsgen.scene.sampling import sample_frame
     from ddsgen.sensor.depth_sensor import SensorGeometry
@@ -118,13 +104,7 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     depth = output.depth.numpy().astype(np.float32)
     ir = output.ir.numpy()
 
-    out = Path(job.out)
-    paths = frame_paths(frame)
-    write_exr(out / paths["depth_exr"], depth)
-    write_depth_png(out / paths["depth"], depth, DEPTH_SCALE)
-    write_exr(out / paths["clean"], hits.depth.astype(np.float32))
-    write_png8(out / paths["ir"], ir, max_value=2.0**preset.ir_bits - 1.0)
-    write_png16(out / paths["mask"], hits.instance.astype(np.uint16))
+    paths = write_frame_files(job.out, frame, depth, hits.depth, ir, 2.0**preset.ir_bits - 1.0, hits.instance)
     return {
         "frame": frame,
         **paths,

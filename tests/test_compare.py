@@ -16,7 +16,7 @@ import torch
 
 from ddsgen.cli import main
 from ddsgen.fit.compare import gap
-from ddsgen.fit.simulate import prepare_frames
+from ddsgen.fit.simulate import prepare_frames, simulate
 from ddsgen.io.scanfolder import read_scan_folder
 from ddsgen.preset import load_preset
 from ddsgen.sensor.depth_sensor import DepthSensor
@@ -161,3 +161,120 @@ def test_linemod_cat_lands_on_measured_depth(linemod):
     # The RANSAC support plane is the table under the cat (roughly facing the camera, ~0.75-1.3 m).
     assert frame.plane is not None and frame.plane.inliers > 0.3 * frame.plane.candidates
     assert float(np.abs(frame.plane.normal[2])) > 0.5
+
+
+# ---------------------------------------------------------------- what compare shows (issue 12)
+
+
+def test_compare_save_sim_pictures_and_realism_statistics(small, tmp_path, capsys):
+    import cv2
+
+    from ddsgen.fit.compare_pictures import BAR_PX, GAP_PX, TOP_PX
+    from ddsgen.io.exr import read_exr
+
+    report, saved = tmp_path / "report", tmp_path / "sim"
+    args = ["compare", str(small["stock"]), str(small["real"]), "--report", str(report), "--quiet"]
+    assert main([*args, "--save-sim", str(saved)]) == 0
+    out = capsys.readouterr().out
+    assert "isolated dropouts / frame" in out and "depth step at 1 m (mm)" in out
+
+    # The saved folder is a scan folder: the real frames' order, cameras and objects, readable again.
+    real_frames, sim_frames = read_scan_folder(small["real"]), read_scan_folder(saved)
+    assert [f.record["source"] for f in sim_frames] == [f.name for f in real_frames]
+    assert not list(tmp_path.glob(".sim.*"))  # no temporary folder left
+    for real, sim in zip(real_frames, sim_frames):
+        assert sim.intrinsics == real.intrinsics
+        assert [o.class_name for o in sim.objects] == [o.class_name for o in real.objects]
+        np.testing.assert_allclose(sim.objects[0].cam_T_obj, real.objects[0].cam_T_obj, atol=1e-9)
+        depth_exr = read_exr(saved / sim.record["depth_exr"])
+        np.testing.assert_allclose(sim.depth, depth_exr, atol=0.0006)  # the PNG is the EXR in whole mm
+        # the modelled objects sit where the real render put them: the clean depths agree on their pixels
+        mask_real = cv2.imread(str(small["real"] / real.record["mask"]), cv2.IMREAD_UNCHANGED)
+        mask_sim = cv2.imread(str(saved / sim.record["mask"]), cv2.IMREAD_UNCHANGED)
+        both = (mask_real > 0) & (mask_real == mask_sim)
+        assert both.sum() > 0.9 * (mask_real > 0).sum()
+        clean_real, clean_sim = read_exr(small["real"] / real.record["clean"]), read_exr(saved / sim.record["clean"])
+        assert np.abs(clean_real - clean_sim)[both].max() < 1e-4
+    assert len(prepare_frames(load_preset(small["stock"]), sim_frames)) == 3  # compare/fit can read it again
+
+    # Realism statistics: same sensor on both sides, so the same 1/4-px depth step, z^2 / (4 f b) at 1 m.
+    data = json.loads((report / "comparison.json").read_text())
+    realism = data["realism"]
+    assert "modelled region only" in realism["scopes"]["sim.modelled"]
+    assert len(realism["frames"]) == 3
+    step_mm = 1000.0 / (4 * 143.1025 * 0.075)
+    for scope in ("real.whole_frame", "real.region", "sim.region"):
+        assert realism["aggregate"][scope]["depth_step_at_1m_mm"]["mean"] == pytest.approx(step_mm, rel=0.1), scope
+    real_valid = realism["aggregate"]["real.region"]["valid_share"]["mean"]
+    sim_valid = realism["aggregate"]["sim.region"]["valid_share"]["mean"]
+    assert abs(real_valid - sim_valid) < 0.1
+    # the real whole frame also counts what the compare region leaves out (far walls, the image's corners)
+    assert realism["frames"][0]["real"]["whole_frame"]["pixels"] == 160 * 120
+    assert realism["frames"][0]["real"]["region"]["pixels"] == data["frames"][0]["pixels"]
+
+    # Full-resolution side-by-side: one image pixel per picture pixel, invalid real depth black.
+    picture = cv2.imread(str(report / "frames" / "000000.png"))[..., ::-1] / 255.0
+    assert picture.shape[:2] == (120 + TOP_PX + BAR_PX, 3 * 160 + 4 * GAP_PX)
+    real_panel = picture[TOP_PX : TOP_PX + 120, GAP_PX : GAP_PX + 160]
+    real_depth = real_frames[0].depth
+    inner = np.zeros_like(real_depth, bool)
+    inner[2:-2, 2:-2] = True
+    assert real_panel[inner & (real_depth == 0)].max() < 0.05  # black
+    assert real_panel[inner & (real_depth > 0)].max(axis=-1).min() > 0.1  # coloured
+    index = (report / "index.html").read_text()
+    assert "frames/000000.png" in index and "comparison_bins.png" in index and "frames/000002.png" in index
+
+    # Saved frame i is the simulation of real frame i at the compare's seed (exactly); an existing
+    # non-empty target is refused before any work.
+    stock = load_preset(small["stock"])
+    with torch.no_grad():
+        again = simulate(DepthSensor(stock).eval(), prepare_frames(stock, real_frames)[1], 0)
+    np.testing.assert_array_equal(read_exr(saved / "depth" / "000001.exr"), again.depth.numpy())
+    assert main([*args[:-3], "--report", str(tmp_path / "r3"), "--save-sim", str(saved)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--save-sim: folder is not empty" in err[0]
+    assert not (tmp_path / "r3").exists()
+
+
+def test_full_frame_pastes_a_crop_back():
+    from types import SimpleNamespace
+
+    from ddsgen.fit.realism import full_frame
+    from ddsgen.preset import Intrinsics
+
+    frame = SimpleNamespace(crop=(3, 2, 4, 5), full_intrinsics=Intrinsics(10, 8, 5.0, 5.0, 5.0, 4.0))
+    crop = np.arange(20, dtype=np.float32).reshape(5, 4) + 1
+    full = full_frame(crop, frame)
+    assert full.shape == (8, 10) and full.sum() == crop.sum()
+    np.testing.assert_array_equal(full[2:7, 3:7], crop)
+    whole = np.ones((8, 10))
+    assert full_frame(whole, frame) is whole
+
+
+def test_compare_real_cat_cropped_statistics_on_whole_frames(linemod, tmp_path, capsys):
+    """The real LineMOD cat with --crop: the real statistics are the whole 640x480 image's (those of
+    shared/data/README.md), the sim's depth step is its preset's disparity quantum, the saved frame is full size."""
+    from ddsgen.depth_statistics import realism_statistics
+    from ddsgen.io.exr import read_exr
+
+    report, saved = tmp_path / "report", tmp_path / "sim"
+    assert main(["compare", "kinect_v1", str(linemod), "--crop", "--report", str(report), "--save-sim", str(saved),
+                 "--quiet"]) == 0  # fmt: skip
+    realism = json.loads((report / "comparison.json").read_text())["realism"]
+    (frame,) = realism["frames"]
+    (scan,) = read_scan_folder(linemod)
+    whole = realism_statistics(scan.depth, resolution_m=0.001)
+    assert frame["real"]["whole_frame"]["pixels"] == 640 * 480
+    assert frame["real"]["whole_frame"]["isolated_dropouts"] == whole["isolated_dropouts"]
+    assert 21 <= whole["isolated_dropouts"] <= 46  # README: 21-46 on the ten real frames
+    assert frame["real"]["whole_frame"]["depth_step_at_1m_mm"] == pytest.approx(2.92, abs=0.02)  # 1/8 px
+    assert frame["real"]["whole_frame"]["corner_valid_share"] < frame["real"]["whole_frame"]["valid_share"]
+    preset = load_preset("kinect_v1")
+    quantum_mm = 1000.0 / (2**preset.subpixel_level * preset.focal_px * preset.baseline_m)
+    assert frame["sim"]["region"]["depth_step_at_1m_mm"] == pytest.approx(quantum_mm, rel=0.1)
+    assert frame["sim"]["modelled"]["pixels"] < frame["real"]["whole_frame"]["pixels"] / 10  # the crop only
+    (sim,) = read_scan_folder(saved)
+    depth = read_exr(saved / sim.record["depth_exr"])
+    x0, y0, w, h = sim.record["crop"]
+    assert depth.shape == (480, 640) and (depth > 0).sum() == (depth[y0 : y0 + h, x0 : x0 + w] > 0).sum() > 1000
+    assert sim.objects[0].visible_fraction > 0.9 and sim.record["source"] == "000006/000000"

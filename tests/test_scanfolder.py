@@ -324,8 +324,9 @@ def test_linemod_real_frame(linemod):
     assert (cat.id, cat.obj_id, cat.mesh_scale) == (1, 6, 0.001)
     assert Path(cat.mesh_path).name == "obj_000006.ply" and Path(cat.mesh_path).is_file()
     rotation, t = cat.cam_T_obj[:3, :3], cat.cam_T_obj[:3, 3]
-    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
-    assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)  # re-orthonormalised
+    assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-12)
+    assert cat.visible_fraction is None  # this copy ships no scene_gt_info.json
     assert 0.9 < np.linalg.norm(t) < 1.2 and t[2] == pytest.approx(1.0508, abs=1e-3)
 
     # the pose is in metres and in this camera: its origin projects into the annotated box [331, 130, 65, 64]
@@ -335,3 +336,79 @@ def test_linemod_real_frame(linemod):
     assert 331 <= u <= 331 + 65 and 130 <= v <= 130 + 64
     patch = depth[int(v) - 2 : int(v) + 3, int(u) - 2 : int(u) + 3]
     assert 0 < t[2] - np.median(patch[patch > 0]) < 0.08
+
+
+# ---------------------------------------------------------------- BOP data as published (issue 14)
+
+
+def test_bop_rounded_rotation_is_reorthonormalised_broken_ones_rejected(tmp_path):
+    scene = make_bop(tmp_path, n_images=1)
+    exact = rot_z(0.3) @ np.array([[1, 0, 0], [0, np.cos(1.1), -np.sin(1.1)], [0, np.sin(1.1), np.cos(1.1)]])
+    rounded = np.round(exact, 3)  # published to 3 decimals: |R R^T - I| ~ 1e-3
+    assert np.abs(rounded @ rounded.T - np.eye(3)).max() > 1e-4  # the old limit refused this
+    edit_json(scene / "scene_gt.json", lambda d: d["0"][0].update(cam_R_m2c=rounded.ravel().tolist()))
+    (frame,) = read_scan_folder(tmp_path)
+    rotation = frame.objects[0].cam_T_obj[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(rotation, exact, atol=1e-3)  # the nearest rotation: the one that was rounded
+    # A shear of 5 % is not rounding: still refused with one line, as are NaN and reflections.
+    for bad, message in ((exact @ np.diag([1.05, 1, 1]), r"0\[0\].cam_R_m2c: rotation is not orthonormal .* > 0.01"),
+                         (np.full((3, 3), np.nan), r"0\[0\].cam_R_m2c: has non-finite values"),
+                         (-exact, r"0\[0\].cam_R_m2c: rotation determinant")):  # fmt: skip
+        edit_json(scene / "scene_gt.json", lambda d, m=bad: d["0"][0].update(cam_R_m2c=m.ravel().tolist()))
+        with pytest.raises(InputError, match=message):
+            read_scan_folder(tmp_path)
+
+
+def test_bop_dataset_with_several_scenes_and_no_rgb(tmp_path):
+    make_bop(tmp_path, scene="000001", n_images=2)
+    second = make_bop(tmp_path, scene="000002", n_images=1)
+    units = np.round(depth_values(7) * 1000 / 0.1).astype(np.uint16)  # scene 2 has its own depth
+    write_png16(second / "depth" / "000000.png", units)
+    assert not any(tmp_path.rglob("rgb"))
+    frames = read_scan_folder(tmp_path)
+    assert [f.name for f in frames] == ["000001/000000", "000001/000001", "000002/000000"]
+    np.testing.assert_allclose(frames[2].depth, depth_values(7), atol=1e-6)
+    np.testing.assert_allclose(frames[0].depth, depth_values(0), atol=1e-6)
+    assert frames[0].frame == frames[2].frame == 0  # image ids repeat across scenes; names do not
+
+
+def test_bop_depth_scale_per_image(tmp_path):
+    scene = make_bop(tmp_path, depth_scale=0.1, n_images=2)
+    # image 1 stored in whole millimetres instead of 0.1 mm units
+    write_png16(scene / "depth" / "000001.png", np.round(depth_values(1) * 1000).astype(np.uint16))
+    edit_json(scene / "scene_camera.json", lambda d: d["1"].update(depth_scale=1.0))
+    first, second = read_scan_folder(scene)
+    assert (first.depth_scale, second.depth_scale) == pytest.approx((0.0001, 0.001))
+    np.testing.assert_allclose(first.depth, depth_values(0), atol=1e-6)
+    np.testing.assert_allclose(second.depth, depth_values(1), atol=1e-6)
+
+
+def test_bop_scene_gt_info_visibility(tmp_path):
+    scene = make_bop(tmp_path, n_images=2)
+    info = {"0": [{"visib_fract": 0.4, "px_count_visib": 10}, {"visib_fract": 0.0, "px_count_visib": 0}],
+            "1": [{"visib_fract": 1.0}, {"visib_fract": 0.25}]}  # fmt: skip
+    (scene / "scene_gt_info.json").write_text(json.dumps(info))
+    first, second = read_scan_folder(tmp_path)
+    # image 0: the fully hidden second object is not counted; ids stay BOP's gt index + 1
+    assert [(o.id, o.visible_fraction) for o in first.objects] == [(1, 0.4)]
+    assert [(o.id, o.visible_fraction) for o in second.objects] == [(1, 1.0), (2, 0.25)]
+    for change, message in ((lambda d: d["0"].pop(), r"scene_gt_info.json: 0: must list one entry per object .* 1 "
+                                                     r"entries"),
+                            (lambda d: d.pop("1"), r"scene_gt_info.json: 1: .* got missing"),
+                            (lambda d: d["1"][1].update(visib_fract=1.5), r"1\[1\].visib_fract: must be a number in "
+                                                                          r"\[0, 1\], got 1.5")):  # fmt: skip
+        (scene / "scene_gt_info.json").write_text(json.dumps(info))
+        edit_json(scene / "scene_gt_info.json", change)
+        with pytest.raises(InputError, match=message):
+            read_scan_folder(tmp_path)
+    # without scene_gt_info.json, visibility is unknown and every object is kept
+    (scene / "scene_gt_info.json").unlink()
+    assert [o.visible_fraction for o in read_scan_folder(tmp_path)[0].objects] == [None, None]
+
+
+def test_ddsgen_layout_keeps_visible_fraction(tmp_path):
+    make_ddsgen(tmp_path / "scans", exr_frame=False)
+    frame = read_scan_folder(tmp_path / "scans")[0]
+    assert [o.visible_fraction for o in frame.objects] == [0.5, 1.0, 0.0]

@@ -68,9 +68,12 @@ def common_options(f):
 @click.argument("preset")
 @click.argument("real_dir", type=click.Path(exists=True, file_okay=False))
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default="compare_report", show_default=True,
-              help="Folder for comparison.json and the PNG plots.")
+              help="Folder for comparison.json, index.html, the plots and frames/ (real | sim | difference).")
+@click.option("--save-sim", "save_sim", type=click.Path(file_okay=False), default=None,
+              help="Also write the simulated version of every real frame to this new folder, in ddsgen's scan "
+                   "layout (manifest.jsonl, depth/ in mm + EXR, clean/, ir/, mask/), in the real folder's order.")
 @common_options
-def compare(preset, real_dir, report_dir, no_plane, crop, plausible_px, region, seed, quiet):
+def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px, region, seed, quiet):
     """Measure the gap between the sensor PRESET and the real scans in REAL_DIR.
 
     REAL_DIR is a ddsgen scan folder (manifest.jsonl) or a BOP dataset/split/scene folder. Each
@@ -83,15 +86,31 @@ def compare(preset, real_dir, report_dir, no_plane, crop, plausible_px, region, 
     over frames; the noise floor
     is the same metric between two noise draws of the simulated sensor. Writes
     REPORT/comparison.json (gap, noise_floor, per-frame values, parts binned by depth, incidence
-    angle and image radius, validity confusion) and PNG plots, and prints a short table.
+    angle and image radius, validity confusion, and the hole and quantisation statistics of real
+    and sim), full-resolution real | simulated | difference pictures per frame, PNG plots and
+    REPORT/index.html showing them all, and prints a short table. With --save-sim DIR the
+    simulated frames are also written as a scan folder (readable by compare/fit/diagnose).
     """
-    from ddsgen.fit.compare import gap, table, write_report
+    import contextlib
+
+    from ddsgen.fit.compare import gap, table
+    from ddsgen.fit.compare_outputs import FrameOutputs
+    from ddsgen.fit.save_sim import SimFolderWriter, check_target
     from ddsgen.sensor.depth_sensor import DepthSensor
 
-    _, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
-                                              plausible_px=plausible_px, seed=seed, progress=not quiet)  # fmt: skip
+    if save_sim is not None:
+        check_target(save_sim)  # before any work
+        if Path(save_sim).resolve() == Path(report_dir).resolve():
+            raise InputError(f"{save_sim}: --save-sim: must differ from the --report folder")
+    _, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
+                                                  plausible_px=plausible_px, seed=seed, progress=not quiet)  # fmt: skip
     sensor = DepthSensor(camera_preset).eval()
-    report = gap(sensor, frames, region=region, seed=seed, keep_maps=True, progress=not quiet)
-    written = write_report(report, Path(report_dir))
-    click.echo(table(report, f"{camera_preset.name} vs {real_dir} ({len(frames)} frame(s))"))
-    click.echo(f"wrote {', '.join(str(p) for p in written)}")
+    title = f"{camera_preset.name} vs {real_dir} ({len(frames)} frame(s))"
+    with SimFolderWriter(save_sim, camera_preset, seed) if save_sim else contextlib.nullcontext() as writer:
+        border = camera_preset.block_size_px // 2 + 1 if crop else 0  # as prepare_frame's crop region
+        outputs = FrameOutputs(scans, Path(report_dir), region, writer, border)
+        report = gap(sensor, frames, region=region, seed=seed, keep_maps=True, progress=not quiet, on_frame=outputs)
+    written = outputs.finish(report, title)
+    click.echo(table(report, title))
+    saved = f"; simulated frames in {save_sim}" if save_sim else ""
+    click.echo(f"wrote {', '.join(str(p) for p in written)}{saved}")

@@ -58,7 +58,8 @@ class GapReport:
     gap: headline (mm); noise_floor: gap between two simulation draws (mm, NaN if not computed);
     frames: per-frame dicts (name, gap, depth_mm, gradient_mm, validity_mm, bias_mm, spread_mm,
     confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
-    real depth, region) numpy arrays when requested (for residual plots).
+    real depth, region) numpy arrays when requested (for residual plots); realism: the hole and
+    quantisation statistics of real and sim (:mod:`ddsgen.fit.realism`), when computed.
     """
 
     gap: float
@@ -67,6 +68,7 @@ class GapReport:
     parts: dict
     region: str = "all"
     maps: list[dict] = dataclasses.field(default_factory=list)
+    realism: dict | None = None
 
     @property
     def excess(self) -> float:
@@ -75,7 +77,7 @@ class GapReport:
     def to_dict(self) -> dict:
         return {"gap": _r(self.gap), "noise_floor": _r(self.noise_floor), "excess": _r(self.excess),
                 "units": "mm", "region": self.region, "definition": DEFINITION, "frames": self.frames,
-                "parts": self.parts}  # fmt: skip
+                "parts": self.parts, **({"realism": self.realism} if self.realism else {})}  # fmt: skip
 
 
 DEFINITION = (
@@ -99,7 +101,7 @@ def _robust(values: np.ndarray) -> tuple[float, float]:
     return med, float(1.4826 * np.median(np.abs(values - med)))
 
 
-def _mask(frame: FrameData, region: str) -> torch.Tensor:
+def region_mask(frame: FrameData, region: str) -> torch.Tensor:
     if region == "objects":
         return frame.object_region
     if region == "all":
@@ -108,7 +110,7 @@ def _mask(frame: FrameData, region: str) -> torch.Tensor:
 
 
 def _with_region(frame: FrameData, region: str) -> FrameData:
-    return frame if region == "all" else dataclasses.replace(frame, region=_mask(frame, region))
+    return frame if region == "all" else dataclasses.replace(frame, region=region_mask(frame, region))
 
 
 def _confusion(sim_valid, real_valid, region) -> dict:
@@ -164,7 +166,7 @@ def _bins(rows: dict[str, np.ndarray], key: str, edges) -> list[dict]:
 
 
 def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, noise_floor: bool = True,
-        keep_maps: bool = False, progress: bool = False) -> GapReport:  # fmt: skip
+        keep_maps: bool = False, progress: bool = False, on_frame=None) -> GapReport:  # fmt: skip
     """The headline gap between ``sensor`` and the real scans of ``frames``, with its parts.
 
     Args:
@@ -175,6 +177,8 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         noise_floor: also compute the gap between two noise draws of ``sensor``.
         keep_maps: keep per-frame depth maps in ``GapReport.maps`` (for residual plots).
         progress: show a progress bar.
+        on_frame: called as ``on_frame(frame, sim)`` (FrameData, SensorOutput) after each frame's
+            simulation, to save or draw it without keeping every frame in memory.
 
     Returns:
         :class:`GapReport`.
@@ -189,11 +193,13 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         for frame in tqdm(frames, desc="compare", unit="frame", disable=not progress, leave=False):
             sim = simulate(sensor, frame, seed)
             per_frame.append(frame_gap(sim, frame, region))
+            if on_frame is not None:
+                on_frame(frame, sim)
             if noise_floor:
                 other = simulate(sensor, frame, seed + 1000)
                 twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
                 floors.append(frame_gap(sim, twin, region)["gap"] or 0.0)
-            mask = _mask(frame, region)
+            mask = region_mask(frame, region)
             rows["depth"].append(frame.geometry.clean_depth[mask].numpy())
             rows["incidence"].append(frame.incidence_deg[mask].numpy())
             rows["radius"].append(frame.radius[mask].numpy())
@@ -253,6 +259,10 @@ def table(report: GapReport, title: str = "") -> str:
     for b in p["bins"]["depth_m"]:
         lines.append(f"  {b['low']:.1f}-{b['high']:.1f}  {b['pixels']:7d} {_f(b['gap_bias_mm']):>7} "
                      f"{_f(b['gap_spread_mm']):>7}   {b['real_valid_rate']:.3f}     {b['sim_valid_rate']:.3f}")  # fmt: skip
+    if report.realism:
+        from ddsgen.fit.realism import table as realism_table
+
+        lines.append(realism_table(report.realism))
     return "\n".join(lines)
 
 
@@ -281,7 +291,8 @@ def plot_bins(report: GapReport, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
-    titles = {"depth_m": "clean depth (m)", "incidence_deg": "incidence angle (deg)", "radius": "image radius"}
+    titles = {"depth_m": "clean depth (m)", "incidence_deg": "incidence angle (deg)",
+              "radius": "image radius (fraction of the half-diagonal)"}
     for col, (key, label) in enumerate(titles.items()):
         bins = report.parts["bins"][key]
         x = [0.5 * (b["low"] + min(b["high"], 8.0)) for b in bins]
@@ -300,9 +311,10 @@ def plot_bins(report: GapReport, path: Path) -> Path:
         ax.plot(x, [b["sim_valid_rate"] for b in bins], "s--", label="sim valid rate")
         ax.set_ylim(0, 1.05)
         ax.set_xlabel(label)
+        ax.set_ylabel("valid share of the region's pixels")
         ax.legend(fontsize=8)
-    fig.suptitle(f"gap {report.gap:.2f} mm (noise floor {report.noise_floor:.2f} mm)")
-    fig.savefig(path, dpi=80)
+    fig.suptitle(f"gap {report.gap:.2f} mm (noise floor {report.noise_floor:.2f} mm), {report.region} region")
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
@@ -317,7 +329,7 @@ def plot_residuals(reports: list[GapReport], path: Path, labels: list[str], max_
     import matplotlib.pyplot as plt
 
     n = min(max_frames, min(len(r.maps) for r in reports))
-    fig, axes = plt.subplots(len(reports), max(n, 1), figsize=(3.2 * max(n, 1), 2.8 * len(reports)), squeeze=False,
+    fig, axes = plt.subplots(len(reports), max(n, 1), figsize=(5.0 * max(n, 1), 4.2 * len(reports)), squeeze=False,
                              constrained_layout=True)  # fmt: skip
     for row, (report, label) in enumerate(zip(reports, labels)):
         for col in range(n):
@@ -335,7 +347,7 @@ def plot_residuals(reports: list[GapReport], path: Path, labels: list[str], max_
             ax.set_title(f"{label}\n{m['name']}", fontsize=8)
             ax.axis("off")
     sm = plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-limit_mm, limit_mm))
-    fig.colorbar(sm, ax=axes, shrink=0.6, label="sim - real (mm)")
-    fig.savefig(path, dpi=80)
+    fig.colorbar(sm, ax=axes, shrink=0.6, label="sim - real (mm); black: valid in one only; grey: not compared")
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

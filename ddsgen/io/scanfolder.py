@@ -15,8 +15,15 @@
   with several splits, ``test`` is used). Models ``models/obj_NNNNNN.ply``
   (millimetres -> ``mesh_scale`` 0.001) are found next to the scene folder or
   up to 3 parent levels above it. ``cam_t_m2c`` is in mm and is converted to
-  metres; depth in metres is ``png * depth_scale / 1000``. ``world_T_cam``
-  comes from ``cam_R_w2c``/``cam_t_w2c`` when present, else None.
+  metres; depth in metres is ``png * depth_scale / 1000`` with each image's own
+  ``depth_scale``. ``world_T_cam`` comes from ``cam_R_w2c``/``cam_t_w2c`` when
+  present, else None. Read as BOP datasets are published: every scene of a split
+  is read (frame names keep scene and image id, ``"000002/000017"``); ``rgb/`` is
+  never needed; rotations are stored rounded, so any within
+  :data:`ddsgen.io.bop_reader.BOP_ROTATION_TOL` of orthonormal is replaced by the nearest rotation
+  (polar decomposition); ``scene_gt_info.json``, when present, gives each
+  object's ``visible_fraction`` (``visib_fract``), and objects with
+  ``visib_fract`` 0 (fully occluded or out of view) are left out of the frame.
 
 Depth images are loaded **lazily**: reading a folder checks that every depth
 file exists, is a readable 16-bit single-channel PNG (or EXR) and has the
@@ -39,13 +46,10 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.exr import read_exr
-from ddsgen.io.manifest import as_rigid, read_manifest
+from ddsgen.io.manifest import read_manifest
 from ddsgen.io.png import read_depth_png
 from ddsgen.preset import Intrinsics
 
-#: How many parent levels above a BOP scene folder are searched for ``models/``.
-BOP_MODEL_SEARCH_LEVELS = 3
-BOP_SPLIT_PREFERENCE = ("test", "val", "train")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -59,6 +63,8 @@ class ScanObject:
     mesh_path: mesh file (absolute path) or a ``"shape:NAME"`` procedural reference.
     mesh_scale: metres per mesh unit (0.001 for BOP's millimetre models, else 1.0 unless the manifest says).
     cam_T_obj: float64 (4, 4) rigid transform, object -> camera, translation in metres.
+    visible_fraction: share of the object's silhouette that is visible in [0, 1] (BOP: ``visib_fract``
+        of scene_gt_info.json; ddsgen: the record's ``visible_fraction``), None if not given.
     """
 
     id: int
@@ -67,6 +73,7 @@ class ScanObject:
     mesh_scale: float
     cam_T_obj: np.ndarray
     obj_id: int | None = None
+    visible_fraction: float | None = None
 
 
 class _LazyDepth:
@@ -143,7 +150,7 @@ class ScanFrame:
 # ---------------------------------------------------------------- helpers
 
 
-def _image_size(path: Path, what: str = "depth") -> tuple[int, int]:
+def depth_image_size(path: Path, what: str = "depth") -> tuple[int, int]:
     """(H, W) of a depth PNG (must be 16-bit grey) or EXR, from its header; InputError if absent/unreadable."""
     if not path.is_file():
         raise InputError(f"{path}: {what} image not found")
@@ -171,14 +178,14 @@ def _image_size(path: Path, what: str = "depth") -> tuple[int, int]:
 
 
 def _check_size(path: Path, intrinsics: Intrinsics, source) -> None:
-    height, width = _image_size(path)
+    height, width = depth_image_size(path)
     if (height, width) != (intrinsics.height, intrinsics.width):
         raise InputError(
             f"{path}: depth image is {width}x{height} px, but {source} gives {intrinsics.width}x{intrinsics.height}"
         )
 
 
-def _load_json(path: Path):
+def load_json(path: Path):
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -189,12 +196,12 @@ def _load_json(path: Path):
         raise InputError(f"{path}: not valid JSON ({exc})") from None
 
 
-def _positive(value) -> bool:
+def is_positive_number(value) -> bool:
     """A finite number > 0 (not a bool)."""
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0
 
 
-def _numbers(path, key, value, count) -> np.ndarray:
+def finite_numbers(path, key, value, count) -> np.ndarray:
     try:
         array = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
@@ -239,7 +246,7 @@ def _read_ddsgen(folder: Path) -> list[ScanFrame]:
                     raise InputError(f"{where}: objects[{i}].mesh: file not found: {mesh_file}")
                 mesh = str(mesh_file)
             scale = obj.get("mesh_scale", 1.0)
-            if not _positive(scale):
+            if not is_positive_number(scale):
                 raise InputError(f"{where}: objects[{i}].mesh_scale: must be a finite number > 0, got {scale!r}")
             objects.append(
                 ScanObject(
@@ -248,6 +255,7 @@ def _read_ddsgen(folder: Path) -> list[ScanFrame]:
                     mesh_path=mesh,
                     mesh_scale=float(scale),
                     cam_T_obj=np.array(obj["cam_T_obj"], dtype=np.float64),
+                    visible_fraction=None if obj.get("visible_fraction") is None else float(obj["visible_fraction"]),
                 )
             )
         world = record.get("world_T_cam")
@@ -267,183 +275,6 @@ def _read_ddsgen(folder: Path) -> list[ScanFrame]:
     return frames
 
 
-# ---------------------------------------------------------------- BOP layout
-
-
-def _is_bop_scene(folder: Path) -> bool:
-    return (folder / "scene_camera.json").is_file() or (folder / "scene_gt.json").is_file()
-
-
-def _bop_scenes_in(folder: Path) -> list[Path]:
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.iterdir() if p.is_dir() and _is_bop_scene(p))
-
-
-def _find_models(scene: Path) -> Path:
-    here = scene.resolve()
-    for _ in range(BOP_MODEL_SEARCH_LEVELS + 1):
-        candidate = here / "models"
-        if candidate.is_dir():
-            return candidate
-        if here.parent == here:
-            break
-        here = here.parent
-    raise InputError(
-        f"{scene}: models: no models/ folder in the scene folder or up to {BOP_MODEL_SEARCH_LEVELS} levels above it"
-    )
-
-
-def _bop_image_ids(path: Path, data) -> dict[int, object]:
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: must map image ids to entries")
-    out = {}
-    for key, value in data.items():
-        try:
-            out[int(key)] = value
-        except ValueError:
-            raise InputError(f"{path}: {key}: image id must be an integer") from None
-    return out
-
-
-def _bop_camera_size(path: Path) -> tuple[int, int] | None:
-    """(H, W) from the dataset's camera.json (BOP ships one at the root), None if absent."""
-    if not path.is_file():
-        return None
-    camera = _load_json(path)
-    if not isinstance(camera, dict) or "width" not in camera or "height" not in camera:
-        return None
-    width, height = camera["width"], camera["height"]
-    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (width, height)):
-        raise InputError(f"{path}: width/height: must be ints > 0, got {width!r}x{height!r}")
-    return height, width
-
-
-def _read_bop_scene(scene: Path) -> list[ScanFrame]:
-    camera_path, gt_path = scene / "scene_camera.json", scene / "scene_gt.json"
-    for path in (camera_path, gt_path):
-        if not path.is_file():
-            raise InputError(f"{path}: not found (a BOP scene folder needs scene_camera.json and scene_gt.json)")
-    cameras = _bop_image_ids(camera_path, _load_json(camera_path))
-    gts = _bop_image_ids(gt_path, _load_json(gt_path))
-    if not cameras:
-        raise InputError(f"{camera_path}: no images")
-    models = _find_models(scene)
-    expected_size = _bop_camera_size(models.parent / "camera.json")
-    frames = []
-    for image_id in sorted(cameras):
-        camera = cameras[image_id]
-        key = str(image_id)
-        if not isinstance(camera, dict):
-            raise InputError(f"{camera_path}: {key}: must be an object with cam_K and depth_scale")
-        for name in ("cam_K", "depth_scale"):
-            if name not in camera:
-                raise InputError(f"{camera_path}: {key}.{name}: missing")
-        cam_k = _numbers(camera_path, f"{key}.cam_K", camera["cam_K"], 9).reshape(3, 3)
-        fx, fy, cx, cy = cam_k[0, 0], cam_k[1, 1], cam_k[0, 2], cam_k[1, 2]
-        if not (fx > 0 and fy > 0) or cam_k[0, 1] != 0 or np.any(cam_k[2] != [0, 0, 1]):
-            raise InputError(
-                f"{camera_path}: {key}.cam_K: not a pinhole matrix [fx 0 cx 0 fy cy 0 0 1]: {cam_k.ravel().tolist()}"
-            )
-        scale_mm = camera["depth_scale"]
-        if not _positive(scale_mm):
-            raise InputError(f"{camera_path}: {key}.depth_scale: must be a finite number > 0, got {scale_mm!r}")
-
-        depth_path = scene / "depth" / f"{image_id:06d}.png"
-        if not depth_path.is_file():
-            raise InputError(f"{depth_path}: depth image not found (listed in {camera_path.name} as {key})")
-        height, width = _image_size(depth_path)
-        if expected_size is not None and (height, width) != expected_size:
-            raise InputError(
-                f"{depth_path}: depth image is {width}x{height} px, but {models.parent / 'camera.json'} gives "
-                f"{expected_size[1]}x{expected_size[0]}"
-            )
-        if not (0 < cx < width and 0 < cy < height):
-            raise InputError(
-                f"{depth_path}: depth image is {width}x{height} px, but {camera_path.name} {key}.cam_K puts the "
-                f"principal point at ({cx:g}, {cy:g}): wrong image size?"
-            )
-        intrinsics = Intrinsics(width=width, height=height, fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy))
-
-        world_T_cam = None
-        if "cam_R_w2c" in camera or "cam_t_w2c" in camera:
-            cam_T_world = np.eye(4)
-            cam_T_world[:3, :3] = _numbers(camera_path, f"{key}.cam_R_w2c", camera.get("cam_R_w2c"), 9).reshape(3, 3)
-            cam_T_world[:3, 3] = _numbers(camera_path, f"{key}.cam_t_w2c", camera.get("cam_t_w2c"), 3) / 1000.0
-            as_rigid(cam_T_world, f"{camera_path}: ", f"{key}.cam_R_w2c")
-            world_T_cam = np.eye(4)  # the rigid inverse
-            world_T_cam[:3, :3] = cam_T_world[:3, :3].T
-            world_T_cam[:3, 3] = -cam_T_world[:3, :3].T @ cam_T_world[:3, 3]
-
-        if image_id not in gts:
-            raise InputError(f"{gt_path}: {key}: missing (image {key} of {camera_path.name} has no ground truth)")
-        entries = gts[image_id]
-        if not isinstance(entries, list):
-            raise InputError(f"{gt_path}: {key}: must be a list of {{obj_id, cam_R_m2c, cam_t_m2c}}")
-        objects = []
-        for index, entry in enumerate(entries):
-            where = f"{key}[{index}]"
-            if not isinstance(entry, dict):
-                raise InputError(f"{gt_path}: {where}: must be an object {{obj_id, cam_R_m2c, cam_t_m2c}}")
-            for name in ("obj_id", "cam_R_m2c", "cam_t_m2c"):
-                if name not in entry:
-                    raise InputError(f"{gt_path}: {where}.{name}: missing")
-            obj_id = entry["obj_id"]
-            if isinstance(obj_id, bool) or not isinstance(obj_id, int) or obj_id < 0:
-                raise InputError(f"{gt_path}: {where}.obj_id: must be an int >= 0, got {obj_id!r}")
-            cam_T_obj = np.eye(4)
-            cam_T_obj[:3, :3] = _numbers(gt_path, f"{where}.cam_R_m2c", entry["cam_R_m2c"], 9).reshape(3, 3)
-            cam_T_obj[:3, 3] = _numbers(gt_path, f"{where}.cam_t_m2c", entry["cam_t_m2c"], 3) / 1000.0  # mm -> m
-            as_rigid(cam_T_obj, f"{gt_path}: ", f"{where}.cam_R_m2c")
-            mesh = models / f"obj_{obj_id:06d}.ply"
-            if not mesh.is_file():
-                raise InputError(f"{mesh}: model of obj_id {obj_id} not found ({gt_path.name} {where})")
-            objects.append(
-                ScanObject(
-                    id=index + 1,
-                    class_name=f"obj_{obj_id:06d}",
-                    mesh_path=str(mesh),
-                    mesh_scale=0.001,
-                    cam_T_obj=cam_T_obj,
-                    obj_id=obj_id,
-                )
-            )
-        frames.append(
-            ScanFrame(
-                name=f"{scene.resolve().name}/{image_id:06d}",
-                intrinsics=intrinsics,
-                objects=objects,
-                world_T_cam=world_T_cam,
-                source_depth_path=str(depth_path),
-                depth_scale=float(scale_mm) / 1000.0,
-                layout="bop",
-                frame=image_id,
-            )
-        )
-    return frames
-
-
-def _bop_scene_folders(folder: Path) -> list[Path]:
-    """Scene folders for a BOP scene, split or dataset-root folder; [] if none of those."""
-    if _is_bop_scene(folder):
-        return [folder]
-    scenes = _bop_scenes_in(folder)
-    if scenes:
-        return scenes
-    splits = {p.name: _bop_scenes_in(p) for p in sorted(folder.iterdir()) if p.is_dir()}
-    splits = {name: scenes for name, scenes in splits.items() if scenes}
-    if not splits:
-        return []
-    if len(splits) == 1:
-        return next(iter(splits.values()))
-    for wanted in BOP_SPLIT_PREFERENCE:
-        if wanted in splits:
-            return splits[wanted]
-    raise InputError(
-        f"{folder}: several BOP splits ({', '.join(splits)}); pass one of them (e.g. {folder / next(iter(splits))})"
-    )
-
-
 # ---------------------------------------------------------------- entry point
 
 
@@ -456,7 +287,9 @@ def detect_layout(path: str | Path) -> str:
         raise InputError(f"{folder}: scan folder not found")
     if (folder / "manifest.jsonl").is_file():
         return "ddsgen"
-    if _bop_scene_folders(folder):
+    from ddsgen.io.bop_reader import bop_scene_folders
+
+    if bop_scene_folders(folder):
         return "bop"
     raise InputError(
         f"{folder}: not a scan folder: no manifest.jsonl (ddsgen layout) and no scene_camera.json/scene_gt.json "
@@ -477,7 +310,9 @@ def read_scan_folder(path: str | Path, eager: bool = False) -> list[ScanFrame]:
     if layout == "ddsgen":
         frames = _read_ddsgen(folder)
     else:
-        frames = [frame for scene in _bop_scene_folders(folder) for frame in _read_bop_scene(scene)]
+        from ddsgen.io.bop_reader import bop_scene_folders, read_bop_scene
+
+        frames = [frame for scene in bop_scene_folders(folder) for frame in read_bop_scene(scene)]
     if eager:
         for frame in frames:
             _ = frame.depth

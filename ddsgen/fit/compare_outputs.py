@@ -1,0 +1,72 @@
+"""What ``compare`` makes of each simulated frame besides the gap: statistics, pictures, a saved copy.
+
+:class:`FrameOutputs` is the ``on_frame`` hook of :func:`ddsgen.fit.compare.gap`: for each
+frame it computes the realism statistics of real and sim (:mod:`ddsgen.fit.realism`), draws the
+full-resolution real | simulated | difference picture (:mod:`ddsgen.fit.compare_pictures`) and
+hands the frame to a :class:`~ddsgen.fit.save_sim.SimFolderWriter` when one is given. Nothing is
+kept per frame but a few numbers, so long folders stream. :meth:`FrameOutputs.finish` adds the
+statistics to the report and writes ``comparison.json``, the plots and ``index.html``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ddsgen.fit import realism
+from ddsgen.fit.compare_pictures import side_by_side, write_index
+
+FRAMES_FOLDER = "frames"
+
+
+class FrameOutputs:
+    """Per-frame outputs of a compare run.
+
+    Args:
+        scans: the real :class:`~ddsgen.io.scanfolder.ScanFrame` list; FrameData ``index`` i is scans[i].
+        report_dir: folder of the report (pictures go to ``report_dir/frames/NNNNNN.png``).
+        region: ``"all"`` or ``"objects"`` (the compare region of the statistics and pictures).
+        sim_writer: a :class:`~ddsgen.fit.save_sim.SimFolderWriter` inside its ``with``, or None.
+        crop_border_px: with ``--crop``, the crop window's border the matcher cannot reach (see
+            :func:`ddsgen.fit.realism.frame_realism`); 0 without crop.
+    """
+
+    def __init__(self, scans, report_dir: str | Path, region: str = "all", sim_writer=None, crop_border_px: int = 0):
+        self.scans = scans
+        self.report_dir = Path(report_dir)
+        self.region = region
+        self.sim_writer = sim_writer
+        self.crop_border_px = int(crop_border_px)
+        self.statistics: list[dict] = []
+        self.pictures: list[tuple[str, str]] = []
+
+    def __call__(self, frame, sim) -> None:
+        from ddsgen.fit.compare import region_mask
+
+        scan = self.scans[frame.index]
+        real = np.asarray(scan.depth, dtype=np.float32)
+        real = np.where(np.isfinite(real) & (real > 0), real, 0.0).astype(np.float32)
+        # PNG values are rounded to the file's unit; EXR values are not
+        resolution = 0.0 if str(scan.source_depth_path).lower().endswith(".exr") else float(scan.depth_scale)
+        region = region_mask(frame, self.region).numpy()
+        self.statistics.append(realism.frame_realism(frame, sim, region, real, resolution, self.crop_border_px))
+        relative = f"{FRAMES_FOLDER}/{len(self.pictures):06d}.png"
+        side_by_side(self.report_dir / relative, f"{frame.name}: real | simulated | difference", real,
+                     realism.full_frame(sim.depth.detach().numpy(), frame, 0.0),
+                     realism.full_frame(sim.valid.numpy(), frame, False),
+                     realism.full_frame(region, frame, False))  # fmt: skip
+        self.pictures.append((frame.name, relative))
+        if self.sim_writer is not None:
+            self.sim_writer.add(frame, sim, scan)
+        scan.release()
+
+    def finish(self, report, title: str) -> list[Path]:
+        """Add the statistics to ``report``; write comparison.json, the plots and index.html. Returns the files."""
+        from ddsgen.fit.compare import table, write_report
+
+        report.realism = realism.aggregate(self.statistics)
+        written = write_report(report, self.report_dir)
+        plots = [p.relative_to(self.report_dir).as_posix() for p in written[1:]]
+        index = write_index(self.report_dir, title, table(report, title), self.pictures, plots)
+        return [*written, self.report_dir / FRAMES_FOLDER, index]

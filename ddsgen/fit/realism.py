@@ -1,0 +1,131 @@
+"""Hole, validity and quantisation statistics of real and simulated frames, side by side.
+
+The statistics are :func:`ddsgen.depth_statistics.realism_statistics` (valid share, corner
+valid share, isolated dropouts and their share of the invalid pixels, depth step at 1 m),
+computed on full frames (a ``--crop`` simulation is pasted back into its frame, so "corners"
+are the image's corners) over these pixel sets:
+
+* ``real.region`` and ``sim.region``: the compare region (modelled geometry visible and
+  plausible; with ``--region objects`` the objects' pixels only);
+* ``real.whole_frame``: every pixel of the real image;
+* ``sim.modelled``: for the simulation the whole frame means the modelled region only, every
+  pixel where modelled geometry is hit; elsewhere it has no depth by construction.
+
+Aggregates are the mean, min and max over frames of each statistic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ddsgen.depth_statistics import realism_statistics
+
+SCOPES = {
+    "real.region": "real frame, compare region (modelled, visible, plausible pixels)",
+    "real.whole_frame": "real frame, every pixel of the image",
+    "sim.region": "simulated frame, compare region",
+    "sim.modelled": "simulated frame: its whole frame is the modelled region only (pixels where modelled geometry "
+                    "is hit; the simulation has no depth elsewhere; with --crop, inside the crop window less the "
+                    "border the matcher cannot reach)",
+}  # fmt: skip
+STATISTICS = ("valid_share", "corner_valid_share", "isolated_dropouts", "isolated_dropout_share",
+              "depth_step_at_1m_mm")  # fmt: skip
+
+
+def full_frame(array, frame, fill=0) -> np.ndarray:
+    """(H, W) of the uncropped image: a prepared frame's (h, w) array pasted at its crop box.
+
+    Args:
+        array: (h, w) tensor or array of a :class:`~ddsgen.fit.simulate.FrameData` (cropped or not).
+        frame: the FrameData (its ``crop`` and ``full_intrinsics``).
+        fill: value outside the crop.
+    """
+    array = np.asarray(array)
+    full = frame.full_intrinsics or frame.intrinsics
+    if array.shape == (full.height, full.width):
+        return array
+    x0, y0, w, h = frame.crop
+    out = np.full((full.height, full.width), fill, dtype=array.dtype)
+    out[y0 : y0 + h, x0 : x0 + w] = array
+    return out
+
+
+def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real_resolution_m: float,
+                  crop_border_px: int = 0) -> dict:  # fmt: skip
+    """The statistics of one frame, real and simulated (see the module docstring).
+
+    Args:
+        frame: :class:`~ddsgen.fit.simulate.FrameData`.
+        sim: its :class:`~ddsgen.sensor.depth_sensor.SensorOutput` (depth, valid (h, w)).
+        region: bool (h, w), the compare region of ``frame``.
+        real_depth_m: float32 (H, W) the whole real image, metres, 0 = invalid.
+        real_resolution_m: the rounding unit of the real values (PNG: its depth_scale; EXR: 0).
+        crop_border_px: with ``--crop``, the border of the crop window the matcher cannot reach
+            (half a block + 1 px; the compare region leaves it out too), not counted as modelled.
+    """
+    region = full_frame(region, frame, False)
+    hit = np.asarray(frame.geometry.hit).copy()
+    if crop_border_px:
+        b = crop_border_px
+        hit[:b], hit[-b:], hit[:, :b], hit[:, -b:] = False, False, False, False
+    modelled = full_frame(hit, frame, False)
+    sim_depth = full_frame(sim.depth.detach(), frame, 0.0)
+    sim_valid = full_frame(sim.valid, frame, False)
+    real = np.asarray(real_depth_m, dtype=np.float32)
+    real_valid = real > 0
+    # The simulation's depth is float (EXR): its levels are exact, not rounded.
+    return {
+        "name": frame.name,
+        "real": {"region": realism_statistics(real, real_valid, region, real_resolution_m),
+                 "whole_frame": realism_statistics(real, real_valid, None, real_resolution_m)},
+        "sim": {"region": realism_statistics(sim_depth, sim_valid, region, 0.0),
+                "modelled": realism_statistics(sim_depth, sim_valid, modelled, 0.0)},
+    }  # fmt: skip
+
+
+def aggregate(per_frame: list[dict]) -> dict:
+    """``{"scopes", "frames", "aggregate": {"real.region": {stat: {mean, min, max}}, ...}}`` (JSON-ready)."""
+    summary = {}
+    for scope in SCOPES:
+        side, where = scope.split(".")
+        summary[scope] = {}
+        for stat in STATISTICS:
+            values = [f[side][where][stat] for f in per_frame if f[side][where][stat] is not None]
+            summary[scope][stat] = ({"mean": _r(np.mean(values)), "min": _r(min(values)), "max": _r(max(values))}
+                                    if values else None)  # fmt: skip
+    frames = [{"name": f["name"], **{side: {where: {k: _r(v) for k, v in stats.items()}
+                                            for where, stats in f[side].items()} for side in ("real", "sim")}}
+              for f in per_frame]  # fmt: skip
+    return {"scopes": SCOPES, "statistics": list(STATISTICS), "aggregate": summary, "frames": frames}
+
+
+def _r(x, nd=5):
+    if x is None:
+        return None
+    if isinstance(x, int | np.integer):
+        return int(x)
+    x = float(x)
+    return round(x, nd) if math.isfinite(x) else None
+
+
+def table(realism: dict) -> str:
+    """Plain-text table: one row per statistic, columns real/sim on the region and whole frame (mean [min-max])."""
+    names = {"valid_share": "valid share", "corner_valid_share": "corner valid share",
+             "isolated_dropouts": "isolated dropouts / frame", "isolated_dropout_share": "  their share of invalid",
+             "depth_step_at_1m_mm": "depth step at 1 m (mm)"}  # fmt: skip
+    columns = ("real.region", "sim.region", "real.whole_frame", "sim.modelled")
+    lines = [f"{'realism (mean [min-max])':27s}" + "".join(f"{c:>22s}" for c in columns)]
+    for stat in STATISTICS:
+        cells = []
+        for scope in columns:
+            v = realism["aggregate"][scope][stat]
+            if v is None:
+                cells.append(f"{'-':>22s}")
+            elif stat == "isolated_dropouts":
+                cells.append(f"{v['mean']:>8.1f} [{v['min']:.0f}-{v['max']:.0f}]".rjust(22))
+            else:
+                cells.append(f"{v['mean']:>8.3f} [{v['min']:.3f}-{v['max']:.3f}]".rjust(22))
+        lines.append(f"{names[stat]:27s}" + "".join(cells))
+    return "\n".join(lines)

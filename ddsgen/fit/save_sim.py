@@ -1,0 +1,115 @@
+"""``compare --save-sim DIR``: the simulated version of every compared real frame, as a ddsgen scan folder.
+
+Frame ``i`` of DIR is the simulation of the ``i``-th frame of the real folder (its order), written
+with the files and names ``render`` uses (:mod:`ddsgen.io.framefiles`: depth PNG in mm + EXR,
+clean EXR, IR PNG, instance mask) and a manifest record holding the real frame's camera, objects
+and poses, its name (``source``) and the fitted support plane. A ``--crop`` simulation is pasted
+into its full frame (no depth outside the crop). The folder is built under a hidden temporary
+name next to DIR and renamed to DIR once complete, so DIR is either absent or whole; it reads
+back with :func:`ddsgen.io.scanfolder.read_scan_folder`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import tempfile
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from ddsgen.errors import InputError
+from ddsgen.fit.realism import full_frame
+from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
+from ddsgen.io.manifest import append_record
+from ddsgen.preset import SensorPreset, save_preset
+
+MANIFEST = "manifest.jsonl"
+
+
+def check_target(out: str | Path) -> Path:
+    """DIR must not exist yet (or be an empty folder): call before any work. Returns it as a Path."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        what = "folder is not empty" if out.is_dir() else "exists and is not a folder"
+        raise InputError(f"{out}: --save-sim: {what}; give a new folder")
+    return out
+
+
+class SimFolderWriter:
+    """Collects simulated frames into a scan folder; use as a context manager.
+
+    ``with SimFolderWriter(out, preset, seed) as writer: writer.add(frame, sim, scan)`` -- on a
+    clean exit the folder is renamed to ``out``; on an exception it is removed.
+    """
+
+    def __init__(self, out: str | Path, preset: SensorPreset, seed: int):
+        self.out = check_target(out)
+        self.preset = preset
+        self.seed = int(seed)
+        self.count = 0
+        self.tmp: Path | None = None
+
+    def __enter__(self) -> SimFolderWriter:
+        parent = self.out.resolve().parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", suffix=".partial", dir=parent))
+            save_preset(self.preset, self.tmp / "sensor.yaml", comment=f"resolved from {self.preset.source}; "
+                        "the camera is the real scans'")  # fmt: skip
+        except OSError as error:
+            self._remove()
+            raise InputError(f"{self.out}: --save-sim: cannot write ({error.strerror or error})") from None
+        return self
+
+    def __exit__(self, kind, error, trace) -> None:
+        if kind is not None:
+            self._remove()
+            return
+        try:
+            with contextlib.suppress(FileNotFoundError):
+                self.out.rmdir()  # an empty folder given as the target
+            self.tmp.rename(self.out)
+        except OSError as error:
+            self._remove()
+            raise InputError(f"{self.out}: --save-sim: cannot write ({error.strerror or error})") from None
+
+    def _remove(self) -> None:
+        if self.tmp is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def add(self, frame, sim, scan) -> dict:
+        """Write the simulation ``sim`` (SensorOutput) of ``frame`` (FrameData) of the real ``scan`` (ScanFrame)."""
+        from ddsgen.fit.simulate import frame_scene
+        from ddsgen.raycast import object_labels
+
+        index = self.count
+        intrinsics = frame.full_intrinsics or frame.intrinsics
+        depth = full_frame(sim.depth.detach().numpy(), frame, 0.0).astype(np.float32)
+        instance = full_frame(frame.instance.numpy(), frame, 0)
+        paths = write_frame_files(self.tmp, index, depth, full_frame(frame.geometry.clean_depth.numpy(), frame, 0.0),
+                                  full_frame(sim.ir.detach().numpy(), frame, 0.0), 2.0**self.preset.ir_bits - 1.0,
+                                  instance)  # fmt: skip
+        # bbox and visible_fraction as render labels them (the support plane is background, id 0).
+        objects = object_labels(frame_scene(scan), SimpleNamespace(instance=instance, coverage=None), intrinsics)
+        for label, obj in zip(objects, sorted(scan.objects, key=lambda o: o.id)):
+            label["mesh"] = obj.mesh_path  # absolute path or "shape:NAME", as the real folder gives it
+        record = {
+            "frame": index,
+            **paths,
+            "intrinsics": intrinsics.as_dict(),
+            "depth_scale": DEPTH_SCALE,
+            # the simulation's scene is the camera frame; keep the real camera's world pose when known
+            "world_T_cam": np.eye(4) if scan.world_T_cam is None else scan.world_T_cam,
+            "objects": objects,
+            "seed": self.seed,
+            "source": scan.name,
+            "source_depth": str(Path(scan.source_depth_path).resolve()),
+            "crop": list(frame.crop),
+            "support_plane": None if frame.plane is None else frame.plane.as_dict(),
+            "valid_fraction": round(float((depth > 0).mean()), 6),
+        }
+        append_record(self.tmp / MANIFEST, record)
+        self.count += 1
+        return record
