@@ -29,9 +29,9 @@ _KERNEL_TRIED = False
 _KERNEL_LOCK = threading.Lock()
 
 
-def _c_source() -> str:
+def _c_source() -> bytes:
     """The kernels' C source, shipped as package data (csrc/zncc.c)."""
-    return files(__package__).joinpath("csrc", "zncc.c").read_text(encoding="utf-8")
+    return files(__package__).joinpath("csrc", "zncc.c").read_bytes()
 
 
 def _cpu_tag() -> str:
@@ -45,10 +45,11 @@ def _cpu_tag() -> str:
     return platform.processor() or platform.machine()
 
 
-
 def _load_kernel():
-    """Compile (once, cached in the project cache) and load the C integer-search kernel.
-    Returns None when no C compiler/OpenMP is available (then torch does the work)."""
+    """Compile csrc/zncc.c (once per source, compiler, flags and CPU: cached in ddsgen's cache
+    folder) and load it; memoised per process. Returns None when there is no C compiler or
+    OpenMP (``$CC``, default ``cc``), or with ``DDSGEN_NO_C_KERNEL`` set: then the torch path
+    does the work."""
     global _KERNEL, _KERNEL_TRIED
     with _KERNEL_LOCK:
         if _KERNEL_TRIED:
@@ -62,14 +63,14 @@ def _load_kernel():
         flags = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=gnu11"]
         try:
             source = _c_source()
-            digest = hashlib.sha256("\n".join([source, compiler, *flags, _cpu_tag()]).encode()).hexdigest()[:16]
+            digest = hashlib.sha256(source + "\n".join(["", compiler, *flags, _cpu_tag()]).encode()).hexdigest()[:16]
             folder = cache_dir() / "kernels"
             lib_path = folder / f"zncc_{digest}.so"
             if not lib_path.exists():
                 folder.mkdir(parents=True, exist_ok=True)
                 with tempfile.TemporaryDirectory(dir=folder) as tmp:
                     src = Path(tmp) / "zncc.c"
-                    src.write_text(source)
+                    src.write_bytes(source)
                     out = Path(tmp) / "zncc.so"
                     subprocess.run([compiler, *flags, str(src), "-o", str(out), "-lm"],
                                    check=True, capture_output=True, timeout=120)  # fmt: skip
@@ -87,10 +88,9 @@ def _load_kernel():
                 fn.restype = None
             _KERNEL = lib
         except (OSError, subprocess.SubprocessError) as error:
-            log.warning("ddsgen matcher: C kernel unavailable (%s); using the torch integer search", error)
+            log.warning("ddsgen matcher: C kernel unavailable (%s); using the torch path", error)
             _KERNEL = None
         return _KERNEL
-
 
 
 def integer_search_backend(device="cpu") -> str:

@@ -1,15 +1,29 @@
-/* Integer-disparity ZNCC search for ddsgen's block matcher (no gradient needed here).
+/* zncc.c: the CPU kernels of ddsgen's block matcher (ddsgen/sensor/matcher/).
  *
- * For every output pixel (v, u) and candidate c = 0..D-1 (integer disparity k = k_hi - c):
- *   cross(v, u, c) = sum_{i<b, j<b} O[v+i][u+j] * R[v+i][u+j + r0 + c]
- *   score          = (cross - OS[v][u] * RS[v][u+r0+c] / n) * invO[v][u] * invR[v][u+r0+c] + PEN[v][u+r0+c]
- * O is the row/column padded observed image, R the row padded reference (phase 0, unknown
- * values zeroed), PEN is 0 where the reference window is known and -1e30 where it is not.
- * Window sums are running sums (vertical ones restarted every ROW_BLOCK rows, so the result
- * is independent of the thread count). Outputs per pixel: best score, the best score at least 2 candidates away from the
- * best (the "second peak"), and the best candidate index (-1 if every candidate is
- * excluded). Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
+ * What they compute. The observed IR image O is compared with the projector's reference
+ * pattern R along image rows (epipolar lines): for a disparity d, the block x block window of O
+ * at (v, u) against the window of R at (v, u - d), scored by zero-mean normalised
+ * cross-correlation,
+ *     ZNCC = (sum O R - sum O sum R / n) / sqrt(var_O + floor) / sqrt(var_R + floor),  n = block^2,
+ * where the variance floor keeps flat windows finite. Four entry points, called through ctypes
+ * from kernel.py / autograd.py (plain C11 + GCC vector extensions + OpenMP over rows):
+ *   ddsgen_observed_stats     the mirrored, padded O and its per-pixel window sum and 1 / std;
+ *   ddsgen_zncc_search        stage 1: ZNCC at every integer disparity, streaming (no cost
+ *                             volume); per pixel the best score, the second peak (confidence)
+ *                             and the best disparity K;
+ *   ddsgen_refine             stage 2: ZNCC of the sub-pixel candidates d_t = K + (t - T) / S
+ *                             against the reference phases, then the soft-argmax
+ *                             d = sum_t softmax(beta ZNCC)_t d_t; in backward mode also the
+ *                             gradients w.r.t. the cross-correlations, O's statistics and beta;
+ *   ddsgen_window_cross_grad  the backward of the window cross-correlations w.r.t. O.
+ * The torch twin of all four is torch_path.py + windows.py; tests/test_matcher.py checks that
+ * both give the same disparities and gradients. Every pixel is computed in a fixed order, so
+ * results depend neither on the thread count nor on the row-band split.
+ *
+ * Built on first use with the system compiler (cc -O3 -march=native -fopenmp), cached in
+ * ddsgen's cache folder under a hash of this file, the compiler, the flags and the CPU.
  */
+
 #include <stddef.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -37,6 +51,18 @@ static inline v8 vsel8(vi8 mask, v8 a, v8 b) { /* mask ? a : b, lane-wise */
 
 static inline v8 vmax8(v8 a, v8 b) { return vsel8(a > b, a, b); }
 
+/* Stage 1, integer-disparity search (no gradient needed here).
+ *
+ * For every output pixel (v, u) and candidate c = 0..D-1 (integer disparity k = k_hi - c):
+ *   cross(v, u, c) = sum_{i<b, j<b} O[v+i][u+j] * R[v+i][u+j + r0 + c]
+ *   score          = (cross - OS[v][u] * RS[v][u+r0+c] / n) * invO[v][u] * invR[v][u+r0+c] + PEN[v][u+r0+c]
+ * O is the row/column padded observed image, R the row padded reference (phase 0, unknown
+ * values zeroed), PEN is 0 where the reference window is known and -1e30 where it is not.
+ * Window sums are running sums (vertical ones restarted every ROW_BLOCK rows, so the result
+ * is independent of the thread count). Outputs per pixel: best score, the best score at least 2 candidates away from the
+ * best (the "second peak"), and the best candidate index (-1 if every candidate is
+ * excluded). Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
+ */
 void ddsgen_zncc_search(const float *restrict O, int Wo,
                         const float *restrict R, int Wr,
                         const float *restrict OS, const float *restrict invO,
