@@ -57,9 +57,9 @@ import torch
 
 from ddsgen.sensor.matcher.autograd import _ObservedStatsC, _RefineC
 from ddsgen.sensor.matcher.kernel import _integer_search_c, _load_kernel, integer_search_backend
-from ddsgen.sensor.matcher.reference import _REF_CACHE, _prepare_reference  # noqa: F401 (tests reach these)
+from ddsgen.sensor.matcher.reference import _prepare_reference
 from ddsgen.sensor.matcher.stereo import stereo_reference_phases
-from ddsgen.sensor.matcher.torch_path import _COMPILED, _integer_search_torch, _refine_torch, _want_compile  # noqa: F401
+from ddsgen.sensor.matcher.torch_path import _integer_search_torch, _refine_torch, _want_compile
 from ddsgen.sensor.matcher.windows import VARIANCE_FLOOR, _observed_stats
 
 __all__ = ["MatchResult", "match", "stereo_reference_phases", "integer_search_backend", "VARIANCE_FLOOR"]
