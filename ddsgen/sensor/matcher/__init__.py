@@ -7,7 +7,7 @@ The observed IR image I_o(u, v) is compared with the reference R(u - d, v) for d
    cross-correlation (ZNCC) over block x block windows for every integer disparity, keeping
    per pixel the best score, the best score of any other peak (>= 2 px away) and its
    argmax K. On the CPU this runs in a small C kernel (compiled once with the system C
-   compiler, cached in the project cache; OpenMP over rows, vectorised over disparities;
+   compiler, cached in ddsgen's cache folder; OpenMP over rows, vectorised over disparities;
    streaming, so it never holds a cost volume). Without a compiler, or on CUDA, a torch
    implementation over row bands does the same.
 2. **Sub-pixel refinement** (differentiable). Candidates d_t = K + t / S, t = -T..T with
@@ -46,6 +46,13 @@ Everything works in float64 too (for ``torch.autograd.gradcheck``), with ``quant
 to check the soft-argmax itself.
 
 Shapes: observed (H, W); reference_phases (S, H, W + pad); outputs (H, W).
+
+The package, one idea per module: this file checks inputs, sets defaults and picks a path
+(:func:`match`); ``windows`` (box sums, mirrored borders, the observed window statistics),
+``reference`` (the prepared, cached reference layouts), ``kernel`` (compiling, loading and
+calling ``csrc/zncc.c``), ``autograd`` (the C path's autograd Functions, which only call the
+kernels), ``torch_path`` (the pure-torch twin with the same arguments), ``stereo`` (reference
+phases of an ordinary stereo pair).
 """
 
 from __future__ import annotations
@@ -57,7 +64,7 @@ import torch
 
 from ddsgen.sensor.matcher.autograd import _ObservedStatsC, _RefineC
 from ddsgen.sensor.matcher.kernel import _integer_search_c, _load_kernel, integer_search_backend
-from ddsgen.sensor.matcher.reference import _prepare_reference
+from ddsgen.sensor.matcher.reference import RefineGeometry, _prepare_reference
 from ddsgen.sensor.matcher.stereo import stereo_reference_phases
 from ddsgen.sensor.matcher.torch_path import _integer_search_torch, _refine_torch, _want_compile
 from ddsgen.sensor.matcher.windows import VARIANCE_FLOOR, _observed_stats
@@ -147,14 +154,12 @@ def match(
     reference_phases = reference_phases.to(dtype)
     beta = beta if torch.is_tensor(beta) else torch.tensor(float(beta))
     beta = beta.to(device=dev, dtype=dtype)
-    n = block * block
     n_disp = k_hi - k_lo + 1
 
     extra = h + 8 + max(0, -k_lo)  # readable columns right of the image (see the C kernel)
     ref = _prepare_reference(reference_phases, pad, block, int(n_sub), extra)
 
-    # Observed: normalised to zero mean, unit variance (ZNCC is invariant; this makes the
-    # variance floor relative and float32 sums well conditioned), mirrored at the borders.
+    # The C kernels on the CPU when they compiled (or when asked for); the torch twin otherwise.
     use_c = backend == "c" or (backend == "auto" and dev.type == "cpu")
     kernel = _load_kernel() if use_c else None
     if backend == "c" and kernel is None:
@@ -185,16 +190,15 @@ def match(
     col_shift = pad + ref.offset - h
     use_c_refine = (kernel is not None and dev.type == "cpu" and dtype == torch.float32
                     and ref.fwd is not None and ref.n_cand_padded <= 64 and block <= 64)  # fmt: skip
+    geom = RefineGeometry(block=block, col_shift=col_shift, n_sub=int(n_sub), d_min=float(d_min), d_max=float(d_max),
+                          rows=rows)  # fmt: skip
     if use_c_refine:
         # Fused C kernel: no cost volume, no torch.compile; the backward recomputes bands of
         # `rows` rows in C, so memory is bounded by the band. Results do not depend on `rows`.
-        geom = dict(block=block, col_shift=col_shift, S=S, d_lo=float(d_min) - 1e-6, d_hi=float(d_max) + 1e-6,
-                    rows=rows)  # fmt: skip
-        disparity = _RefineC.apply(o_pad, osum, oinv, beta, k_int.to(torch.int32).contiguous(), ref, geom)
+        disparity = _RefineC.apply(o_pad, osum, oinv, beta, k_int, ref, geom)
     else:
-        disparity = _refine_torch(o_pad, osum, oinv, beta, k_int, ref, block=block, col_shift=col_shift,
-                                  n_sub=int(n_sub), d_min=float(d_min), d_max=float(d_max), rows=rows,
-                                  compile_mode=_want_compile(dev, compile), use_checkpoint=grad)
+        disparity = _refine_torch(o_pad, osum, oinv, beta, k_int, ref, geom,
+                                  compile_mode=_want_compile(dev, compile), use_checkpoint=grad)  # fmt: skip
 
     if quantize:
         quantised = torch.round(disparity.detach() * S) / S

@@ -47,12 +47,14 @@ class _RefineC(torch.autograd.Function):
     ``oinv`` and ``beta``; the backward recomputes each band of ``rows`` rows in C.
 
     o: (H + b - 1, W + b - 1) float32 normalised padded observed image; osum, oinv: (H, W);
-    beta: 0-dim; k: (H, W) int32 integer disparities; ref: the prepared reference (its C
-    layouts ``fwd``, ``bwd``, ``stat_sum``, ``stat_inv``, ``stat_unk``). Returns (H, W)."""
+    beta: 0-dim; k: (H, W) integer disparities; ref: the prepared reference (its C layouts
+    ``fwd``, ``bwd``, ``stat_sum``, ``stat_inv``, ``stat_unk``); geom: a RefineGeometry.
+    Returns (H, W). Its torch twin, same arguments: torch_path._refine_torch."""
 
     @staticmethod
     def forward(ctx, o, osum, oinv, beta, k, ref, geom):
         lib = _load_kernel()
+        k = k.to(torch.int32).contiguous()
         o_c, os_c, oi_c = (x.detach().float().contiguous() for x in (o, osum, oinv))
         H, W = k.shape
         disp = torch.empty(H, W, dtype=torch.float32)
@@ -71,14 +73,14 @@ class _RefineC(torch.autograd.Function):
         gd = grad_disp.float().contiguous()
         d_o = torch.zeros_like(o_c)
         d_os, d_oi, d_beta = (torch.empty(H, W, dtype=torch.float32) for _ in range(3))
-        rows = geom["rows"]
+        rows = geom.rows
         g_band = torch.empty(min(rows, H), W, ref.n_cand_padded, dtype=torch.float32)
         bwd = ref.bwd
         for v0 in range(0, H, rows):  # the (rows, W, C) gradient buffer bounds the memory
             v1 = min(H, v0 + rows)
             _call_refine(lib, o_c, os_c, oi_c, float(beta.detach()), k, ref, geom, v0, v1, grad=(gd, g_band, d_os, d_oi, d_beta))  # fmt: skip
             lib.ddsgen_window_cross_grad(g_band.data_ptr(), g_band.shape[2], bwd.data_ptr(), bwd.shape[2], ref.bwd_left,
-                                         bwd.shape[1], ref.S, C, k.data_ptr(), geom["col_shift"], v0, v1, W,
-                                         geom["block"], d_o.data_ptr(), d_o.shape[1], _n_threads())  # fmt: skip
+                                         bwd.shape[1], ref.S, C, k.data_ptr(), geom.col_shift, v0, v1, W,
+                                         geom.block, d_o.data_ptr(), d_o.shape[1], _n_threads())  # fmt: skip
         d_beta_total = d_beta.double().sum().to(beta.dtype) if ctx.needs_input_grad[3] else None
         return d_o, d_os, d_oi, d_beta_total, None, None, None

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from ddsgen.sensor.matcher.reference import _Reference
+from ddsgen.sensor.matcher.reference import RefineGeometry, _Reference
 
 log = logging.getLogger(__name__)
 
@@ -118,13 +118,14 @@ def _integer_search_c(fn, o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp)
 
 
 
-def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: dict, v0: int, v1: int, disp=None, grad=None):
+def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: RefineGeometry, v0: int, v1: int, disp=None,
+                 grad=None):
     null = None
     gd, g_band, d_os, d_oi, d_beta = grad if grad is not None else (null,) * 5
     ptr = lambda x: None if x is None else x.data_ptr()  # noqa: E731
     lib.ddsgen_refine(o.data_ptr(), o.shape[1], ref.fwd.data_ptr(), ref.fwd.shape[1], ref.fwd_base, *ref.fwd_strides, ref.n_cand,
-                      ref.n_cand_padded, k.data_ptr(), geom["col_shift"], v0, v1, k.shape[1], geom["block"],
+                      ref.n_cand_padded, k.data_ptr(), geom.col_shift, v0, v1, k.shape[1], geom.block,
                       ref.stat_sum.data_ptr(), ref.stat_inv.data_ptr(), ref.stat_unk.data_ptr(), ref.stat_sum.shape[1],
                       ref.stat_base,
-                      osum.data_ptr(), oinv.data_ptr(), beta, geom["S"], geom["d_lo"], geom["d_hi"], ptr(disp),
+                      osum.data_ptr(), oinv.data_ptr(), beta, 2**geom.n_sub, geom.d_min - 1e-6, geom.d_max + 1e-6, ptr(disp),
                       ptr(gd), ptr(g_band), ptr(d_os), ptr(d_oi), ptr(d_beta), _n_threads())  # fmt: skip

@@ -97,6 +97,25 @@ class _Reference:
 
 
 
+@dataclass(frozen=True)
+class RefineGeometry:
+    """What the sub-pixel refinement reads, the same for its C and torch paths.
+
+    block: window size w (px, odd); col_shift: extended reference column of the window of
+    pixel u at integer disparity 0 (pixel u, disparity K starts at u + col_shift - K);
+    n_sub: sub-pixel level (S = 2^n_sub candidates per px); d_min, d_max: disparity range
+    (px; candidates outside it are excluded); rows: rows per band (bounds memory; results
+    do not depend on it).
+    """
+
+    block: int
+    col_shift: int
+    n_sub: int
+    d_min: float
+    d_max: float
+    rows: int
+
+
 def _interleave_reversed(rows: int, width: int, S: int, left: int, right: int, dtype, fill=0) -> tuple:
     """An (rows, left + width S + right) buffer filled with ``fill`` and its (rows, width, S)
     view of the middle in reversed column order: ``view[:, c, s]`` is element

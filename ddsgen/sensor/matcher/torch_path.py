@@ -11,7 +11,7 @@ import os
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from ddsgen.sensor.matcher.reference import _Reference
+from ddsgen.sensor.matcher.reference import RefineGeometry, _Reference
 from ddsgen.sensor.matcher.windows import _EXCLUDED_INT, _EXCLUDED_SCORE
 
 log = logging.getLogger(__name__)
@@ -129,13 +129,14 @@ def _want_compile(device: torch.device, compile: bool | None) -> bool:
     return device.type in ("cpu", "cuda")
 
 
-def _refine_torch(o_pad, osum, oinv, beta, k_int, ref: _Reference, *, block: int, col_shift: int, n_sub: int,
-                  d_min: float, d_max: float, rows: int, compile_mode: bool, use_checkpoint: bool) -> torch.Tensor:
-    """The torch twin of the C refinement: bands of ``rows`` rows of equal height (uniform
-    shapes for the compiled kernel), each recomputed in the backward pass (checkpointing).
-    Arguments as for :class:`~ddsgen.sensor.matcher.autograd._RefineC`; returns (H, W)."""
-    H = k_int.shape[0]
-    h = block // 2
+def _refine_torch(o_pad, osum, oinv, beta, k_int, ref: _Reference, geom: RefineGeometry, *, compile_mode: bool = False,
+                  use_checkpoint: bool = False) -> torch.Tensor:
+    """The torch twin of the C refinement, same arguments as
+    :class:`~ddsgen.sensor.matcher.autograd._RefineC`: bands of ``geom.rows`` rows of equal
+    height (uniform shapes for the compiled kernel), torch.compile'd with ``compile_mode``, each
+    recomputed in the backward pass with ``use_checkpoint``. Returns (H, W)."""
+    H, rows = k_int.shape[0], geom.rows
+    h = geom.block // 2
     fn = _compiled(_refine_band, compile_mode)
     cand, cand_sum, cand_inv, cand_unknown = ref.torch_candidates()
     pieces = []
@@ -146,7 +147,7 @@ def _refine_torch(o_pad, osum, oinv, beta, k_int, ref: _Reference, *, block: int
         args = (o_pad[start : stop + 2 * h], cand[start : stop + 2 * h], cand_sum[start:stop],
                 cand_inv[start:stop], cand_unknown[start:stop], osum[start:stop], oinv[start:stop],
                 k_int[start:stop], beta)  # fmt: skip
-        kwargs = dict(block=block, col_shift=col_shift, n_sub=int(n_sub), d_min=float(d_min), d_max=float(d_max))
+        kwargs = dict(block=geom.block, col_shift=geom.col_shift, n_sub=geom.n_sub, d_min=geom.d_min, d_max=geom.d_max)
         band = _run_refine(fn, args, kwargs, use_checkpoint)
         pieces.append(band[done - start :])
         done = stop
