@@ -22,7 +22,7 @@ BATCH ?= 1
 install: $(VENV)/.installed
 
 # torch==2.13.0 first: it is the CPU wheel; an unpinned torch would pull a multi-GB CUDA build.
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0

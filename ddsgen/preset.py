@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +21,12 @@ import yaml
 from ddsgen.errors import InputError, where
 from ddsgen.yamlfile import read_yaml
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-PRESET_DIR = PROJECT_ROOT / "presets"
-PATTERN_DIR = PROJECT_ROOT / "pattern_assets"
+# The shipped presets and dot patterns: package data (presets/ and pattern_assets/ of the
+# repository, ddsgen/presets and ddsgen/pattern_assets in the wheel), found through the import
+# system, so they are there in a checkout, an editable and a wheel install alike. pip unpacks
+# wheels, so these are real folders (pathlib.Path).
+PRESET_DIR = files("ddsgen.presets")
+PATTERN_DIR = files("ddsgen.pattern_assets")
 
 
 REQUIRED = object()  # marks a key with no default
@@ -158,7 +162,9 @@ class SensorPreset:
         return out
 
     def resolve_path(self, relative: str) -> Path:
-        """A path named in the preset: absolute, relative to the preset file, or a shipped asset."""
+        """A path named in the preset: absolute, relative to the preset file's folder, else a
+        shipped pattern asset (``pattern: kinect_like_640.png`` works from any folder). A path
+        found nowhere is returned relative to the preset's folder (for the error message)."""
         path = Path(relative).expanduser()
         if path.is_absolute():
             return path
@@ -279,11 +285,31 @@ def preset_from_dict(data: Any, source: str | Path = "") -> SensorPreset:
     return SensorPreset(**values, source=source)
 
 
+def shipped_preset(name: str) -> Path | None:
+    """The shipped preset file called ``name`` (``kinect_v1`` or ``kinect_v1.yaml``), or None."""
+    if not name or Path(name).name != name:
+        return None
+    candidate = PRESET_DIR / (name if name.endswith(".yaml") else f"{name}.yaml")
+    return Path(candidate) if candidate.is_file() else None
+
+
+def shipped_preset_names() -> list[str]:
+    """Names of the shipped presets (``ddsgen render NAME``), sorted."""
+    return sorted(entry.name[: -len(".yaml")] for entry in PRESET_DIR.iterdir() if entry.name.endswith(".yaml"))
+
+
 def load_preset(path: str | Path) -> SensorPreset:
-    """Read and validate a preset YAML file (or a shipped preset name such as ``kinect_v1``)."""
+    """Read and validate a preset YAML file, or a shipped preset by name (``kinect_v1``).
+
+    A file of that name in the current folder wins over the shipped preset.
+    """
     path = Path(path)
-    if not path.exists() and (PRESET_DIR / f"{path.name}.yaml").exists() and len(path.parts) == 1:
-        path = PRESET_DIR / f"{path.name}.yaml"
+    if not path.exists():
+        shipped = shipped_preset(str(path))
+        if shipped is None and len(path.parts) == 1:
+            names = ", ".join(shipped_preset_names())
+            raise InputError(f"{path}: preset file not found, and no shipped preset of that name ({names})")
+        path = shipped or path
     data = read_yaml(path, "preset")
     return preset_from_dict(data, source=path)
 

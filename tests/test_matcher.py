@@ -1,5 +1,6 @@
-"""The block matcher (ddsgen/sensor/matcher.py): accuracy on known disparities, exact band
-stitching, gradients against finite differences, finite gradients everywhere, memory bounded
+"""The block matcher (ddsgen/sensor/matcher/): accuracy on known disparities, exact band
+stitching, the C and torch paths agreeing (forward and backward; torch when there is no C
+compiler), gradients against finite differences, finite gradients everywhere, memory bounded
 by the band, and the reference-phase layout of docs/ARCHITECTURE.md.
 
 The synthetic scenes use an analytic dot pattern (Gaussian dots, sigma 0.6 px, ~11 % of the
@@ -20,6 +21,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
 from ddsgen.sensor import matcher as M
+from ddsgen.sensor.matcher import kernel, reference, torch_path
 from ddsgen.sensor.matcher import match, stereo_reference_phases
 
 SIGMA = 0.6
@@ -130,6 +132,58 @@ def test_backends_agree(sloped):
     assert (a.confidence - b.confidence).abs().max() < 1e-3  # float32 running sums vs explicit sums
 
 
+def test_c_and_torch_paths_give_the_same_depth_and_gradients_in_float32(small64):
+    """The C kernels (float32 CPU) and the torch twin on the same float32 IR pair: the same
+    disparity, hence depth, to float32 rounding, and the same gradients w.r.t. the observed
+    image and beta (both paths' backward, not just the forward)."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    observed, phases, pad = (x.float() if torch.is_tensor(x) else x for x in small64)
+    weights = torch.randn(observed.shape, generator=torch.Generator().manual_seed(1))
+
+    def run(backend):
+        obs = observed.clone().requires_grad_(True)
+        beta = torch.tensor(15.0, requires_grad=True)
+        result = match(obs, phases, pad, 4, 16, 5, beta, 2, 5, 0.05, quantize=False, backend=backend, compile=False)
+        (result.disparity * weights).sum().backward()
+        return result, obs.grad, beta.grad
+
+    (c, c_grad, c_beta), (t, t_grad, t_beta) = run("c"), run("torch")
+    both = (c.valid & t.valid).numpy()
+    assert both.mean() > 0.8
+    focal_baseline = 572.41 * 0.075  # kinect_v1: depth = f b / d
+    depth_c, depth_t = focal_baseline / c.disparity.detach().numpy(), focal_baseline / t.disparity.detach().numpy()
+    assert np.abs(depth_c - depth_t)[both].max() < 1e-5 * depth_t[both].max()
+    assert torch.equal(c.valid, t.valid)
+    assert (c_grad - t_grad).norm() < 1e-3 * t_grad.norm()
+    assert abs(float(c_beta - t_beta)) < 1e-3 * abs(float(t_beta)) + 1e-6
+
+
+def test_without_a_c_compiler_the_torch_path_gives_the_same_disparity(sloped, tmp_path, monkeypatch, caplog):
+    """No compiler on the machine (``$CC`` names none): one warning, no file in the cache, the
+    torch path runs and agrees with the C path (where that exists)."""
+    observed, phases, pad, _ = sloped
+    args = (observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05)
+    with_c = match(*args, compile=False, quantize=False) if M.integer_search_backend() == "c" else None
+    monkeypatch.setattr(kernel, "_KERNEL", None)
+    monkeypatch.setattr(kernel, "_KERNEL_TRIED", False)
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    monkeypatch.setenv("DDSGEN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("DDSGEN_NO_C_KERNEL", raising=False)
+    with caplog.at_level("WARNING"):
+        assert M.integer_search_backend() == "torch"
+    assert "C kernel unavailable" in caplog.text
+    assert not list((tmp_path / "cache").rglob("*.so")) and not list((tmp_path / "cache").rglob("*.c"))
+    with pytest.raises(RuntimeError, match="unavailable"):
+        match(*args, backend="c")
+    without_c = match(*args, compile=False, quantize=False)
+    inner = _interior(np.ones(observed.shape, dtype=bool))
+    assert without_c.valid.numpy()[inner].mean() > 0.95
+    if with_c is not None:
+        close = (with_c.disparity - without_c.disparity).abs() < 1e-3
+        assert close.float().mean() > 0.995  # differences only at exact ties of the integer search
+
+
 # ---------------------------------------------------------------------------------------
 # Bands
 # ---------------------------------------------------------------------------------------
@@ -186,7 +240,7 @@ def test_no_grad_c_path_never_calls_torch_compile(sloped, monkeypatch):
         raise AssertionError("torch.compile called")
 
     monkeypatch.setattr(torch, "compile", refuse)
-    monkeypatch.setattr(M, "_COMPILED", {})
+    monkeypatch.setattr(torch_path, "_COMPILED", {})
     observed, phases, pad, _ = sloped
     with torch.no_grad():
         result = match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05)
@@ -361,10 +415,10 @@ def test_band_rows_bound_the_cost_volume():
     tensor memory follows band_rows and stays far below that of a whole-image volume."""
     height, width, d_max = 160, 120, 40
     observed, phases, pad, _ = _scene(height, width, 20.0, n_sub=2, pad=d_max + 16, seed=2)
-    M._REF_CACHE.clear()
+    reference._REF_CACHE.clear()
     # Reference tensors (and the torch path's per-candidate layout, built on its first use)
     # are per sensor, not per frame: build them before measuring.
-    M._prepare_reference(phases, pad, 9, 2, 4 + 8).torch_candidates()
+    reference._prepare_reference(phases, pad, 9, 2, 4 + 8).torch_candidates()
     peaks = {}
     for rows in (4, 16, height):
         with _PeakTensorMemory() as mode:
@@ -385,7 +439,7 @@ def test_c_path_memory_does_not_grow_with_the_disparity_range():
     observed, phases, pad, _ = _scene(height, width, 15.0, n_sub=2, pad=76, seed=2)
     peaks = {}
     for d_max in (20, 60):
-        M._prepare_reference(phases, pad, 9, 2, 4 + 8)
+        reference._prepare_reference(phases, pad, 9, 2, 4 + 8)
         with _PeakTensorMemory() as mode:
             match(observed, phases, pad, 0, d_max, 9, 15.0, 2, 32, 0.05, compile=False)
         peaks[d_max] = mode.peak
@@ -405,9 +459,9 @@ def test_reference_cache_grows_with_the_phases_not_with_the_candidates():
     held, peak = {}, {}
     for n_sub in (2, 4):
         observed, phases, pad, _ = _scene(height, width, 15.0, n_sub=n_sub, pad=40, seed=2)
-        M._REF_CACHE.clear()
+        reference._REF_CACHE.clear()
         with _PeakTensorMemory() as mode:
-            ref = M._prepare_reference(phases, pad, 9, n_sub, 4 + 8)
+            ref = reference._prepare_reference(phases, pad, 9, n_sub, 4 + 8)
         size = phases.numel() * phases.element_size()
         held[n_sub], peak[n_sub] = mode.live, mode.peak
         # two layouts of the phases (the forward one 8 / S copies for S < 8: aligned vectors),
@@ -416,9 +470,9 @@ def test_reference_cache_grows_with_the_phases_not_with_the_candidates():
         assert mode.peak < 12 * size, (n_sub, mode.peak / size)  # built one phase at a time
         if M.integer_search_backend() == "c":  # the C path never builds the torch layout
             match(observed, phases, pad, 0, 20, 9, 15.0, n_sub, 32, 0.05)
-            assert M._prepare_reference(phases, pad, 9, n_sub, 4 + 8) is ref and ref._torch is None
+            assert reference._prepare_reference(phases, pad, 9, n_sub, 4 + 8) is ref and ref._torch is None
     assert held[4] <= 1.05 * 4 * held[2], held  # S grows 4x, C = 3S + 1 would too: bytes follow S
-    M._REF_CACHE.clear()
+    reference._REF_CACHE.clear()
 
 
 # ---------------------------------------------------------------------------------------

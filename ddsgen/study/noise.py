@@ -30,19 +30,23 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+from importlib.resources import files
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.preset import PROJECT_ROOT, Intrinsics, SensorPreset
+from ddsgen.preset import Intrinsics, SensorPreset
 
 DEFAULT_Z = "0.5:4.0:0.25"
 DEFAULT_ANGLES = "0,15,30,45,60,75"
 DEFAULT_ALBEDO = 0.8  # IR reflectance of the board (a matte white-ish target)
 ROI_DEPTH_TOLERANCE = 0.10  # region of interest: |true depth - z| <= 10 % of z
-SHARED_DATA = PROJECT_ROOT.parent / "shared" / "data"
+#: Real depth data for the quantisation check: $DDSGEN_SHARED_DATA, else shared/data beside the
+#: source checkout (absent in a wheel install: the check is then skipped with a message).
+SHARED_DATA = Path(os.environ.get("DDSGEN_SHARED_DATA") or Path(str(files("ddsgen"))).parents[1] / "shared" / "data")
 LINEMOD_DEPTH = SHARED_DATA / "linemod_bop" / "test" / "000006" / "depth" / "000000.png"
 DISTREAL_MM = SHARED_DATA / "kinect_v1_landau_simulator_data" / "distReal_mm.txt"
 JSON_KEYS = ("z", "angle_deg", "rms_m", "std_m", "bias_m", "valid_fraction", "step_m")

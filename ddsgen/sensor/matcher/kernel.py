@@ -1,0 +1,131 @@
+"""The matcher's C kernels (csrc/zncc.c): compiled with the system C compiler on first use,
+cached in ddsgen's cache folder, loaded with ctypes; thin wrappers that call them.
+
+:func:`_load_kernel` returns None when there is no compiler (or OpenMP), or when
+``DDSGEN_NO_C_KERNEL`` is set: the matcher then runs its torch path.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import subprocess
+import tempfile
+import threading
+from importlib.resources import files
+from pathlib import Path
+
+import torch
+
+from ddsgen.sensor.matcher.reference import RefineGeometry, _Reference
+
+log = logging.getLogger(__name__)
+
+_KERNEL = None
+_KERNEL_TRIED = False
+_KERNEL_LOCK = threading.Lock()
+
+
+def _c_source() -> bytes:
+    """The kernels' C source, shipped as package data (csrc/zncc.c)."""
+    return files(__package__).joinpath("csrc", "zncc.c").read_bytes()
+
+
+def _cpu_tag() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as handle:
+            for line in handle:
+                if line.startswith("flags"):
+                    return line
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _load_kernel():
+    """Compile csrc/zncc.c (once per source, compiler, flags and CPU: cached in ddsgen's cache
+    folder) and load it; memoised per process. Returns None when there is no C compiler or
+    OpenMP (``$CC``, default ``cc``), or with ``DDSGEN_NO_C_KERNEL`` set: then the torch path
+    does the work."""
+    global _KERNEL, _KERNEL_TRIED
+    with _KERNEL_LOCK:
+        if _KERNEL_TRIED:
+            return _KERNEL
+        _KERNEL_TRIED = True
+        if os.environ.get("DDSGEN_NO_C_KERNEL"):
+            return None
+        from ddsgen.cache import cache_dir
+
+        compiler = os.environ.get("CC", "cc")
+        flags = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=gnu11"]
+        try:
+            source = _c_source()
+            digest = hashlib.sha256(source + "\n".join(["", compiler, *flags, _cpu_tag()]).encode()).hexdigest()[:16]
+            folder = cache_dir() / "kernels"
+            lib_path = folder / f"zncc_{digest}.so"
+            if not lib_path.exists():
+                folder.mkdir(parents=True, exist_ok=True)
+                with tempfile.TemporaryDirectory(dir=folder) as tmp:
+                    src = Path(tmp) / "zncc.c"
+                    src.write_bytes(source)
+                    out = Path(tmp) / "zncc.so"
+                    subprocess.run([compiler, *flags, str(src), "-o", str(out), "-lm"],
+                                   check=True, capture_output=True, timeout=120)  # fmt: skip
+                    os.replace(out, lib_path)  # atomic: concurrent workers never see half a file
+            lib = ctypes.CDLL(str(lib_path))
+            p, i = ctypes.c_void_p, ctypes.c_int
+            lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, i]
+            f = ctypes.c_float
+            q = ctypes.c_int64
+            lib.ddsgen_refine.argtypes = [p, i, p, q, q, i, i, i, i, p, i, i, i, i, i, p, p, p, q, q, p, p, f, i, f, f,
+                                          p, p, p, p, p, p, i]  # fmt: skip
+            lib.ddsgen_observed_stats.argtypes = [p, i, i, i, f, p, p, p, p, p, i]
+            lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, i, i, p, i, i, i, i, i, p, i, i]
+            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad, lib.ddsgen_observed_stats):
+                fn.restype = None
+            _KERNEL = lib
+        except (OSError, subprocess.SubprocessError) as error:
+            log.warning("ddsgen matcher: C kernel unavailable (%s); using the torch path", error)
+            _KERNEL = None
+        return _KERNEL
+
+
+def integer_search_backend(device="cpu") -> str:
+    """Which integer-search implementation :func:`match` uses on ``device``: "c" or "torch"."""
+    return "c" if torch.device(device).type == "cpu" and _load_kernel() is not None else "torch"
+
+
+
+def _n_threads() -> int:
+    return max(1, torch.get_num_threads())
+
+
+
+def _integer_search_c(fn, o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp):
+    H, W = os_.shape
+    o = o_pad.detach().float().contiguous()
+    osum, oinv = os_.detach().float().contiguous(), inv_o.detach().float().contiguous()
+    best = torch.empty(H, W, dtype=torch.float32)
+    second = torch.empty(H, W, dtype=torch.float32)
+    arg = torch.empty(H, W, dtype=torch.int32)
+    fn.ddsgen_zncc_search(o.data_ptr(), o.shape[1], ref.r0_int.data_ptr(), ref.r0_int.shape[1], osum.data_ptr(), oinv.data_ptr(),
+       ref.rs_int.data_ptr(), ref.inv_int.data_ptr(), ref.pen_int.data_ptr(), ref.rs_int.shape[1], H, W, block, r0, n_disp,
+       best.data_ptr(), second.data_ptr(), arg.data_ptr(), max(1, torch.get_num_threads()))  # fmt: skip
+    return best, second, arg.long()
+
+
+
+def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: RefineGeometry, v0: int, v1: int, disp=None,
+                 grad=None):
+    null = None
+    gd, g_band, d_os, d_oi, d_beta = grad if grad is not None else (null,) * 5
+    ptr = lambda x: None if x is None else x.data_ptr()  # noqa: E731
+    lib.ddsgen_refine(o.data_ptr(), o.shape[1], ref.fwd.data_ptr(), ref.fwd.shape[1], ref.fwd_base, *ref.fwd_strides, ref.n_cand,
+                      ref.n_cand_padded, k.data_ptr(), geom.col_shift, v0, v1, k.shape[1], geom.block,
+                      ref.stat_sum.data_ptr(), ref.stat_inv.data_ptr(), ref.stat_unk.data_ptr(), ref.stat_sum.shape[1],
+                      ref.stat_base,
+                      osum.data_ptr(), oinv.data_ptr(), beta, 2**geom.n_sub, geom.d_min - 1e-6, geom.d_max + 1e-6, ptr(disp),
+                      ptr(gd), ptr(g_band), ptr(d_os), ptr(d_oi), ptr(d_beta), _n_threads())  # fmt: skip
