@@ -8,6 +8,7 @@ protocol and :data:`REGISTRY` for the names.
 from __future__ import annotations
 
 import difflib
+import math
 import numbers
 
 from ddsgen.errors import InputError, where
@@ -73,8 +74,8 @@ def validate_effects(entries: list[dict], source: str = "") -> list[dict]:
                 hint = f" (did you mean {near[0]!r}?)" if near else f" (parameters: {', '.join(known)})"
                 raise InputError(f"{where(source, key + '.' + param)}unknown parameter of {name}{hint}")
             spec = cls.params[param]
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
-                raise InputError(f"{where(source, key + '.' + param)}expected a number ({spec.unit}), got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise InputError(f"{where(source, key + '.' + param)}expected a finite number ({spec.unit}), got {value!r}")
             if not spec.low <= float(value) <= spec.high:
                 raise InputError(
                     f"{where(source, key + '.' + param)}must be in [{spec.low:g}, {spec.high:g}] {spec.unit}, got {value!r}"
