@@ -299,6 +299,9 @@ def test_axis_shape_and_the_least_squares_helpers_return_what_was_put_in():
     assert np.allclose(shape, legendre_numpy(values / 45.0 - 1.0, coefficients), atol=1e-6)
     fitted = fit_axis_coefficients("incidence", values, shape)
     assert np.allclose(fitted, coefficients, atol=1e-5)
+    plane = (np.arange(46) % 2 == 0).astype(float)  # half the pixels carry an extra offset (a plane fitted to them)
+    fitted = fit_axis_coefficients("incidence", values, shape + 0.3 * plane, nuisance=plane[:, None])
+    assert np.allclose(fitted, coefficients, atol=1e-5)
     keep_values, keep = axis_shape(AxisValidityTerm(axis="signal", c0=-3.0, c1=4.0))
     assert keep_values[0] == pytest.approx(0.1) and keep_values[-1] == pytest.approx(1000.0)  # log-spaced counts
     assert keep[0] < 0.01 and keep[-1] == 1.0 and np.all(np.diff(keep) >= 0)  # more signal, more kept
@@ -308,7 +311,8 @@ def test_axis_shape_and_the_least_squares_helpers_return_what_was_put_in():
     d = rng.uniform(4.0, 14.0, 3000)
     grid = torch.tensor(BOWL, dtype=torch.float64).reshape(GRID_ROWS, GRID_COLS)
     target = sample_field(grid, torch.as_tensor(x), torch.as_tensor(y)).numpy() * np.exp(-0.05 * d)
-    recovered = np.array(fit_distortion_grid(x, y, d, target, alpha1=0.05)).reshape(GRID_ROWS, GRID_COLS)
+    target[::10] += rng.normal(0.0, 3.0, 300)  # a tenth of the pixels mismatched: the trimmed fit ignores them
+    recovered = np.array(fit_distortion_grid(x, y, d, target, alpha1=0.05, keep_quantile=0.8)).reshape(GRID_ROWS, GRID_COLS)
     inside = np.abs(np.linspace(-X_EXTENT, X_EXTENT, GRID_COLS)) < 0.56  # control columns within the pixels
     assert np.allclose(recovered[:, inside], np.array(BOWL).reshape(GRID_ROWS, GRID_COLS)[:, inside], atol=0.02)
 
@@ -476,3 +480,38 @@ def test_legendre_basis_is_the_numpy_series():
         unit = np.zeros(k + 1)
         unit[k] = 1.0
         assert np.allclose(basis[k].numpy(), legendre_numpy(t.numpy(), unit), atol=1e-12)
+
+
+def test_fit_recovers_an_axis_validity_term_along_columns(matcher_once):
+    preset = small_preset(96, 72)
+    true_c = [0.0, -5.0, 0.0, 0.0, 0.0]  # no depth right of x = 0.6 ln 3 / 5 = 0.13
+    truth = preset.replace(effects=[{"name": "axis_validity_term", "axis": "column", "coefficients": true_c}])
+    start = preset.replace(effects=[{"name": "axis_validity_term", "axis": "column"}])
+    frames = frames_with(truth, walls(preset.intrinsics))
+    sensor = DepthSensor(start)
+    fit_sensor(sensor, frames, ["effect:axis_validity_term"], steps=30, progress=False, search=False)
+    true_sensor = DepthSensor(truth)
+    disagree, dropped = [], []
+    for f in frames:  # the fitted and the true sensor on the same noise draws
+        noise = sensor.draw_noise(f.noise_seed(0))
+        with torch.no_grad():
+            a, b = sensor(f.geometry, noise=noise), true_sensor(f.geometry, noise=noise)
+        disagree.append((a.valid != b.valid)[f.region].float().mean())
+        dropped.append((~b.valid)[f.region].float().mean())
+    values, keep = axis_shape(sensor.effects[0], 61)
+    edge = values[np.argmax(keep < 0.5)]  # the fitted term's first dropped column
+    print(f"\nvalidity term recovery: {100 * float(max(disagree)):.1f} % of pixels disagree with the true sensor, "
+          f"drop edge at x = {edge:.3f} (true 0.132), coefficients {[round(v, 2) for v in sensor.effects[0].values().values()]}")  # fmt: skip
+    assert min(dropped) > 0.3  # the truth drops a large part of every frame
+    assert float(max(disagree)) < 0.05
+    assert edge == pytest.approx(0.6 * math.log(3.0) / 5.0, abs=0.05)
+
+
+def test_set_values_takes_the_current_option_and_refuses_another():
+    term = AxisDisparityTerm(axis="depth")
+    term.set_values(axis="depth", c2=0.3)  # a search point may carry its axis
+    assert term.values()["c2"] == pytest.approx(0.3, abs=1e-6)
+    with pytest.raises(ValueError, match="axis of axis_disparity_term is 'depth'"):
+        term.set_values(axis="row")
+    with pytest.raises(KeyError):
+        AxisDisparityTerm(axis="diagonal")

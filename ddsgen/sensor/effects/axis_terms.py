@@ -181,7 +181,8 @@ def axis_shape(effect: _AxisTerm, points: int = 101) -> tuple[np.ndarray, np.nda
     return values, out.numpy()
 
 
-def fit_axis_coefficients(axis: str, values, target, weights=None, n: int = N_COEFFICIENTS) -> list[float]:
+def fit_axis_coefficients(axis: str, values, target, weights=None, nuisance=None, keep_quantile: float = 1.0,
+                          n: int = N_COEFFICIENTS) -> list[float]:  # fmt: skip
     """Least-squares Legendre coefficients of ``target`` against ``values`` on ``axis``.
 
     Args:
@@ -189,6 +190,9 @@ def fit_axis_coefficients(axis: str, values, target, weights=None, n: int = N_CO
         values: (N,) axis values of the pixels (the axis' units).
         target: (N,) what the term should add, e.g. the disparity residual d_real - d_sim (px).
         weights: optional (N,) non-negative weights.
+        nuisance: optional (N, M) regressors fitted jointly and discarded (e.g. an affine term per
+            frame on a support plane that was fitted to the real depth and absorbed part of the shape).
+        keep_quantile: trimmed fit (see :func:`least_squares`), e.g. 0.8.
 
     Returns:
         ``n`` coefficients, clipped to the parameters' range (+-2 px), e.g. a starting point of
@@ -196,11 +200,31 @@ def fit_axis_coefficients(axis: str, values, target, weights=None, n: int = N_CO
     """
     t = axis_coordinate(axis, torch.as_tensor(np.asarray(values, np.float64)))
     design = legendre_basis(t, n).T.numpy()
-    y = np.asarray(target, np.float64)
-    if weights is not None:
-        root = np.sqrt(np.asarray(weights, np.float64))
-        design, y = design * root[:, None], y * root
-    coef = np.linalg.lstsq(design, y, rcond=None)[0]
+    coef = least_squares(design, target, weights, nuisance, keep_quantile)
     bound = AxisDisparityTerm.params["c0"].high
     return [float(np.clip(c, -bound, bound)) for c in coef]
 
+
+def least_squares(design: np.ndarray, target, weights=None, nuisance=None, keep_quantile: float = 1.0) -> np.ndarray:
+    """Weighted least-squares coefficients of ``design`` (N, K) for ``target`` (N,).
+
+    ``nuisance`` (N, M) columns are fitted alongside and dropped from the result (K,). With
+    ``keep_quantile`` < 1 the fit is trimmed: three passes, each refitted on the rows whose
+    absolute residual is within that quantile of the previous pass (mismatches and depth edges
+    are not the shape being fitted).
+    """
+    a = np.asarray(design, np.float64)
+    k = a.shape[1]
+    if nuisance is not None:
+        a = np.concatenate([a, np.asarray(nuisance, np.float64).reshape(len(a), -1)], 1)
+    y = np.asarray(target, np.float64)
+    if weights is not None:
+        root = np.sqrt(np.asarray(weights, np.float64))
+        a, y = a * root[:, None], y * root
+    keep = np.ones(len(y), bool)
+    coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    for _ in range(3 if keep_quantile < 1.0 else 0):
+        deviation = np.abs(y - a @ coef)
+        keep = deviation <= np.quantile(deviation, keep_quantile)
+        coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
+    return coef[:k]

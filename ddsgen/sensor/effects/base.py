@@ -95,9 +95,14 @@ class Effect(nn.Module):
         """Current physical parameter values (plain floats), e.g. for a written preset."""
         return {key: float(self.value(key).detach()) for key in self.params}
 
-    def set_values(self, **values: float) -> None:
+    def set_values(self, **values) -> None:
+        """Set physical parameter values in place; an option may be passed only with its current choice."""
         with torch.no_grad():
             for key, value in values.items():
+                if key in self.options:
+                    if value != self.choices[key]:
+                        raise ValueError(f"{key} of {self.name} is {self.choices[key]!r}; build a new effect to change it")
+                    continue
                 self.raw[key].copy_(torch.tensor(self._to_raw(self.params[key], float(value))))
 
     def to_entry(self) -> dict:

@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from ddsgen.sensor.effects import register
+from ddsgen.sensor.effects.axis_terms import least_squares
 from ddsgen.sensor.effects.base import Effect, EffectParam
 from ddsgen.sensor.effects.features import normalised_coordinates
 
@@ -109,7 +110,8 @@ class DisparityDistortion(Effect):
         return torch.where(disparity > 0, disparity + shift, disparity)
 
 
-def fit_distortion_grid(x, y, disparity, target, alpha0: float = 0.0, alpha1: float = 0.0, weights=None) -> list[float]:
+def fit_distortion_grid(x, y, disparity, target, alpha0: float = 0.0, alpha1: float = 0.0, weights=None,
+                        nuisance=None, keep_quantile: float = 1.0) -> list[float]:  # fmt: skip
     """Least-squares control values of ``disparity_distortion`` for a disparity residual, alpha0/alpha1 given.
 
     The effect is linear in its control values: d' - d = sum_k g_k B_k(x, y) exp(alpha0 - alpha1 d),
@@ -120,6 +122,9 @@ def fit_distortion_grid(x, y, disparity, target, alpha0: float = 0.0, alpha1: fl
         disparity: (N,) their disparity (px).
         target: (N,) what the effect should add, e.g. d_real - d_sim (px).
         weights: optional (N,) non-negative weights.
+        nuisance: optional (N, M) regressors fitted jointly and discarded (see
+            :func:`~ddsgen.sensor.effects.axis_terms.least_squares`).
+        keep_quantile: trimmed fit (see :func:`~ddsgen.sensor.effects.axis_terms.least_squares`), e.g. 0.8.
 
     Returns:
         len(GRID_KEYS) control values (row-major, clipped to +-2 px): the entry's ``grid`` list.
@@ -129,10 +134,6 @@ def fit_distortion_grid(x, y, disparity, target, alpha0: float = 0.0, alpha1: fl
     decay = np.exp(alpha0 - alpha1 * np.asarray(disparity, np.float64))
     unit = torch.eye(len(GRID_KEYS), dtype=torch.float64).reshape(-1, GRID_ROWS, GRID_COLS)
     design = np.stack([sample_field(g, xs, ys).numpy() for g in unit], 1) * decay[:, None]
-    t = np.asarray(target, np.float64)
-    if weights is not None:
-        root = np.sqrt(np.asarray(weights, np.float64))
-        design, t = design * root[:, None], t * root
-    coef = np.linalg.lstsq(design, t, rcond=None)[0]
+    coef = least_squares(design, target, weights, nuisance, keep_quantile)
     bound = DisparityDistortion.params[GRID_KEYS[0]].high
     return [float(np.clip(c, -bound, bound)) for c in coef]
