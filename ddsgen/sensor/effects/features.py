@@ -142,6 +142,7 @@ def pixel_axis(axis: str, ctx: dict, x: torch.Tensor, stage: str) -> torch.Tenso
     if axis == "depth":
         if stage != "disparity":
             return x
-        positive = x > 1e-3
-        return torch.where(positive, ctx["fx"] * ctx["baseline"] / torch.where(positive, x, torch.ones_like(x)), torch.zeros_like(x))
+        positive = x > 1e-3  # z = f b / d where there is a match, as the sensor converts it
+        safe = torch.where(positive, x, torch.ones_like(x))
+        return torch.where(positive, ctx["fx"] * ctx["baseline"] / safe, torch.zeros_like(x))
     raise KeyError(f"unknown pixel axis {axis!r} (known: {', '.join(PIXEL_AXES)})")
