@@ -205,6 +205,10 @@ def _check_number(source, key: str, field: Field, value):
     return value
 
 
+def _finite_number(x) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
+
+
 def _check_effects(source, value) -> tuple:
     if value is None:
         return ()
@@ -218,9 +222,10 @@ def _check_effects(source, value) -> tuple:
         if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
             raise InputError(f"{where(source, key)}expected {{name: EFFECT, PARAM: value}}, got {entry!r}")
         for param, number in entry.items():
-            if param == "name":
+            if param == "name" or isinstance(number, str):  # a string is an effect's option (e.g. axis: radius)
                 continue
-            if isinstance(number, bool) or not isinstance(number, (int, float)) or not math.isfinite(number):
+            numbers = number if isinstance(number, (list, tuple)) else [number]  # a list fills a parameter group
+            if not all(_finite_number(x) for x in numbers) or not numbers:
                 raise InputError(f"{where(source, key + '.' + str(param))}expected a finite number, got {number!r}")
         effects.append(dict(entry))
     # The effect library validates names and parameters (imported lazily: it needs torch).

@@ -8,6 +8,8 @@ protocol and :data:`REGISTRY` for the names.
 from __future__ import annotations
 
 import difflib
+import math
+import numbers
 
 from ddsgen.errors import InputError, where
 from ddsgen.sensor.effects.base import Effect, EffectParam
@@ -21,8 +23,27 @@ def register(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
+def _expand_groups(cls: type[Effect], entry: dict, source: str, key: str) -> dict:
+    """``entry`` with each list-valued group (``cls.groups``) spread over its scalar parameters."""
+    out = {}
+    for param, value in entry.items():
+        if param not in cls.groups:
+            out[param] = value
+            continue
+        names = cls.groups[param]
+        if not isinstance(value, (list, tuple)) or len(value) != len(names):
+            got = f"{len(value)} values" if isinstance(value, (list, tuple)) else repr(value)
+            raise InputError(f"{where(source, key + '.' + param)}{entry['name']} takes a list of {len(names)} values "
+                             f"({', '.join(names)}), got {got}")  # fmt: skip
+        for name, item in zip(names, value):
+            if name in entry:
+                raise InputError(f"{where(source, key + '.' + name)}given both alone and in {param!r}")
+            out[name] = item
+    return out
+
+
 def validate_effects(entries: list[dict], source: str = "") -> list[dict]:
-    """Check effect names, parameter names and ranges; fill in neutral defaults.
+    """Check effect names, options, parameter names and ranges; fill in defaults and neutral values.
 
     Raises:
         InputError: one line naming the file, the entry and the problem.
@@ -37,14 +58,24 @@ def validate_effects(entries: list[dict], source: str = "") -> list[dict]:
             raise InputError(f"{where(source, key)}unknown effect {name!r}{hint}")
         cls = REGISTRY[name]
         resolved = {"name": name}
+        entry = _expand_groups(cls, entry, source, key)
+        for option, allowed in cls.options.items():
+            choice = entry.get(option, allowed[0])
+            if choice not in allowed:
+                raise InputError(f"{where(source, key + '.' + option)}unknown {option} {choice!r} of {name} "
+                                 f"(choices: {', '.join(allowed)})")  # fmt: skip
+            resolved[option] = choice
         for param, value in entry.items():
-            if param == "name":
+            if param == "name" or param in cls.options:
                 continue
             if param not in cls.params:
-                near = difflib.get_close_matches(param, cls.params, n=1)
-                hint = f" (did you mean {near[0]!r}?)" if near else f" (parameters: {', '.join(cls.params)})"
+                known = [*cls.options, *cls.groups, *cls.params]
+                near = difflib.get_close_matches(param, known, n=1)
+                hint = f" (did you mean {near[0]!r}?)" if near else f" (parameters: {', '.join(known)})"
                 raise InputError(f"{where(source, key + '.' + param)}unknown parameter of {name}{hint}")
             spec = cls.params[param]
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise InputError(f"{where(source, key + '.' + param)}expected a finite number ({spec.unit}), got {value!r}")
             if not spec.low <= float(value) <= spec.high:
                 raise InputError(
                     f"{where(source, key + '.' + param)}must be in [{spec.low:g}, {spec.high:g}] {spec.unit}, got {value!r}"
@@ -62,7 +93,12 @@ def build_effects(entries) -> list[Effect]:
     return [REGISTRY[e["name"]](**{k: v for k, v in e.items() if k != "name"}) for e in entries]
 
 
-# Import the library modules so that they register themselves.
-from ddsgen.sensor.effects import library  # noqa: E402,F401
+def library_names() -> list[str]:
+    """The named effects (sorted): every registered effect except the generic axis terms."""
+    return sorted(name for name, cls in REGISTRY.items() if not cls.generic)
 
-__all__ = ["Effect", "EffectParam", "REGISTRY", "register", "validate_effects", "build_effects"]
+
+# Import the library modules so that they register themselves.
+from ddsgen.sensor.effects import axis_terms, distortion, library  # noqa: E402,F401
+
+__all__ = ["Effect", "EffectParam", "REGISTRY", "register", "validate_effects", "build_effects", "library_names"]

@@ -11,6 +11,13 @@ An effect acts at one stage of the sensor pipeline (see
 Each parameter has a neutral value (the effect then leaves the sensor unchanged) and a
 physical range; it is stored unconstrained and mapped into its range by a sigmoid (or
 kept raw when unbounded), so gradient steps can never leave the physical range.
+
+Two optional class tables serve effects with many parameters or a discrete setting:
+
+* ``options`` -- named choices that are not fitted (e.g. ``axis: radius``); the first
+  choice is the default;
+* ``groups`` -- a preset may give a run of scalar parameters as one list
+  (e.g. ``coefficients: [0.1, 0, 0.05]``), expanded by :func:`~ddsgen.sensor.effects.validate_effects`.
 """
 
 from __future__ import annotations
@@ -44,12 +51,21 @@ class Effect(nn.Module):
     signature: ClassVar[str]  # the residual pattern it produces
     axis: ClassVar[str]  # the residual axis where its signature shows (e.g. "depth", "radius")
     params: ClassVar[dict[str, EffectParam]]
+    options: ClassVar[dict[str, tuple[str, ...]]] = {}  # name -> choices (first = default); not fitted
+    groups: ClassVar[dict[str, tuple[str, ...]]] = {}  # list key of a preset entry -> the scalar parameters it fills
+    generic: ClassVar[bool] = False  # a shape without a named physical cause (diagnose tries it after the library)
 
-    def __init__(self, **values: float):
+    def __init__(self, **values):
         super().__init__()
-        unknown = set(values) - set(self.params)
+        unknown = set(values) - set(self.params) - set(self.options)
         if unknown:
             raise KeyError(f"unknown parameter(s) {sorted(unknown)} for effect {self.name!r}")
+        self.choices: dict[str, str] = {}
+        for key, allowed in self.options.items():
+            choice = str(values.pop(key, allowed[0]))
+            if choice not in allowed:
+                raise KeyError(f"{key} {choice!r} of effect {self.name!r} is not one of {allowed}")
+            self.choices[key] = choice
         self.raw = nn.ParameterDict()
         for key, spec in self.params.items():
             value = float(values.get(key, spec.neutral))
@@ -79,14 +95,19 @@ class Effect(nn.Module):
         """Current physical parameter values (plain floats), e.g. for a written preset."""
         return {key: float(self.value(key).detach()) for key in self.params}
 
-    def set_values(self, **values: float) -> None:
+    def set_values(self, **values) -> None:
+        """Set physical parameter values in place; an option may be passed only with its current choice."""
         with torch.no_grad():
             for key, value in values.items():
+                if key in self.options:
+                    if value != self.choices[key]:
+                        raise ValueError(f"{key} of {self.name} is {self.choices[key]!r}; build a new effect to change it")
+                    continue
                 self.raw[key].copy_(torch.tensor(self._to_raw(self.params[key], float(value))))
 
     def to_entry(self) -> dict:
         """The preset ``effects:`` entry for this effect."""
-        return {"name": self.name, **{k: round(v, 9) for k, v in self.values().items()}}
+        return {"name": self.name, **self.choices, **{k: round(v, 9) for k, v in self.values().items()}}
 
     def forward(self, x: torch.Tensor, ctx: dict) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -100,3 +100,49 @@ def cached(ctx: dict, key: str, compute):
     if key not in ctx:
         ctx[key] = compute()
     return ctx[key]
+
+
+#: Pixel axes an effect may follow (the residual axes of ``ddsgen diagnose``), with their units here.
+PIXEL_AXES: dict[str, str] = {
+    "radius": "normalised image radius sqrt(x^2 + y^2), x = (u - cx) / fx, y = (v - cy) / fy",
+    "row": "normalised image row y = (v - cy) / fy (positive below the principal point)",
+    "column": "normalised image column x = (u - cx) / fx (positive right of the principal point)",
+    "edge_distance": "distance to the nearest depth edge of the clean depth (px)",
+    "incidence": "incidence angle between surface normal and viewing ray (deg)",
+    "depth": "measured depth (m)",
+    "signal": "local mean of the projected IR signal over the matching window (counts)",
+}
+
+
+def pixel_axis(axis: str, ctx: dict, x: torch.Tensor, stage: str) -> torch.Tensor:
+    """The value of ``axis`` at every pixel (H, W), in the units of :data:`PIXEL_AXES`.
+
+    Args:
+        axis: a key of :data:`PIXEL_AXES`.
+        ctx: the sensor's per-frame context (geometry, signal, fx, fy, cx, cy, baseline).
+        x: (H, W) the stage's input: disparity (px) at stage ``"disparity"``, depth (m) at
+            ``"depth"`` and ``"validity"``; only the ``depth`` axis reads it.
+        stage: the calling effect's stage.
+
+    Image coordinates are normalised by the intrinsics, so a crop of a frame (with its
+    shifted principal point) sees the same values as the full frame. The measured depth
+    carries the gradient of the matcher's disparity; the geometric axes carry none.
+    """
+    h, w = x.shape
+    if axis in ("radius", "row", "column"):
+        xn, yn = normalised_coordinates(h, w, ctx["fx"], ctx["fy"], ctx["cx"], ctx["cy"], x.device)
+        return {"radius": lambda: torch.sqrt(xn * xn + yn * yn), "row": lambda: yn, "column": lambda: xn}[axis]()
+    if axis == "edge_distance":
+        return cached(ctx, "edge_distance", lambda: edge_distance(ctx["geometry"].clean_depth))
+    if axis == "incidence":
+        g = ctx["geometry"]
+        return cached(ctx, "incidence_deg", lambda: incidence_angle_deg(g.points, g.normals))
+    if axis == "signal":
+        return cached(ctx, "local_signal", lambda: local_signal(ctx["signal"]))
+    if axis == "depth":
+        if stage != "disparity":
+            return x
+        positive = x > 1e-3  # z = f b / d where there is a match, as the sensor converts it
+        safe = torch.where(positive, x, torch.ones_like(x))
+        return torch.where(positive, ctx["fx"] * ctx["baseline"] / safe, torch.zeros_like(x))
+    raise KeyError(f"unknown pixel axis {axis!r} (known: {', '.join(PIXEL_AXES)})")

@@ -208,6 +208,8 @@ def describe_library() -> list[dict]:
                 "description": cls.description,
                 "signature": cls.signature,
                 "axis": cls.axis,
+                "generic": cls.generic,
+                "options": {k: list(v) for k, v in cls.options.items()},
                 "params": {
                     k: {"neutral": p.neutral, "low": p.low, "high": p.high, "unit": p.unit, "typical": p.typical, "help": p.help}
                     for k, p in cls.params.items()
