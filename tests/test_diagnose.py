@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from ddsgen.fit.diagnose import (
+from ddsgen.diagnose import (
     BOOTSTRAP_QUANTILE,
     DiagnoseConfig,
     Evaluation,

@@ -54,9 +54,9 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     import torch
 
     from ddsgen.commands.compare import load_inputs
-    from ddsgen.fit.diagnose import DiagnoseConfig
-    from ddsgen.fit.diagnose import diagnose as run_diagnosis
-    from ddsgen.fit.diagnose_report import write_diagnosis
+    from ddsgen.diagnose import DiagnoseConfig
+    from ddsgen.diagnose import diagnose as run_diagnosis
+    from ddsgen.diagnose.report import write_diagnosis
     from ddsgen.preset import PATTERN_DIR, save_preset
     from ddsgen.sensor.effects import REGISTRY
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.fit.residuals import AXES, AXIS_WORDS, AxisStats
+from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
 
 
 def _png(fig) -> str:
@@ -129,8 +129,8 @@ def axis_sentence(axis: str, strength: float) -> str:
 
 
 def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] | None = None) -> list[Path]:
-    """Write ``diagnosis.json`` and ``report.html`` of a :class:`~ddsgen.fit.diagnose.Diagnosis` into ``folder``."""
-    from ddsgen.fit.diagnose import RULE
+    """Write ``diagnosis.json`` and ``report.html`` of a :class:`~ddsgen.diagnose.Diagnosis` into ``folder``."""
+    from ddsgen.diagnose.loop import RULE
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

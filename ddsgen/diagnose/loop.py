@@ -5,7 +5,7 @@ The loop (:func:`diagnose`):
 1. **Base fit.** The base sensor parameters are fitted on the fit frames with the fit
    machinery (:func:`ddsgen.fit.fitting.fit_sensor`); the held-out gap (the ``compare``
    metric, :func:`ddsgen.fit.compare.gap`, and its noise floor) of that model is the baseline.
-2. **Residual analysis** (:mod:`ddsgen.fit.residuals`): bias and validity disagreement
+2. **Residual analysis** (:mod:`ddsgen.diagnose.residuals`): bias and validity disagreement
    binned by depth, incidence angle, image radius, row, column, distance to depth edges and
    IR signal; per axis the structure beyond noise (bootstrap over frames).
 3. **Candidates.** Every library effect not yet in the model is added in turn and its
@@ -60,7 +60,7 @@ import torch
 
 from ddsgen.fit.compare import frame_gap, gap
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
-from ddsgen.fit.residuals import AXIS_WORDS, analyse, pixel_residuals
+from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
 from ddsgen.fit.simulate import simulate
 from ddsgen.sensor.effects import REGISTRY
 from ddsgen.sensor.effects.features import normalised_coordinates
