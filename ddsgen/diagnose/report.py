@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ddsgen.diagnose.acceptance import RULE
 from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
 
 
@@ -130,8 +131,6 @@ def axis_sentence(axis: str, strength: float) -> str:
 
 def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] | None = None) -> list[Path]:
     """Write ``diagnosis.json`` and ``report.html`` of a :class:`~ddsgen.diagnose.Diagnosis` into ``folder``."""
-    from ddsgen.diagnose.loop import RULE
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     d = diagnosis
