@@ -103,7 +103,9 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     import torch
 
     from ddsgen.io.exr import write_exr
-    from ddsgen.io.png import write_depth_png, write_png8, write_png16
+    from ddsgen.io.ir_png import GAMMA as IR_GAMMA
+    from ddsgen.io.ir_png import write_ir_png
+    from ddsgen.io.png import write_depth_png, write_png16
     from ddsgen.raycast import cast, object_labels
     from ddsgen.scene.sampling import sample_frame
     from ddsgen.sensor.depth_sensor import SensorGeometry
@@ -123,13 +125,15 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     write_exr(out / paths["depth_exr"], depth)
     write_depth_png(out / paths["depth"], depth, DEPTH_SCALE)
     write_exr(out / paths["clean"], hits.depth.astype(np.float32))
-    write_png8(out / paths["ir"], ir, max_value=2.0**preset.ir_bits - 1.0)
+    ir_white = write_ir_png(out / paths["ir"], ir, full_scale=2.0**preset.ir_bits - 1.0)
     write_png16(out / paths["mask"], hits.instance.astype(np.uint16))
     return {
         "frame": frame,
         **paths,
         "intrinsics": intrinsics.as_dict(),
         "depth_scale": DEPTH_SCALE,
+        "ir_white_counts": ir_white,
+        "ir_gamma": IR_GAMMA,
         "world_T_cam": np.asarray(scene.world_T_cam, dtype=float).tolist(),
         "objects": object_labels(scene, hits, intrinsics),
         "seed": job.seed,
