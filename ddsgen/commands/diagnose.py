@@ -49,7 +49,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
 
     Writes REPORT/diagnosis.json ({baseline_gap, steps: [{effect, params, gap_before, gap_after}],
     final_gap, unexplained: [{axis, strength}]}, gaps in mm on held-out frames) and
-    REPORT/report.html (residual plots before/after each step, one sentence per step).
+    REPORT/report.html (one sentence per step; residual profiles before/after each step and
+    full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """
     import torch
 

@@ -61,6 +61,7 @@ import torch
 from ddsgen.diagnose.acceptance import MIN_RELATIVE_GAIN, bootstrap_fall, relative_fall, unexplained_axes
 from ddsgen.diagnose.candidates import changes_depth, fit_candidate, with_effect
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
+from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_matches
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
@@ -163,7 +164,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
                seed=config.seed, batch_frames=config.batch_frames)  # fmt: skip
     current = evaluate(sensor, held, held_seed, replane_steps=2)
-    baseline = current
+    baseline, base_sensor = current, sensor  # accepted effects make new sensors: base_sensor stays as fitted
     echo(f"      held-out gap {current.gap:.2f} mm, noise floor {current.floor:.2f} mm: "
          f"{current.excess:.2f} mm beyond it")  # fmt: skip
 
@@ -241,8 +242,10 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
         echo("[5/5] unexplained structure: " + ", ".join(f"{u['axis']} {u['strength']:.1f} mm" for u in unexplained))
     else:
         echo("[5/5] no residual structure beyond noise remains")
+    maps_baseline = residual_maps(base_sensor, held[:MAP_FRAMES], held_seed)
+    maps_final = residual_maps(sensor, held[:MAP_FRAMES], held_seed) if steps else maps_baseline
     return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
-                     rounds)  # fmt: skip
+                     rounds, maps_baseline, maps_final)  # fmt: skip
 
 
 def _fmt(values: dict) -> str:

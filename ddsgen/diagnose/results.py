@@ -44,6 +44,10 @@ class Step:
 
 @dataclasses.dataclass
 class Diagnosis:
+    """The outcome of :func:`ddsgen.diagnose.diagnose`. ``maps_baseline`` / ``maps_final``: residual maps
+    (:class:`ddsgen.diagnose.maps.ResidualMap`) of the fitted base sensor and of the final model on the
+    first held-out frames."""
+
     baseline: Evaluation
     steps: list[Step]
     final: Evaluation
@@ -54,6 +58,8 @@ class Diagnosis:
     analysis_baseline: dict
     analysis_final: dict
     rounds: list[list[Candidate]]
+    maps_baseline: list = dataclasses.field(default_factory=list)
+    maps_final: list = dataclasses.field(default_factory=list)
 
     @property
     def baseline_gap(self) -> float:
