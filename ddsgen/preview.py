@@ -8,7 +8,8 @@ One row per shown frame, three panels at the frame's aspect ratio:
   percentile white, square-root encoded); IR PNGs without ``ir_white_counts`` in their record
   (older renders, linear counts) are exposed and encoded the same way here;
 * **instances**: the instance mask, one colour per object, background black, with each object's
-  bounding box and class name (from the manifest; BOP: from ``mask_visib/`` and ``scene_gt``).
+  bounding box and class name (from the manifest; BOP: from ``mask_visib/`` and ``scene_gt``, or
+  without masks the box of each mesh projected with its ground-truth pose, over the depth in grey).
 
 Panels missing from a folder (real scans have no IR; BOP has no instance mask without
 ``mask_visib/``) say so instead of an image. The title names the sensor preset (``sensor.yaml``),
@@ -91,8 +92,25 @@ def _ddsgen_row(folder: Path, scan: ScanFrame) -> SheetFrame:
     return SheetFrame(scan.frame, scan.depth, ir, white, instances, boxes)
 
 
+def projected_box(obj, intrinsics, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """(x, y, w, h) px of the object's mesh projected with its pose, clipped to the image; None if out of view."""
+    from ddsgen.scene.scenelist import load_mesh
+
+    mesh = load_mesh(obj.mesh_path, obj.mesh_scale, source="" if obj.mesh_path.startswith("shape:") else obj.mesh_path)
+    points = mesh.vertices @ obj.cam_T_obj[:3, :3].T + obj.cam_T_obj[:3, 3]
+    points = points[points[:, 2] > 1e-3]
+    if not len(points):
+        return None
+    u = intrinsics.fx * points[:, 0] / points[:, 2] + intrinsics.cx
+    v = intrinsics.fy * points[:, 1] / points[:, 2] + intrinsics.cy
+    x0, x1 = int(np.clip(u.min(), 0, shape[1])), int(np.clip(np.ceil(u.max()), 0, shape[1]))
+    y0, y1 = int(np.clip(v.min(), 0, shape[0])), int(np.clip(np.ceil(v.max()), 0, shape[0]))
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
+
+
 def _bop_row(scan: ScanFrame) -> SheetFrame:
-    """BOP: instances from ``mask_visib/IMAGE_K.png`` (object k of scene_gt is instance k + 1) when present."""
+    """BOP: instances from ``mask_visib/IMAGE_K.png`` (object k of scene_gt is instance k + 1) when present,
+    else (real scans such as LineMOD's test split) boxes of the meshes projected with their poses."""
     scene = Path(scan.source_depth_path).parent.parent
     shape = (scan.intrinsics.height, scan.intrinsics.width)
     instances, boxes = None, []
@@ -107,6 +125,11 @@ def _bop_row(scan: ScanFrame) -> SheetFrame:
             ys, xs = np.nonzero(visible)
             x, y = int(xs.min()), int(ys.min())
             boxes.append((obj.id, obj.class_name, x, y, int(xs.max()) - x + 1, int(ys.max()) - y + 1))
+    if instances is None:
+        for obj in scan.objects:
+            box = projected_box(obj, scan.intrinsics, shape)
+            if box is not None:
+                boxes.append((obj.id, obj.class_name, *box))
     return SheetFrame(scan.frame, scan.depth, None, None, instances, boxes)
 
 
@@ -230,21 +253,27 @@ def draw_sheet(title: str, rows: list[SheetFrame], path: str | Path) -> list[Pan
             show(ir_ax, row.ir, cmap="gray", vmin=0, vmax=255)
             labels.append(f"IR, white = {row.ir_white_counts:.0f} counts" if row.ir_white_counts else "IR")
 
-        if row.instances is None:
+        if row.instances is None and not row.boxes:
             missing(inst_ax, "no instance mask")
             labels.append("instances")
         else:
-            colours = _instance_colours([i for i in np.unique(row.instances).tolist() if i > 0])
-            rgb = np.zeros((height, width, 3))
-            for i, c in colours.items():
-                rgb[row.instances == i] = c
-            show(inst_ax, rgb)
+            ids = [b[0] for b in row.boxes] if row.instances is None else np.unique(row.instances).tolist()
+            colours = _instance_colours([i for i in ids if i > 0])
+            if row.instances is None:  # boxes from poses only: drawn over the depth in grey for context
+                show(inst_ax, np.ma.masked_array(row.depth, mask=~valid), cmap=colormaps["gray"].with_extremes(
+                    bad="black"), norm=norm)  # fmt: skip
+                labels.append(f"{len(row.boxes)} projected mesh box{'es' if len(row.boxes) != 1 else ''} (no mask)")
+            else:
+                rgb = np.zeros((height, width, 3))
+                for i, c in colours.items():
+                    rgb[row.instances == i] = c
+                show(inst_ax, rgb)
+                labels.append(f"{len(colours)} instance{'s' if len(colours) != 1 else ''}, boxes, classes")
             for obj_id, name, x, y, w, h in row.boxes:
                 colour = colours.get(obj_id, (1.0, 1.0, 1.0))
                 inst_ax.add_patch(Rectangle((x, y), w, h, fill=False, edgecolor=colour, linewidth=1.5))
                 inst_ax.text(x + 1, y + 1, name, color="black", fontsize=8, va="top", ha="left", clip_on=True,
                              bbox={"facecolor": colour, "edgecolor": "none", "pad": 1.0})  # fmt: skip
-            labels.append(f"{len(colours)} instance{'s' if len(colours) != 1 else ''}, boxes, classes")
 
         for kind, box, label in zip(PANEL_KINDS, row_boxes, labels):
             x0, y0, x1, _ = box

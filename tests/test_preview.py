@@ -248,3 +248,28 @@ def test_preview_of_a_bop_dataset_shows_its_masks_and_boxes(inputs, tmp_path):
             if inside[r, c]:
                 x, y = sheet_pixel(mask_panel, c, r)
                 assert sheet[y, x].max() > 60
+
+
+REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.mark.skipif(not (REAL_DATA / "linemod_bop").is_dir(), reason="real data folder ../shared/data absent")
+def test_preview_of_real_linemod_boxes_the_posed_object(tmp_path):
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.preview import load_rows
+
+    title, rows = load_rows(REAL_DATA / "linemod_bop", frames=4)
+    scan = read_scan_folder(REAL_DATA / "linemod_bop")[0]
+    assert len(rows) == 1 and rows[0].ir is None and rows[0].instances is None and "linemod_bop" in title
+    (obj_id, name, x, y, w, h), = rows[0].boxes
+    obj = scan.objects[0]
+    assert (obj_id, name) == (obj.id, obj.class_name)
+    t = obj.cam_T_obj[:3, 3]  # the object's origin projects inside its box; a cat at ~1 m spans 60-200 px
+    u, v = scan.intrinsics.fx * t[0] / t[2] + scan.intrinsics.cx, scan.intrinsics.fy * t[1] / t[2] + scan.intrinsics.cy
+    assert x <= u <= x + w and y <= v <= y + h
+    assert 40 <= w <= 250 and 40 <= h <= 250
+    # the box holds the object: real depth inside it is near the pose's depth
+    inside = rows[0].depth[y : y + h, x : x + w]
+    assert abs(np.median(inside[inside > 0]) - t[2]) < 0.15
+    path, panels = write_preview(REAL_DATA / "linemod_bop", tmp_path / "linemod.png")
+    assert path.is_file() and [p.kind for p in panels] == list(PANEL_KINDS)
