@@ -294,7 +294,8 @@ def draw_sheet(title: str, rows: list[SheetFrame], path: str | Path) -> list[Pan
     return panels
 
 
-def write_preview(folder: str | Path, out: str | Path | None = None, frames: int = DEFAULT_FRAMES) -> tuple[Path, list[Panel]]:
+def write_preview(folder: str | Path, out: str | Path | None = None,
+                  frames: int = DEFAULT_FRAMES) -> tuple[Path, list[Panel]]:
     """Write the contact sheet of the scan folder ``folder`` to ``out`` (default ``folder/preview.png``).
 
     Returns (path written, panels). Raises :class:`InputError` on bad input, before writing anything.

@@ -120,7 +120,8 @@ def test_render_writes_a_contact_sheet_a_person_can_read(rendered):
             assert sheet[y, x].max() <= 8, (u, v, sheet[y, x])
         # valid depth is coloured, never black
         solid = cv2.erode((depth > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        colours = np.array([sheet[y, x] for x, y in (sheet_pixel(depth_panel, u, v) for v, u in zip(*np.nonzero(solid)))])
+        points = (sheet_pixel(depth_panel, u, v) for v, u in zip(*np.nonzero(solid)))
+        colours = np.array([sheet[y, x] for x, y in points])
         assert colours.max(1).min() > 40
         # nearer is a different colour than farther: the colour map carries depth
         near, far = np.quantile(depth[solid], [0.1, 0.9])

@@ -10,12 +10,12 @@ The loop (:func:`diagnose`):
    IR signal; per axis the structure beyond noise (bootstrap over frames).
 3. **Candidates.** Every library effect not yet in the model is added in turn and its
    parameters are fitted on the fit frames, maximising the credited fall of the gap (below):
-   depth effects start from their signature read off the residual (:func:`~ddsgen.diagnose.candidates.signature_guess`:
-   a median or a least-squares fit, no extra simulation), validity effects from a coarse
-   grid; a local search refines either. Then the held-out gap and noise floor it leaves are
-   measured.
-4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base parameters refitted with it,
-   and the loop repeats with the remaining effects; otherwise it stops.
+   depth effects start from their signature read off the residual
+   (:func:`~ddsgen.diagnose.candidates.signature_guess`: a median or a least-squares fit, no
+   extra simulation), validity effects from a coarse grid; a local search refines either.
+   Then the held-out gap and noise floor it leaves are measured.
+4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base
+   parameters refitted with it, and the loop repeats with the remaining effects; otherwise it stops.
 5. **What remains**: axes whose residual structure is still beyond noise (and at least
    :data:`~ddsgen.diagnose.acceptance.UNEXPLAINED_MIN_MM`) are reported as unexplained, strongest first, rather than
    naming a wrong effect.
@@ -41,14 +41,12 @@ Two things make the comparison fair to every candidate:
   offset, a depth scale error); a model with that effect would apply it twice.
 
 Speed: effects that act after block matching (disparity, depth and validity stages) do not
-change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches` serves the matcher's result from a cache
-keyed by the IR image; validity effects do not move the plane either, so their whole search
-runs without the matcher and uses every fit frame; depth effects are searched on at most
+change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches` serves the
+matcher's result from a cache keyed by the IR image; validity effects do not move the plane
+either, so their whole search runs without the matcher and uses every fit frame; depth effects
+are searched on at most
 :attr:`DiagnoseConfig.grid_frames` fit frames.
 """
-
-from __future__ import annotations
-
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The diagnosis report: ``diagnosis.json`` (fixed shape) and ``report.html`` with its figures as PNG files in ``plots/``."""
+"""The diagnosis report: ``diagnosis.json`` (fixed shape), ``report.html`` and its figures as PNG files in ``plots/``."""
 
 from __future__ import annotations
 
