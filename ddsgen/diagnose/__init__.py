@@ -12,7 +12,8 @@ Modules, in the order the loop uses them:
 * :mod:`~ddsgen.diagnose.acceptance` -- the credited fall and the rule that accepts a candidate;
 * :mod:`~ddsgen.diagnose.match_cache` -- the matcher's results reused while its input is unchanged;
 * :mod:`~ddsgen.diagnose.results` -- steps, candidates, ``diagnosis.json``;
-* :mod:`~ddsgen.diagnose.report` -- ``diagnosis.json`` and ``report.html`` written to a folder.
+* :mod:`~ddsgen.diagnose.maps` -- full-resolution residual maps of held-out frames, for the report;
+* :mod:`~ddsgen.diagnose.report` -- ``diagnosis.json``, ``report.html`` and its PNG figures written to a folder.
 """
 
 from ddsgen.diagnose.acceptance import BOOTSTRAP_QUANTILE, RULE, bootstrap_fall, relative_fall
