@@ -104,10 +104,10 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     depth = output.depth.numpy().astype(np.float32)
     ir = output.ir.numpy()
 
-    paths = write_frame_files(job.out, frame, depth, hits.depth, ir, 2.0**preset.ir_bits - 1.0, hits.instance)
+    files = write_frame_files(job.out, frame, depth, hits.depth, ir, 2.0**preset.ir_bits - 1.0, hits.instance)
     return {
         "frame": frame,
-        **paths,
+        **files,
         "intrinsics": intrinsics.as_dict(),
         "depth_scale": DEPTH_SCALE,
         "world_T_cam": np.asarray(scene.world_T_cam, dtype=float).tolist(),

@@ -15,12 +15,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
 import torch
 
-from ddsgen.fit.diagnose import (
+from ddsgen.diagnose import (
     BOOTSTRAP_QUANTILE,
     DiagnoseConfig,
     Evaluation,
@@ -289,7 +290,9 @@ def test_diagnose_command_writes_the_report_and_the_extended_preset(tmp_path, sc
     assert doc["steps"][0]["gap_before"] == doc["baseline_gap"]
     assert doc["final_gap"] == doc["steps"][-1]["gap_after"]
     html = (report / "report.html").read_text()
-    assert html.count("data:image/png;base64,") >= 2 and "Missing effect: disparity_offset" in html
+    figures = re.findall(r"<img alt='[^']*' src='([^']+\.png)'>", html)
+    assert len(figures) >= 3 and all((report / f).is_file() for f in figures), figures  # PNG files beside the page
+    assert any("residual_map" in f for f in figures) and "Missing effect: disparity_offset" in html
     fitted = load_preset(extended)
     assert [e["name"] for e in fitted.effects] == [s["effect"] for s in doc["steps"]]
 

@@ -23,7 +23,8 @@ from ddsgen.errors import InputError
 @click.option("--refit-steps", type=int, default=10, show_default=True,
               help="Adam steps of the refit after each accepted effect.")
 @click.option("--candidates", multiple=True, metavar="NAMES",
-              help="Effects to try (comma-separated or repeated). Default: the whole library.")
+              help="Effects to try (comma-separated or repeated). Default: the named library effects except "
+                   "disparity_distortion (opt-in: its 3x5 field can absorb an offset, a scale or a lens distortion).")
 @click.option("--grid-frames", type=int, default=4, show_default=True,
               help="Fit frames on which each candidate effect's parameters are searched (0: all of them).")
 @click.option("--max-effects", type=int, default=4, show_default=True, help="Stop after adding this many effects.")
@@ -49,14 +50,15 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
 
     Writes REPORT/diagnosis.json ({baseline_gap, steps: [{effect, params, gap_before, gap_after}],
     final_gap, unexplained: [{axis, strength}]}, gaps in mm on held-out frames) and
-    REPORT/report.html (residual plots before/after each step, one sentence per step).
+    REPORT/report.html (one sentence per step; residual profiles before/after each step and
+    full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """
     import torch
 
     from ddsgen.commands.compare import load_inputs
-    from ddsgen.fit.diagnose import DiagnoseConfig
-    from ddsgen.fit.diagnose import diagnose as run_diagnosis
-    from ddsgen.fit.diagnose_report import write_diagnosis
+    from ddsgen.diagnose import DiagnoseConfig
+    from ddsgen.diagnose import diagnose as run_diagnosis
+    from ddsgen.diagnose.report import write_diagnosis
     from ddsgen.preset import PATTERN_DIR, save_preset
     from ddsgen.sensor.effects import REGISTRY
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from ddsgen.runner import render_dataset
@@ -28,20 +30,30 @@ from ddsgen.runner import render_dataset
               help="Output layout: ddsgen's (manifest.jsonl, EXR/PNG) or BOP's (models/, camera.json, "
                    "train_pbr/SCENE/{scene_camera,scene_gt,scene_gt_info}.json, depth/, mask_visib/; the ddsgen "
                    "render is kept in OUT/ddsgen/).")
+@click.option("--no-preview", is_flag=True,
+              help="Do not write OUT/preview.png (a contact sheet of the dataset, as `ddsgen preview OUT` draws it).")
 @click.option("--quiet", is_flag=True, help="No progress bar and no summary.")
-def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, output_format, quiet):
+def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, output_format, no_preview, quiet):
     """Render N frames with the sensor PRESET (a preset YAML file or a shipped name such as kinect_v1).
 
     Writes, per frame, depth as float32 EXR (metres) and 16-bit PNG (millimetres, 0 = invalid),
-    the clean depth (EXR), the simulated IR image (8-bit PNG), the instance mask (16-bit PNG,
-    0 = background), and one JSON line in OUT/manifest.jsonl with intrinsics, camera pose and
-    per-object class, pose, bounding box and visible fraction; OUT/sensor.yaml holds the
-    resolved preset.
+    the clean depth (EXR), the simulated IR image (8-bit PNG, auto-exposed per frame and
+    square-root encoded: counts = ir_white_counts x (PNG / 255) ** ir_gamma, both in the
+    record), the instance mask (16-bit PNG, 0 = background), and one JSON line in
+    OUT/manifest.jsonl with intrinsics, camera pose and per-object class, pose, bounding box and
+    visible fraction; OUT/sensor.yaml holds the resolved preset. When the render completes,
+    OUT/preview.png shows a few frames (see `ddsgen preview`).
     """
     if batch_size < 1:
         raise click.BadParameter("must be >= 1", param_hint="--batch-size")
     summary = render_dataset(preset, scenes, n, out, workers=workers, seed=seed, scheduler=scheduler,
                              progress=not quiet, batch_size=batch_size, output_format=output_format)
+    sheet = None
+    if not no_preview and summary.frames_total > 0:
+        from ddsgen.preview import write_preview
+
+        # Drawn from the finished folder (not part of the manifest's frames): a resumed render redraws it.
+        sheet, _ = write_preview(summary.out, Path(out) / "preview.png")
     if not quiet:
         rate = f"{summary.frames_per_second:.2f} frames/s" if summary.frames_rendered else "nothing to do"
         click.echo(
@@ -50,3 +62,5 @@ def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, output_
         )
         if output_format == "bop":
             click.echo(f"BOP dataset: {out}/ (camera.json, models/, train_pbr/)")
+        if sheet is not None:
+            click.echo(f"contact sheet: {sheet}")

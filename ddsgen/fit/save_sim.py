@@ -88,7 +88,7 @@ class SimFolderWriter:
         intrinsics = frame.full_intrinsics or frame.intrinsics
         depth = full_frame(sim.depth.detach().numpy(), frame, 0.0).astype(np.float32)
         instance = full_frame(frame.instance.numpy(), frame, 0)
-        paths = write_frame_files(self.tmp, index, depth, full_frame(frame.geometry.clean_depth.numpy(), frame, 0.0),
+        files = write_frame_files(self.tmp, index, depth, full_frame(frame.geometry.clean_depth.numpy(), frame, 0.0),
                                   full_frame(sim.ir.detach().numpy(), frame, 0.0), 2.0**self.preset.ir_bits - 1.0,
                                   instance)  # fmt: skip
         # bbox and visible_fraction as render labels them (the support plane is background, id 0).
@@ -97,7 +97,7 @@ class SimFolderWriter:
             label["mesh"] = obj.mesh_path  # absolute path or "shape:NAME", as the real folder gives it
         record = {
             "frame": index,
-            **paths,
+            **files,
             "intrinsics": intrinsics.as_dict(),
             "depth_scale": DEPTH_SCALE,
             # the simulation's scene is the camera frame; keep the real camera's world pose when known

@@ -44,6 +44,9 @@ One JSON object per line; keys (units: metres, pixels; poses are 4x4 row-major n
                                         0.001 for millimetre models such as BOP's)
                     }
   seed              int, the run's seed (frame i's randomness comes from (seed, i))
+  ir_white_counts   optional, finite number > 0: simulated IR counts shown as 255 in the 8-bit IR PNG
+  ir_gamma          optional, finite number > 0: the IR PNG's encoding, counts = ir_white_counts x
+                    (png / 255) ** ir_gamma (auto-exposed per frame; 255 = at or above ir_white_counts)
 
 Optional keys are allowed and kept (e.g. depth_exr, clean, ir, mask: relative paths; checked to be
 relative paths when present). Non-strict validation (real scans, `strict=False`) does not require
@@ -195,6 +198,9 @@ def validate_record(record, source=None, line: int | None = None, strict: bool =
         _positive_number(prefix, f"intrinsics.{key}", intr[key])
 
     _positive_number(prefix, "depth_scale", record["depth_scale"])
+    for key in ("ir_white_counts", "ir_gamma"):
+        if key in record:
+            _positive_number(prefix, key, record[key])
     if record.get("world_T_cam") is not None:
         as_rigid(record["world_T_cam"], prefix, "world_T_cam")
     elif strict:

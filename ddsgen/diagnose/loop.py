@@ -1,0 +1,261 @@
+"""Diagnosis: find where simulation and measurement disagree, name the missing effect, add it, show the gap shrink.
+
+The loop (:func:`diagnose`):
+
+1. **Base fit.** The base sensor parameters are fitted on the fit frames with the fit
+   machinery (:func:`ddsgen.fit.fitting.fit_sensor`); the held-out gap (the ``compare``
+   metric, :func:`ddsgen.fit.compare.gap`, and its noise floor) of that model is the baseline.
+2. **Residual analysis** (:mod:`ddsgen.diagnose.residuals`): bias and validity disagreement
+   binned by depth, incidence angle, image radius, row, column, distance to depth edges and
+   IR signal; per axis the structure beyond noise (bootstrap over frames).
+3. **Candidates.** Every library effect not yet in the model is added in turn and its
+   parameters are fitted on the fit frames, maximising the credited fall of the gap (below):
+   depth effects start from their signature read off the residual
+   (:func:`~ddsgen.diagnose.candidates.signature_guess`: a median or a least-squares fit, no
+   extra simulation), validity effects from a coarse grid; a local search refines either.
+   Then the held-out gap and noise floor it leaves are measured.
+4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base
+   parameters refitted with it, and the loop repeats with the remaining effects; otherwise it stops.
+5. **What remains**: axes whose residual structure is still beyond noise (and at least
+   :data:`~ddsgen.diagnose.acceptance.UNEXPLAINED_MIN_MM`) are reported as unexplained, strongest first, rather than
+   naming a wrong effect.
+
+Two things make the comparison fair to every candidate:
+
+* **Credit only what the noise floor does not explain.** Two noise draws of one sensor do not
+  score 0: the ``compare`` gap has a noise floor (its ``noise_floor``, measured between two
+  draws of the model under test), and a model can lower the gap by *hiding* noise -- a
+  dropout effect that removes the noisiest pixels lowers gap and floor alike, even on data
+  without such dropout -- while a genuinely missing effect lowers the gap and leaves the
+  floor. So a candidate is credited, per frame and with the same noise draws for every model,
+  with the fall of its gap minus any fall of its floor (:func:`~ddsgen.diagnose.acceptance.frame_falls`), and gets
+  nothing for making its own draws disagree more.
+* **Gaps are reported beyond the noise floor.** ``diagnosis.json``'s gaps are ``compare``'s
+  ``excess``: held-out gap minus noise floor (mean over held-out frames), what a better
+  model could still remove -- the true sensor scores about 0, so "the gap halves" means half
+  of the explainable disagreement is gone. (At 640 x 480 the floor is ~1.5 mm, and a missing
+  4-px edge band adds ~0.5 mm to it; in raw gaps no validity effect could ever halve the gap.)
+  The raw gaps and floors are printed and in ``report.html``.
+* **The support plane is re-estimated under each model** (:func:`~ddsgen.diagnose.plane.replane`). It is fitted to
+  the real depth, so it already contains any bias that keeps planes planar (a disparity
+  offset, a depth scale error); a model with that effect would apply it twice.
+
+Speed: effects that act after block matching (disparity, depth and validity stages) do not
+change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches` serves the
+matcher's result from a cache keyed by the IR image; validity effects do not move the plane
+either, so their whole search runs without the matcher and uses every fit frame; depth effects
+are searched on at most
+:attr:`DiagnoseConfig.grid_frames` fit frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ddsgen.diagnose.acceptance import MIN_RELATIVE_GAIN, bootstrap_fall, relative_fall, unexplained_axes
+from ddsgen.diagnose.candidates import changes_depth, fit_candidate, with_effect
+from ddsgen.diagnose.evaluation import Evaluation, evaluate
+from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
+from ddsgen.diagnose.match_cache import reuse_matches
+from ddsgen.diagnose.plane import replaned
+from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
+from ddsgen.diagnose.results import Candidate, Diagnosis, Step
+from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
+from ddsgen.fit.simulate import simulate
+from ddsgen.sensor.effects import REGISTRY, library_names
+
+#: Base parameters fitted first. Not the baseline: fit_sensor estimates it from the disparity quantisation
+#: lattice of the real depth, which a depth scale error rescales just like a baseline error would, so a
+#: fitted baseline would hide that effect (b itself cancels from z = f b / d).
+BASE_PARAMS = tuple(p for p in DEFAULT_PARAMS if p != "baseline")
+
+
+@dataclasses.dataclass
+class DiagnoseConfig:
+    """Settings of :func:`diagnose` (defaults sized for a dozen 640x480 frames on 2 cores)."""
+
+    holdout: float = 1.0 / 3.0
+    base_params: tuple = BASE_PARAMS
+    base_steps: int = 15  # Adam steps of the base fit (after its 1-D searches)
+    refit_steps: int = 10  # Adam steps of the refit after accepting an effect
+    refine_rounds: int = 2  # halving rounds of the local search around a candidate's best grid point
+    lr: float = 1e-3
+    batch_frames: int | None = 2
+    candidates: tuple | None = None  # effect names; default: the whole library
+    max_steps: int = 4
+    seed: int = 0
+    grid_frames: int = 4  # fit frames used by the candidates' searches
+    min_relative_gain: float = MIN_RELATIVE_GAIN
+
+
+
+def analysis_of(sensor, frames, seed: int, edges: dict | None = None, stride: int = 1) -> dict:
+    """Residual analysis (stats and structure per axis) of ``sensor`` on ``frames`` (re-planed under it)."""
+    frames = replaned(sensor, frames, seed, 1)
+    with torch.no_grad():
+        sims = [simulate(sensor, f, seed) for f in frames]
+    res = pixel_residuals(frames, sims, stride=stride)
+    return analyse(res, seed=seed, edges=edges)
+
+
+def structure_summary(analysis: dict, top: int = 3) -> str:
+    items = sorted(analysis.items(), key=lambda kv: -kv[1][1].excess_mm)[:top]
+    return ", ".join(f"{axis} {s.excess_mm:.1f} mm (noise {s.noise_mm:.1f})" for axis, (_, s) in items)
+
+
+def step_sentence(name: str, params: dict, before: Evaluation, after: Evaluation) -> str:
+    cls = REGISTRY[name]
+    pct = 100.0 * (1.0 - after.excess / before.excess) if before.excess > 0 else 0.0
+    values = ", ".join(f"{k} = {v:.3g} {cls.params[k].unit}".rstrip() for k, v in params.items())
+    return (
+        f"Missing effect: {name}. {cls.description} With it ({values}) the held-out gap beyond the noise floor "
+        f"falls from {before.excess:.2f} mm to {after.excess:.2f} mm ({pct:.0f} % less; compare gap {before.gap:.2f} "
+        f"-> {after.gap:.2f} mm, noise floor {after.floor:.2f} mm); the disagreement it removes varied "
+        f"{AXIS_WORDS.get(cls.axis, cls.axis)} ({cls.signature})."
+    )
+
+
+def refit(sensor, frames, config: DiagnoseConfig, progress: bool) -> None:
+    """Refit the base parameters (and, by Adam, the parameters of accepted effects that change depth) in place.
+
+    Dropout thresholds are left where their search put them: the fit loss, unlike the credited
+    fall, rewards dropping noisy pixels.
+    """
+    names = list(config.base_params) + [f"effect:{e.name}" for e in sensor.effects if changes_depth(e.name)]
+    fit_sensor(sensor, frames, names, steps=config.refit_steps, lr=config.lr, progress=progress, seed=config.seed,
+               batch_frames=config.batch_frames)  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------ the loop
+
+
+#: Named effects tried only when asked for (--candidates): a 3x5 disparity-distortion field is flexible
+#: enough to absorb part of an offset, a scale or a lens distortion, so by default the simpler effects
+#: are tried alone (named effects' precedence by simplicity is issue 15's work).
+OPT_IN_CANDIDATES = ("disparity_distortion",)
+
+
+def default_candidates() -> list[str]:
+    """The library effects tried by default: the named ones (not the generic axis terms), minus the opt-in ones."""
+    return [name for name in library_names() if name not in OPT_IN_CANDIDATES]
+
+
+def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callable[[str], None] = print,
+             progress: bool = False, analysis_stride: int = 1) -> Diagnosis:  # fmt: skip
+    """Run the diagnosis loop (see the module docstring) on prepared frames.
+
+    Args:
+        preset: the starting sensor preset (with the scans' camera).
+        frames: :func:`ddsgen.fit.simulate.prepare_frames` output (split into fit / held-out here).
+        config: settings.
+        echo: receives one line per stage (progress output).
+        progress: tqdm bars of the fits.
+        analysis_stride: pixel subsampling of the residual analysis (1 = every pixel).
+    """
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    config = config or DiagnoseConfig()
+    names = list(config.candidates) if config.candidates else default_candidates()
+    unknown = [n for n in names if n not in REGISTRY]
+    if unknown:
+        raise ValueError(f"unknown candidate effect(s) {unknown}")
+    fit_frames, held = split_frames(frames, config.holdout, config.seed)
+    held_seed = config.seed + 1  # held-out gaps use other noise draws than the fit
+    rng = np.random.default_rng([config.seed, 77])
+
+    echo(f"[1/5] base fit of {', '.join(config.base_params)} on {len(fit_frames)} fit frame(s) "
+         f"({len(held)} held out)")  # fmt: skip
+    sensor = DepthSensor(preset)
+    fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
+               seed=config.seed, batch_frames=config.batch_frames)  # fmt: skip
+    current = evaluate(sensor, held, held_seed, replane_steps=2)
+    baseline, base_sensor = current, sensor  # accepted effects make new sensors: base_sensor stays as fitted
+    echo(f"      held-out gap {current.gap:.2f} mm, noise floor {current.floor:.2f} mm: "
+         f"{current.excess:.2f} mm beyond it")  # fmt: skip
+
+    echo("[2/5] residual analysis (depth, incidence, radius, row, column, edge distance, IR signal) "
+         "on the held-out and search frames")
+    analysis_frames = held + fit_frames[: config.grid_frames or None]
+    analysis = analysis_of(sensor, analysis_frames, held_seed, stride=analysis_stride)
+    edges = {axis: stats.edges for axis, (stats, _) in analysis.items()}
+    analysis_baseline = analysis
+    echo(f"      strongest structure: {structure_summary(analysis)}")
+
+    steps: list[Step] = []
+    rounds: list[list[Candidate]] = []
+    in_model = {e.name for e in sensor.effects}
+    with reuse_matches():
+        while len(steps) < config.max_steps:
+            todo = [n for n in names if n not in in_model]
+            if not todo:
+                break
+            echo(f"[3/5] round {len(rounds) + 1}: fitting {len(todo)} candidate effect(s) on the fit frames")
+            # Depth-changing effects are searched on grid_frames (each trial re-planes and re-matches);
+            # validity effects on every fit frame (their trials reuse the matcher's results: cheap).
+            all_fit = replaned(sensor, fit_frames, config.seed)
+            all_base = evaluate(sensor, all_fit, config.seed)
+            with torch.no_grad():
+                all_sims = [simulate(sensor, f, config.seed) for f in all_fit]
+            n_grid = len(all_fit[: config.grid_frames or None])  # grid frames: the first n_grid fit frames
+            grid_frames = all_fit[:n_grid]
+            search_sets = {
+                True: (grid_frames, Evaluation(all_base.frame_gaps[:n_grid], all_base.frame_floors[:n_grid]),
+                       all_sims[:n_grid]),
+                False: (all_fit, all_base, all_sims),
+            }  # fmt: skip
+            results = []
+            for name in todo:
+                search_frames, search_base, search_sims = search_sets[changes_depth(name)]
+                cand_sensor, values, fit_score = fit_candidate(sensor, name, search_frames, config, search_base,
+                                                               search_sims)  # fmt: skip
+                held_eval = evaluate(cand_sensor, held, held_seed, replane_steps=2)
+                c = Candidate(name, values, fit_score, held_eval, sensor=cand_sensor)
+                c.gain = relative_fall(current, held_eval)
+                c.gain_low = bootstrap_fall(current, held_eval, rng)
+                results.append(c)
+                echo(f"      {name:20s} held-out gap {held_eval.gap:6.2f} mm (floor {held_eval.floor:5.2f}, beyond it "
+                     f"{held_eval.excess:5.2f})  "
+                     f"credited fall {100 * c.gain:+6.1f} % (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)"
+                     f"  {_fmt(values)}")  # fmt: skip
+            rounds.append(results)
+            best = max(results, key=lambda c: c.gain)
+            if not (best.gain >= config.min_relative_gain and best.gain_low > 0.0):
+                echo(f"[4/5] no candidate clears the rule (best: {best.effect}, {100 * best.gain:.1f} %, "
+                     f"bootstrap 5 % {100 * best.gain_low:.1f} %): stop")  # fmt: skip
+                break
+            echo(f"[4/5] accepted {best.effect}; refitting the base parameters with it")
+            new = best.sensor
+            fit_before = evaluate(new, grid_frames, config.seed, replane_steps=1)
+            refit(new, replaned(new, fit_frames, config.seed), config, progress)
+            if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
+                new = with_effect(sensor, best.effect, best.params)  # the refit did not help: undo it
+                after = best.held
+            else:
+                after = evaluate(new, held, held_seed, replane_steps=2)
+            params = next(e for e in new.effects if e.name == best.effect).values()
+            after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
+            steps.append(Step(best.effect, params, current, after,
+                              REGISTRY[best.effect].axis, step_sentence(best.effect, params, current, after),
+                              analysis, after_analysis))  # fmt: skip
+            echo(f"      {best.effect}: held-out gap beyond the noise floor {current.excess:.2f} -> {after.excess:.2f} mm "
+                 f"(compare gap {current.gap:.2f} -> {after.gap:.2f} mm; {_fmt(params)})")  # fmt: skip
+            sensor, current, analysis = new, after, after_analysis
+            in_model.add(best.effect)
+
+    unexplained = unexplained_axes(analysis)
+    if unexplained:
+        echo("[5/5] unexplained structure: " + ", ".join(f"{u['axis']} {u['strength']:.1f} mm" for u in unexplained))
+    else:
+        echo("[5/5] no residual structure beyond noise remains")
+    maps_baseline = residual_maps(base_sensor, held[:MAP_FRAMES], held_seed)
+    maps_final = residual_maps(sensor, held[:MAP_FRAMES], held_seed) if steps else maps_baseline
+    return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
+                     rounds, maps_baseline, maps_final)  # fmt: skip
+
+
+def _fmt(values: dict) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in values.items())
