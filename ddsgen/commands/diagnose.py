@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import split_names
+from ddsgen.commands import echo_stderr, split_names
 from ddsgen.errors import InputError
 
 
@@ -55,7 +55,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     """
     import torch
 
-    from ddsgen.commands.compare import load_inputs
+    from ddsgen.fit.inputs import load_inputs
     from ddsgen.diagnose import DiagnoseConfig
     from ddsgen.diagnose import diagnose as run_diagnosis
     from ddsgen.diagnose.report import write_diagnosis
@@ -89,7 +89,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
             click.echo(line, err=True)
 
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane,
-                                                     plausible_px=plausible_px, seed=seed, progress=progress)  # fmt: skip
+                                                     plausible_px=plausible_px, seed=seed, progress=progress, echo=echo_stderr)  # fmt: skip
     if len(frames) < 2:
         raise InputError(f"{real_dir}: diagnose needs at least 2 frames (fit and held-out), found {len(frames)}")
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import split_names
-from ddsgen.commands.compare import common_options, load_inputs
+from ddsgen.commands import common_options, echo_stderr, split_names
+from ddsgen.fit.inputs import load_inputs
 from ddsgen.errors import InputError
 
 
@@ -63,7 +63,7 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
 
     resolve_params(DepthSensor(load_preset(preset)), names)  # validate names before any work
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
-                                                     plausible_px=plausible_px, seed=seed, progress=not quiet)  # fmt: skip
+                                                     plausible_px=plausible_px, seed=seed, progress=not quiet, echo=echo_stderr)  # fmt: skip
     sensor = DepthSensor(camera_preset)
     if region == "objects":  # fit on the pixels that count
         import dataclasses

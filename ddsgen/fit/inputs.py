@@ -1,0 +1,55 @@
+"""The inputs of every real-scan command (compare, fit, diagnose): a preset with the scans' camera, and the
+real frames prepared for simulation. Below the commands, so that no command module imports another.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from ddsgen.errors import InputError
+
+
+def adopt_camera(preset, scan_frames):
+    """The preset with the scans' camera when they differ (image size, focal length, principal point).
+
+    The simulation must see the real images' pixels, and the sensor sizes its disparity search
+    from the preset's focal length. Frames must share one image size.
+    """
+    sizes = {(f.intrinsics.width, f.intrinsics.height) for f in scan_frames}
+    if len(sizes) > 1:
+        raise InputError(f"{scan_frames[0].source_depth_path}: frames have different image sizes {sorted(sizes)}; "
+                         f"compare/fit them separately")  # fmt: skip
+    c = scan_frames[0].intrinsics
+    p = preset
+    same = ((c.width, c.height) == (p.width_px, p.height_px) and abs(c.fx - p.focal_px) <= 0.01 * p.focal_px
+            and abs(c.fy - p.focal_y_px) <= 0.01 * p.focal_y_px)  # fmt: skip
+    if same:
+        return preset, False
+    try:
+        return preset.replace(width_px=c.width, height_px=c.height, focal_px=c.fx, focal_y_px=c.fy, cx_px=c.cx,
+                              cy_px=c.cy), True  # fmt: skip
+    except InputError as error:
+        raise InputError(f"{scan_frames[0].source_depth_path}: the scans' camera does not fit the preset: {error}") from None
+
+
+def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausible_px=2.0, seed=0, progress=True,
+                echo: Callable[[str], None] | None = None):
+    """(original preset, preset with the scans' camera, scan frames, prepared FrameData list).
+
+    ``echo`` (e.g. ``click.echo`` to stderr) is told when the scans' camera replaces the preset's.
+    """
+    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.preset import load_preset
+
+    preset = load_preset(preset_path)
+    scans = read_scan_folder(real_dir)
+    if not scans:
+        raise InputError(f"{real_dir}: no frames")
+    camera_preset, adopted = adopt_camera(preset, scans)
+    if adopted and progress and echo is not None:
+        c = scans[0].intrinsics
+        echo(f"using the scans' camera ({c.width}x{c.height} px, fx {c.fx:.2f} px) instead of the preset's")
+    frames = prepare_frames(camera_preset, scans, support_plane=support_plane, crop=crop, plausible_px=plausible_px,
+                            seed=seed, progress=progress)  # fmt: skip
+    return preset, camera_preset, scans, frames
