@@ -1,0 +1,76 @@
+"""Pose refinement of a scan frame (real or rendered): its annotated objects and its support plane."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from ddsgen.preset import SensorPreset
+from ddsgen.scene_gradients.refine import RefineResult, RefineSettings, refine_poses
+from ddsgen.scene_gradients.scene import RefinableScene
+
+
+@dataclasses.dataclass
+class FrameRefinement:
+    """The refinement of one scan frame.
+
+    name: the frame's name; crop: (x0, y0, width, height) of the refined window in the frame.
+    object_ids: the objects' instance ids (ScanObject.id), in the order of ``result``'s first rows.
+    result: the :class:`RefineResult` (poses: objects, then the support plane if one was fitted).
+    real_depth: (h, w) float32 real depth of the window (m, 0 invalid).
+    plane_fitted: whether a support plane was fitted (and refined).
+    """
+
+    name: str
+    crop: tuple[int, int, int, int]
+    object_ids: list
+    result: RefineResult
+    real_depth: np.ndarray
+    plane_fitted: bool
+
+    def object_changes(self) -> list[dict]:
+        """Per object: id and the pose change (deg, mm) from the initial to the refined pose."""
+        from ddsgen.scene_gradients.poses import pose_difference
+
+        out = []
+        for k, obj_id in enumerate(self.object_ids):
+            deg, mm = pose_difference(self.result.initial[k], self.result.refined[k])
+            out.append({"id": int(obj_id), "rotation_deg": round(deg, 4), "translation_mm": round(mm, 4)})
+        return out
+
+
+def camera_preset(preset: SensorPreset, intrinsics) -> SensorPreset:
+    """The preset with a frame's camera (image size, focal lengths, principal point)."""
+    return preset.replace(width_px=intrinsics.width, height_px=intrinsics.height, focal_px=intrinsics.fx,
+                          focal_y_px=intrinsics.fy, cx_px=intrinsics.cx, cy_px=intrinsics.cy)  # fmt: skip
+
+
+def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: RefineSettings | None = None, *,
+                      support_plane: bool = True, crop_margin_px: int = 32, progress: bool = False,
+                      ) -> FrameRefinement:  # fmt: skip
+    """Refine every annotated object's pose (and the fitted support plane) of one scan frame.
+
+    Args:
+        preset: the sensor preset with the frame's camera (:func:`camera_preset`).
+        frame: a :class:`~ddsgen.io.scanfolder.ScanFrame` (from ``read_scan_folder``).
+        index: the frame's position in its folder (seeds the support-plane RANSAC).
+        settings: :class:`RefineSettings`.
+        support_plane: fit a RANSAC plane to the real depth outside the objects and refine it too.
+        crop_margin_px: the window simulated is the objects' box plus this margin (exact: a crop
+            of a pinhole image is a pinhole image); objects may move a little within it.
+    """
+    from ddsgen.fit.simulate import frame_scene, prepare_frame
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    s = settings or RefineSettings()
+    prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
+                             crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
+    scene = frame_scene(frame, plane=prepared.plane)
+    sensor = DepthSensor(preset, intrinsics=prepared.intrinsics)
+    refinable = RefinableScene(scene, prepared.intrinsics, preset.baseline_m, preset.shadow_bias_m)
+    real = prepared.real_depth.clone()
+    result = refine_poses(sensor, refinable, real, s, progress=progress)
+    return FrameRefinement(name=frame.name, crop=prepared.crop, object_ids=[o.id for o in frame.objects],
+                           result=result, real_depth=real.numpy(), plane_fitted=prepared.plane is not None)  # fmt: skip
