@@ -31,8 +31,8 @@ class RefineSettings:
 
     steps: int = 60
     recast_every: int = 5
-    lr_rotation: float = 6e-3  # rad per Adam step at the start (cosine decay to 2 % at the end)
-    lr_translation: float = 6e-4  # m per Adam step at the start
+    lr_rotation: float = 1e-2  # rad per Adam step at the start (cosine decay to 2 % at the end)
+    lr_translation: float = 1e-3  # m per Adam step at the start
     lr_albedo: float = 0.0  # log-albedo per step; 0 keeps the albedos fixed
     band_m: float = 0.025  # compare where |real - rendered clean| < band
     huber_m: float = 0.003  # Huber width of the depth residual
