@@ -168,3 +168,112 @@ def test_refinement_recovers_a_known_pose_despite_an_unmodelled_occluder():
     deg, mm = pose_difference(result.refined[0], true_pose)
     assert deg < 0.6 and mm < 1.0, (deg, mm)  # from 3 deg / 10 mm (measured: 0.26 deg, 0.24 mm)
     assert result.gap_after_mm < 0.5 * result.gap_before_mm
+
+
+# ------------------------------------------------------------------------------------------ CLI and writers
+
+SMALL_PRESET = """\
+name: kinect_v1_small
+width_px: 160
+height_px: 120
+focal_px: 143.1025
+baseline_m: 0.075
+z_min_m: 0.4
+z_max_m: 4.0
+block_size_px: 9
+emitted_intensity: 1.5e6
+shadow_bias_m: 0.005
+softargmax_beta: 15.0
+subpixel_level: 2
+pattern: kinect_like_640.png
+band_rows: 120
+"""
+SCENES = """\
+scenes:
+  - name: table
+    frames: 1
+    objects:
+      - {shape: box, size: [0.2, 0.15, 0.12], albedo: 0.6}
+      - {shape: l_bracket, albedo: 0.6}
+    ground: {size: [6, 6], albedo: 0.6}
+    camera: {distance: [0.9, 1.1], elevation_deg: [40, 50], azimuth_deg: [-30, 30]}
+"""
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    from ddsgen.runner import render_dataset
+
+    root = tmp_path_factory.mktemp("refine")
+    (root / "small.yaml").write_text(SMALL_PRESET)
+    (root / "scenes.yaml").write_text(SCENES)
+    render_dataset(str(root / "small.yaml"), str(root / "scenes.yaml"), 1, str(root / "scans"), workers=1, seed=5,
+                   progress=False)  # fmt: skip
+    return root
+
+
+def test_refine_cli_writes_a_readable_manifest_with_refined_poses_and_a_report(rendered, tmp_path):
+    from ddsgen.io.scanfolder import read_scan_folder
+
+    out = tmp_path / "refined"
+    code = main(["refine", str(rendered / "small.yaml"), str(rendered / "scans"), "--out", str(out), "--steps", "3",
+                 "--quiet"])  # fmt: skip
+    assert code == 0
+    source, refined = read_scan_folder(rendered / "scans"), read_scan_folder(out)
+    assert len(refined) == len(source) == 1
+    assert np.array_equal(refined[0].depth, source[0].depth)  # the depth path points back at the source
+    report = json.loads((out / "report" / "refine_report.json").read_text())
+    frame_report = report["frames"][0]
+    assert (out / "report" / frame_report["picture"]).is_file()
+    for obj_new, obj_old, change in zip(refined[0].objects, source[0].objects, frame_report["objects"]):
+        assert obj_new.id == obj_old.id == change["id"]
+        deg, mm = pose_difference(obj_new.cam_T_obj, obj_old.cam_T_obj)
+        assert deg == pytest.approx(change["rotation_deg"], abs=1e-3) and mm == pytest.approx(change["translation_mm"], abs=1e-3)
+        assert 0 < mm < 5.0 and deg < 2.0  # the rendered poses are exact: 3 steps move them a little, not far
+
+
+def test_refine_cli_rejects_bad_input_with_one_line_and_writes_nothing(rendered, tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main(["refine", str(rendered / "small.yaml"), str(rendered / "scans"), "--out", str(out), "--steps", "-1"]) == 2
+    empty = tmp_path / "empty_scans"
+    empty.mkdir()
+    record = json.loads((rendered / "scans" / "manifest.jsonl").read_text().splitlines()[0])
+    record["objects"] = []
+    record["depth"] = str(Path("..") / rendered.name / "scans" / record["depth"])
+    (empty / "manifest.jsonl").write_text(json.dumps(record) + "\n")
+    assert main(["refine", str(rendered / "small.yaml"), str(empty), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert all(line.startswith("ddsgen: error:") for line in err) and len(err) == 2
+    assert not out.exists()
+
+
+def test_fit_with_refine_poses_reports_both_rounds(rendered, tmp_path):
+    out = tmp_path / "fitted.yaml"
+    code = main(["fit", str(rendered / "small.yaml"), str(rendered / "scans"), "--out", str(out), "--params", "beta",
+                 "--steps", "2", "--refine-poses", "--pose-steps", "2", "--quiet"])  # fmt: skip
+    assert code == 0 and out.is_file()
+    report = json.loads((tmp_path / "fitted_report" / "fit_report.json").read_text())
+    rounds = report["pose_refinement"]["rounds"]
+    assert len(rounds) == 2 and all(r[0]["objects"] for r in rounds)
+
+
+@pytest.mark.skipif(not LINEMOD.is_dir(), reason="shared LineMOD frame not available")
+def test_refine_cli_on_bop_keeps_scene_gt_keys_row_major_rotation_and_millimetres(tmp_path):
+    out = tmp_path / "refined"
+    assert main(["refine", "kinect_v1", str(LINEMOD), "--out", str(out), "--steps", "4", "--gradient", "geometry",
+                 "--quiet"]) == 0  # fmt: skip
+    source = json.loads((LINEMOD / "test" / "000006" / "scene_gt.json").read_text())
+    written = json.loads((out / "test" / "000006" / "scene_gt.json").read_text())
+    assert written.keys() == source.keys()
+    change = json.loads((out / "report" / "refine_report.json").read_text())["frames"][0]["objects"][0]
+    for old, new in zip(source["0"], written["0"]):
+        assert new.keys() == old.keys() and new["obj_id"] == old["obj_id"]
+        R_old, R_new = np.reshape(old["cam_R_m2c"], (3, 3)), np.reshape(new["cam_R_m2c"], (3, 3))
+        assert np.allclose(R_new @ R_new.T, np.eye(3), atol=1e-6)
+        T_old, T_new = np.eye(4), np.eye(4)
+        T_old[:3, :3], T_old[:3, 3] = R_old, np.asarray(old["cam_t_m2c"]) / 1000.0
+        T_new[:3, :3], T_new[:3, 3] = R_new, np.asarray(new["cam_t_m2c"]) / 1000.0
+        deg, mm = pose_difference(T_old, T_new)
+        # The report's change, recomputed from the files: the same only with row-major R and t in mm.
+        assert deg == pytest.approx(change["rotation_deg"], abs=0.05) and mm == pytest.approx(change["translation_mm"], abs=0.05)
+        assert 0 < mm < 20

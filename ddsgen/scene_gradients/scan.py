@@ -49,7 +49,7 @@ def camera_preset(preset: SensorPreset, intrinsics) -> SensorPreset:
 
 def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: RefineSettings | None = None, *,
                       support_plane: bool = True, crop_margin_px: int = 32, progress: bool = False,
-                      ) -> FrameRefinement:  # fmt: skip
+                      sensor=None) -> FrameRefinement:  # fmt: skip
     """Refine every annotated object's pose (and the fitted support plane) of one scan frame.
 
     Args:
@@ -60,17 +60,27 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
         support_plane: fit a RANSAC plane to the real depth outside the objects and refine it too.
         crop_margin_px: the window simulated is the objects' box plus this margin (exact: a crop
             of a pinhole image is a pinhole image); objects may move a little within it.
+        sensor: a :class:`~ddsgen.sensor.depth_sensor.DepthSensor` to use (e.g. one being fitted; its
+            camera is set to the window's for the call); default: a new one from ``preset``.
     """
-    from ddsgen.fit.simulate import frame_scene, prepare_frame
+    from ddsgen.fit.simulate import frame_camera, frame_scene, prepare_frame
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     s = settings or RefineSettings()
     prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
                              crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
+    # prepare_frame's window may be listed larger than the image when the objects' box plus margin is;
+    # the arrays are the clipped window (its origin is right): take the size from them.
+    height, width = prepared.real_depth.shape
+    x0, y0 = prepared.crop[:2]
+    window = dataclasses.replace(prepared.intrinsics, width=int(width), height=int(height))
     scene = frame_scene(frame, plane=prepared.plane)
-    sensor = DepthSensor(preset, intrinsics=prepared.intrinsics)
-    refinable = RefinableScene(scene, prepared.intrinsics, preset.baseline_m, preset.shadow_bias_m)
+    if sensor is None:
+        sensor = DepthSensor(preset, intrinsics=window)
+    baseline = float(sensor.baseline.detach())
+    refinable = RefinableScene(scene, window, baseline, preset.shadow_bias_m)
     real = prepared.real_depth.clone()
-    result = refine_poses(sensor, refinable, real, s, progress=progress)
-    return FrameRefinement(name=frame.name, crop=prepared.crop, object_ids=[o.id for o in frame.objects],
+    with frame_camera(sensor, window):
+        result = refine_poses(sensor, refinable, real, s, progress=progress)
+    return FrameRefinement(name=frame.name, crop=(int(x0), int(y0), int(width), int(height)), object_ids=[o.id for o in frame.objects],
                            result=result, real_depth=real.numpy(), plane_fitted=prepared.plane is not None)  # fmt: skip
