@@ -44,7 +44,8 @@ class RayHits:
     # Which triangle each ray hit, for recomputing the hits from posed vertices (ddsgen.scene_gradients):
     owner: np.ndarray | None = None  # int32 (H, W): index into scene.objects + scene.background, -1 where no hit
     triangle: np.ndarray | None = None  # int32 (H, W): face index in the owner's mesh, -1 where no hit
-    # float32 (H, W, 2): Embree's (u, v) on that face, P = (1 - u - v) V0 + u V1 + v V2; 0 where no hit
+    # float32 (H, W, 2): Embree's (u, v) on that face, P = (1 - u - v) V0 + u V1 + v V2; 0 where no hit.
+    # Analytic planar polygons (ground, walls) report face 0 (their faces are coplanar) and (u, v) = (0, 0).
     barycentric: np.ndarray | None = None
 
 
@@ -287,8 +288,10 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
     hit = owner >= 0
     depth = np.where(hit, best_t, np.float32(0.0))
     points = directions * depth[:, None]
-    for k, _ in polygons:
-        _polygon_faces(placed[k], cam_T_world, points, owner == k, triangle, barycentric)
+    if polygons:  # coplanar faces: face 0's plane is the hit's plane (barycentrics left 0: not needed, not cheap)
+        is_polygon = np.zeros(len(placed) + 1, dtype=bool)
+        is_polygon[[k for k, _ in polygons]] = True
+        triangle[is_polygon[owner]] = 0
     ids = np.append(np.array([o.id for o in placed], dtype=np.uint16), np.uint16(0))
     albedos = np.append(np.array([o.albedo for o in placed], dtype=np.float32), np.float32(0.0))
     instance = ids[owner]
@@ -347,37 +350,6 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         triangle=triangle.reshape(shape2),
         barycentric=barycentric.reshape(height, width, 2),
     )
-
-
-def _polygon_faces(placed, cam_T_world, points, mask, triangle, barycentric) -> None:
-    """Triangle ids and barycentrics of the pixels ``mask`` (flat) of an analytically cast planar polygon.
-
-    Each pixel gets the first face whose barycentrics are all >= -1e-5 (in place, into ``triangle``
-    and ``barycentric``); the faces are coplanar, so a seam pixel may take either.
-    """
-    index = np.flatnonzero(mask)
-    if not len(index):
-        return
-    vertices, faces = _camera_vertices(placed, cam_T_world)
-    tri = vertices[faces].astype(np.float64)  # (F, 3, 3)
-    p = points[index].astype(np.float64)
-    todo = np.ones(len(index), dtype=bool)
-    for f, (a, b, c) in enumerate(tri):
-        e1, e2, rel = b - a, c - a, p - a
-        # Barycentrics by the normal equations of rel = u e1 + v e2 (the point lies in the face's plane).
-        d11, d12, d22 = e1 @ e1, e1 @ e2, e2 @ e2
-        r1, r2 = rel @ e1, rel @ e2
-        det = d11 * d22 - d12 * d12
-        if det <= 0:
-            continue
-        u = (d22 * r1 - d12 * r2) / det
-        v = (d11 * r2 - d12 * r1) / det
-        inside = todo & (u >= -1e-5) & (v >= -1e-5) & (u + v <= 1 + 1e-5)
-        triangle[index[inside]] = f
-        barycentric[index[inside]] = np.stack([u[inside], v[inside]], axis=1)
-        todo &= ~inside
-        if not todo.any():
-            break
 
 
 def _image_box(vertices_cam: np.ndarray, intrinsics: Intrinsics):
