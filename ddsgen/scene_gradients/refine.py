@@ -80,7 +80,7 @@ def robust_depth_loss(depth, valid, clean_depth, real_depth, band_m: float, hube
         return depth.sum() * 0.0, mask
     residual = depth[mask] - real_depth[mask]
     loss = torch.nn.functional.huber_loss(residual, torch.zeros_like(residual), delta=huber_m, reduction="mean")
-    return loss / huber_m * 1.0, mask  # in m-equivalent: ~|r| for large r, r^2/(2 huber) for small
+    return loss / huber_m, mask  # in m: ~|r| for large r, r^2 / (2 huber) for small
 
 
 def simulate_depth(sensor, tensors, rotations, translations, albedo, noise, gradient: str = "sensor"):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.io.atomic import atomic_write_text
+from ddsgen.io.atomic import atomic_path, atomic_write_text
 
 
 def frame_summary(refinement) -> dict:
@@ -47,8 +47,8 @@ def save_side_by_side(refinement, path: Path) -> None:
         ax.axis("off")
     fig.colorbar(shown, ax=axes, shrink=0.8, label="depth (m)")
     fig.suptitle(refinement.name, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80, format="png")
     plt.close(fig)
 
 

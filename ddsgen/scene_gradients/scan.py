@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import torch
 
 from ddsgen.preset import SensorPreset
 from ddsgen.scene_gradients.refine import RefineResult, RefineSettings, refine_poses
