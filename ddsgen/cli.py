@@ -15,7 +15,7 @@ import click
 from ddsgen.errors import InputError
 
 # Commands live in ddsgen/commands/<name>.py, each exposing a click command called <name>.
-COMMAND_MODULES = ("render", "preview", "pattern", "stereo", "compare", "fit", "diagnose", "study", "presets")
+COMMAND_MODULES = ("render", "preview", "pattern", "stereo", "compare", "fit", "diagnose", "refine", "study", "presets")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

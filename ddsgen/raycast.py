@@ -41,6 +41,12 @@ class RayHits:
     shadow: np.ndarray  # bool (H, W): hit point not seen by the projector at (+b, 0, 0)
     albedo: np.ndarray  # float32 (H, W): IR reflectance of the hit surface, 0 where no hit
     coverage: dict = dataclasses.field(default_factory=dict)  # object id -> pixels it covers when cast alone
+    # Which triangle each ray hit, for recomputing the hits from posed vertices (ddsgen.scene_gradients):
+    owner: np.ndarray | None = None  # int32 (H, W): index into scene.objects + scene.background, -1 where no hit
+    triangle: np.ndarray | None = None  # int32 (H, W): face index in the owner's mesh, -1 where no hit
+    # float32 (H, W, 2): Embree's (u, v) on that face, P = (1 - u - v) V0 + u V1 + v V2; 0 where no hit.
+    # Analytic planar polygons (ground, walls) report face 0 (their faces are coplanar) and (u, v) = (0, 0).
+    barycentric: np.ndarray | None = None
 
 
 @functools.lru_cache(maxsize=8)
@@ -246,6 +252,8 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         table[k] = -polygon.normal if polygon.offset > 0 else polygon.normal
     is_mesh = np.zeros(len(placed) + 1, dtype=bool)
     mesh_normals = np.zeros((n_rays, 3), dtype=np.float32) if meshes else None
+    triangle = np.full(n_rays, -1, dtype=np.int32)
+    barycentric = np.zeros((n_rays, 2), dtype=np.float32)
     coverage: dict[int, int] = {}
     for k, cam_T_obj, bvh, box in meshes:
         # Rays go into the object frame (rotation only: t stays the depth); only rays in its image box can hit it.
@@ -269,6 +277,9 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(1e-30))
         n[np.einsum("ij,ij->i", n, d[closer]) > 0] *= -1.0
         mesh_normals[index] = n
+        triangle[index] = result["primID"][closer]
+        barycentric[index, 0] = result["u"][closer]
+        barycentric[index, 1] = result["v"][closer]
     normals = table[owner]
     if meshes:
         from_mesh = is_mesh[owner]
@@ -277,6 +288,10 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
     hit = owner >= 0
     depth = np.where(hit, best_t, np.float32(0.0))
     points = directions * depth[:, None]
+    if polygons:  # coplanar faces: face 0's plane is the hit's plane (barycentrics left 0: not needed, not cheap)
+        is_polygon = np.zeros(len(placed) + 1, dtype=bool)
+        is_polygon[[k for k, _ in polygons]] = True
+        triangle[is_polygon[owner]] = 0
     ids = np.append(np.array([o.id for o in placed], dtype=np.uint16), np.uint16(0))
     albedos = np.append(np.array([o.albedo for o in placed], dtype=np.float32), np.float32(0.0))
     instance = ids[owner]
@@ -331,6 +346,9 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         shadow=shadow.reshape(shape2),
         albedo=albedo.reshape(shape2),
         coverage=coverage,
+        owner=owner.reshape(shape2),
+        triangle=triangle.reshape(shape2),
+        barycentric=barycentric.reshape(height, width, 2),
     )
 
 

@@ -29,9 +29,13 @@ from ddsgen.errors import InputError
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
               help="Report folder (default: OUT without .yaml + _report).")
 @click.option("--no-search", is_flag=True, help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches.")
+@click.option("--refine-poses", is_flag=True,
+              help="Poses as nuisance parameters: refine every frame's object poses (ddsgen refine's loop) with the "
+                   "current sensor before the fit and again after it; the held-out gap after uses the final poses.")
+@click.option("--pose-steps", type=int, default=40, show_default=True, help="Pose-refinement steps per frame and round.")
 @common_options
-def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, no_plane, crop, plausible_px, region,
-        seed, quiet):  # fmt: skip
+def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, refine_poses, pose_steps, no_plane,
+        crop, plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
     Frames are split into fit and held-out sets. Adam (Huber + Sobel-gradient + validity
@@ -44,7 +48,7 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     import torch
 
     from ddsgen.fit.compare import gap, plot_residuals, write_report
-    from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, fitted_preset, resolve_params, split_frames
+    from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, fitted_preset, refine_frame_poses, resolve_params, split_frames
     from ddsgen.io.atomic import atomic_write_text
     from ddsgen.preset import PATTERN_DIR, save_preset
     from ddsgen.sensor.depth_sensor import DepthSensor
@@ -54,6 +58,8 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if not lr > 0:
         raise click.BadParameter("must be > 0", param_hint="--lr")
+    if pose_steps < 0:
+        raise click.BadParameter("must be >= 0", param_hint="--pose-steps")
     names = split_names(params) or list(DEFAULT_PARAMS)
     out_path = Path(out)
     if out_path.suffix.lower() not in (".yaml", ".yml"):
@@ -62,17 +68,34 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     from ddsgen.preset import load_preset
 
     resolve_params(DepthSensor(load_preset(preset)), names)  # validate names before any work
-    original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
+    original, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
                                                      plausible_px=plausible_px, seed=seed, progress=not quiet, echo=echo_stderr)  # fmt: skip
     sensor = DepthSensor(camera_preset)
-    if region == "objects":  # fit on the pixels that count
-        import dataclasses
 
-        frames = [dataclasses.replace(f, region=f.object_region) for f in frames]
+    def counted(frames):
+        if region == "objects":  # fit on the pixels that count
+            import dataclasses
+
+            return [dataclasses.replace(f, region=f.object_region) for f in frames]
+        return frames
+
+    frames = counted(frames)
     fit_frames, held = split_frames(frames, holdout, seed)
     progress = not quiet
     before = gap(sensor, held, region=region, seed=seed + 1, keep_maps=True, progress=progress)
+    pose_rounds = []
+
+    def refine_all():  # poses as nuisance parameters, with the sensor as it is now
+        refined, changes = refine_frame_poses(sensor, camera_preset, scans, pose_steps, progress=progress, seed=seed,
+                                              support_plane=not no_plane, crop=crop, plausible_px=plausible_px)  # fmt: skip
+        pose_rounds.append(changes)
+        return split_frames(counted(refined), holdout, seed)
+
+    if refine_poses:
+        fit_frames, held = refine_all()
     result = fit_sensor(sensor, fit_frames, names, steps=steps, lr=lr, progress=progress, seed=seed)
+    if refine_poses:
+        fit_frames, held = refine_all()
     after = gap(sensor, held, region=region, seed=seed + 1, keep_maps=True, progress=progress)
 
     # The fitted preset: the user's preset (its camera) with the fitted physical values.
@@ -104,6 +127,8 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         "noise_floor_before": before.noise_floor, "noise_floor_after": after.noise_floor,
         "fit": result.to_dict(),
     }  # fmt: skip
+    if refine_poses:
+        summary["pose_refinement"] = {"steps": pose_steps, "rounds": pose_rounds}
     atomic_write_text(report / "fit_report.json", json.dumps(summary, indent=1, default=float) + "\n")
     if weights_path is not None:
         save_postprocess(sensor.postprocess, weights_path)

@@ -351,3 +351,33 @@ def fitted_preset(sensor, postprocess_path: str | None = None):
     if postprocess_path is not None:
         preset = preset.replace(postprocess=str(postprocess_path))
     return preset
+
+
+def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool = False, seed: int = 0,
+                       **prepare_options) -> tuple[list[FrameData], list[dict]]:  # fmt: skip
+    """Poses as nuisance parameters (``fit --refine-poses``): refine every scan frame's object poses
+    with the current ``sensor`` (:mod:`ddsgen.scene_gradients`), then prepare the frames again at the
+    refined poses.
+
+    Args:
+        sensor: the sensor being fitted (its current parameters simulate the refinement).
+        preset: the preset with the scans' camera; scans: the ScanFrame list (poses replaced in place).
+        steps: refinement steps per frame; seed: noise seed.
+        prepare_options: passed to :func:`ddsgen.fit.simulate.prepare_frames` (support_plane, crop, ...).
+
+    Returns:
+        (the new FrameData list, per frame {frame, objects: [{id, rotation_deg, translation_mm}]}).
+    """
+    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.scene_gradients.refine import RefineSettings
+    from ddsgen.scene_gradients.scan import refine_scan_frame
+
+    changes = []
+    for index, scan in enumerate(scans):
+        refinement = refine_scan_frame(preset, scan, index, RefineSettings(steps=steps, seed=seed),
+                                       support_plane=prepare_options.get("support_plane", True), sensor=sensor)  # fmt: skip
+        for k, obj in enumerate(scan.objects):
+            obj.cam_T_obj = refinement.result.refined[k]
+        changes.append({"frame": scan.name, "objects": refinement.object_changes()})
+    return prepare_frames(preset, scans, seed=seed, progress=progress, **prepare_options), changes
+

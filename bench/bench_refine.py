@@ -1,0 +1,139 @@
+"""Scene-gradient benchmark (issue 16): step time, synthetic pose recovery, the real LineMOD cat.
+
+Prints `bench: NAME VALUE UNIT` lines:
+  refine_step_640_sensor_ms, refine_step_640_geometry_ms   one forward + backward of a 640x480 frame with
+                                                            8 objects and a support plane (median of 5)
+  synthetic_rotation_error_deg, synthetic_translation_error_mm   median over objects after `refine_poses`
+                                                            from 3 deg / 10 mm off (2 frames x 4 objects)
+  linemod_cat_rotation_error_deg, linemod_cat_translation_error_mm   the shared cat frame, pose perturbed by
+                                                            3 deg / 8 mm, refined, vs the published pose
+                                                            (median over 3 perturbations; skipped without data)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from ddsgen.preset import Intrinsics, load_preset  # noqa: E402
+from ddsgen.raycast import cast  # noqa: E402
+from ddsgen.scene import shapes  # noqa: E402
+from ddsgen.scene.sampling import FrameScene, PlacedObject  # noqa: E402
+from ddsgen.scene_gradients import RefinableScene, RefineSettings, refine_poses  # noqa: E402
+from ddsgen.scene_gradients.poses import axis_angle_to_matrix, perturb_pose, pose_difference  # noqa: E402
+from ddsgen.scene_gradients.refine import robust_depth_loss, simulate_depth  # noqa: E402
+from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry  # noqa: E402
+
+LINEMOD = ROOT.parent / "shared" / "data" / "linemod_bop"
+SHAPES = [("box", {"size": (0.07, 0.055, 0.045)}), ("mug", {}), ("l_bracket", {}), ("box", {"size": (0.05, 0.09, 0.04)})]
+
+
+def _pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = axis_angle_to_matrix(torch.tensor(rotvec, dtype=torch.float64)).numpy()
+    T[:3, 3] = t
+    return T
+
+
+def table_scene(n_objects: int, rng: np.random.Generator, spread=(0.3, 0.2), depth=0.75) -> FrameScene:
+    """n objects in random orientations on a grid in front of a tilted table plane."""
+    objects = []
+    cols = int(np.ceil(np.sqrt(n_objects * 1.5)))
+    rows = int(np.ceil(n_objects / cols))
+    for i in range(n_objects):
+        name, params = SHAPES[i % len(SHAPES)]
+        x = (i % cols - (cols - 1) / 2) * spread[0] / max(cols - 1, 1)
+        y = (i // cols - (rows - 1) / 2) * spread[1] / max(rows - 1, 1)
+        objects.append(PlacedObject(i + 1, name, f"shape:{name}", shapes.make_shape(name, params or None),
+                                    _pose(rng.normal(size=3) * 0.8, (x, y, depth + 0.05 * (i % 3))), 0.6))  # fmt: skip
+    plane = PlacedObject(0, "table", "plane:3x3", shapes.plane_mesh(3.0, 3.0), _pose((-0.9, 0, 0), (0, 0.1, depth + 0.15)), 0.6)
+    return FrameScene(objects, [plane], np.eye(4), 0, 0)
+
+
+def step_time(gradient: str) -> float:
+    preset = load_preset("kinect_v1")
+    scene = RefinableScene(table_scene(8, np.random.default_rng(0), spread=(0.5, 0.35), depth=0.9), preset.intrinsics,
+                           preset.baseline_m, preset.shadow_bias_m)  # fmt: skip
+    sensor = DepthSensor(preset)
+    for p in sensor.parameters():
+        p.requires_grad_(False)
+    tensors = scene.cast()
+    with torch.no_grad():
+        real = sensor(SensorGeometry.from_hits(cast(scene.current_scene(), preset.intrinsics, 0.075, 0.005)), seed=1).depth
+    times = []
+    for i in range(6):
+        start = time.perf_counter()
+        R, t = scene.poses()
+        depth, valid, geometry = simulate_depth(sensor, tensors, R, t, scene.poses.albedo, sensor.draw_noise(i), gradient)
+        loss, _ = robust_depth_loss(depth, valid, geometry.clean_depth, real, 0.025, 0.003)
+        loss.backward()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times[1:]) * 1000.0
+
+
+def synthetic_recovery(frames: int = 2, objects: int = 4) -> tuple[float, float]:
+    full = load_preset("kinect_v1").intrinsics
+    intr = Intrinsics(320, 240, full.fx, full.fy, full.cx - 160, full.cy - 120)
+    sensor = DepthSensor(load_preset("kinect_v1"), intrinsics=intr)
+    errors = []
+    for frame in range(frames):
+        rng = np.random.default_rng(100 + frame)
+        truth = table_scene(objects, rng, spread=(0.22, 0.13), depth=0.7)
+        with torch.no_grad():
+            real = sensor(SensorGeometry.from_hits(cast(truth, intr, 0.075, 0.005)), seed=50 + frame).depth
+        start = []
+        for o in truth.objects:
+            centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
+            start.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, 3.0, 10.0, rng)))
+        scene = RefinableScene(dataclasses.replace(truth, objects=start), intr, 0.075, 0.005)
+        result = refine_poses(sensor, scene, real, RefineSettings(steps=60))
+        errors += [pose_difference(result.refined[k], o.world_T_obj) for k, o in enumerate(truth.objects)]
+        print(f"  frame {frame}: " + ", ".join(f"{d:.2f} deg {m:.2f} mm" for d, m in errors[-objects:]), flush=True)
+    return float(np.median([e[0] for e in errors])), float(np.median([e[1] for e in errors]))
+
+
+def linemod_cat(perturbations: int = 3, gradient: str = "sensor") -> tuple[float, float] | None:
+    if not LINEMOD.is_dir():
+        return None
+    from ddsgen.fit.simulate import _load_object_mesh
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.scene_gradients.scan import camera_preset, refine_scan_frame
+
+    errors = []
+    for i in range(perturbations):
+        (frame,) = read_scan_folder(LINEMOD)
+        preset = camera_preset(load_preset("kinect_v1"), frame.intrinsics)
+        published = [o.cam_T_obj.copy() for o in frame.objects]
+        rng = np.random.default_rng(i)
+        for o in frame.objects:
+            mesh = _load_object_mesh(o)
+            centre = o.cam_T_obj[:3, :3] @ mesh.bounds.mean(0) + o.cam_T_obj[:3, 3]
+            o.cam_T_obj = perturb_pose(o.cam_T_obj, centre, 3.0, 8.0, rng)
+        r = refine_scan_frame(preset, frame, 0, RefineSettings(steps=60, gradient=gradient))
+        errors += [pose_difference(r.result.refined[k], T) for k, T in enumerate(published)]
+        print(f"  perturbation {i}: {errors[-1][0]:.2f} deg {errors[-1][1]:.2f} mm", flush=True)
+    return float(np.median([e[0] for e in errors])), float(np.median([e[1] for e in errors]))
+
+
+def main() -> None:
+    torch.set_num_threads(2)
+    for gradient in ("sensor", "geometry"):
+        print(f"bench: refine_step_640_{gradient}_ms {step_time(gradient):.0f} ms", flush=True)
+    deg, mm = synthetic_recovery()
+    print(f"bench: synthetic_rotation_error_deg {deg:.3f} deg\nbench: synthetic_translation_error_mm {mm:.3f} mm")
+    cat = linemod_cat()
+    if cat is not None:
+        print(f"bench: linemod_cat_rotation_error_deg {cat[0]:.2f} deg\nbench: linemod_cat_translation_error_mm {cat[1]:.2f} mm")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,67 @@
+"""A scene whose rigid parts' poses are learnable, re-cast on demand."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ddsgen.preset import Intrinsics
+from ddsgen.scene_gradients.hits import SceneTensors, scene_tensors
+from ddsgen.scene_gradients.poses import ScenePoses
+
+
+class RefinableScene:
+    """A :class:`~ddsgen.scene.sampling.FrameScene` with a :class:`ScenePoses` over its parts.
+
+    Parts are ``scene.objects + scene.background`` in that order (the ray cast's ``owner`` order).
+    Objects are always free; background parts (the support plane, walls) only with ``refine_background``.
+
+    Args:
+        scene: the FrameScene at the initial poses.
+        intrinsics: the camera (image (H, W)); may be a crop of a larger image.
+        baseline_m, shadow_bias_m: the sensor's projector offset and shadow bias (for the shadow rays).
+        refine_background: let the background parts (support plane) move too.
+    """
+
+    def __init__(self, scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
+                 refine_background: bool = True):  # fmt: skip
+        self.scene = scene
+        self.intrinsics = intrinsics
+        self.baseline_m = float(baseline_m)
+        self.shadow_bias_m = float(shadow_bias_m)
+        self.parts = list(scene.objects) + list(scene.background)
+        self.cam_T_world = np.linalg.inv(np.asarray(scene.world_T_cam, dtype=np.float64))
+        initial = np.stack([self.cam_T_world @ np.asarray(p.world_T_obj, dtype=np.float64) for p in self.parts])
+        centres = np.stack([_centre(p.mesh, T) for p, T in zip(self.parts, initial)])
+        free = [True] * len(scene.objects) + [bool(refine_background)] * len(scene.background)
+        self.poses = ScenePoses(initial, centres, [p.albedo for p in self.parts], free)
+        self.n_objects = len(scene.objects)
+
+    def current_scene(self):
+        """The FrameScene with every part at its current pose and albedo (a copy; the input is untouched)."""
+        T = self.poses.matrices()
+        world_T_cam = np.asarray(self.scene.world_T_cam, dtype=np.float64)
+        albedo = self.poses.albedo.detach().numpy()
+        placed = [dataclasses.replace(p, world_T_obj=world_T_cam @ T[k], albedo=float(albedo[k]))
+                  for k, p in enumerate(self.parts)]  # fmt: skip
+        n = self.n_objects
+        return dataclasses.replace(self.scene, objects=placed[:n], background=placed[n:])
+
+    def cast(self) -> SceneTensors:
+        """Ray-cast the scene at the current poses (visibility, triangle ids, projector shadows)."""
+        from ddsgen.raycast import cast, ray_directions
+
+        hits = cast(self.current_scene(), self.intrinsics, self.baseline_m, self.shadow_bias_m)
+        return scene_tensors([p.mesh for p in self.parts], hits, ray_directions(self.intrinsics))
+
+    def object_poses(self) -> np.ndarray:
+        """(n_objects, 4, 4) current ``cam_T_obj`` of the objects (m)."""
+        return self.poses.matrices()[: self.n_objects]
+
+
+def _centre(mesh, cam_T_obj: np.ndarray) -> np.ndarray:
+    """The mesh's bounding-box centre in the camera frame (planes: the pose's origin)."""
+    bounds = np.asarray(mesh.bounds, dtype=np.float64)
+    local = bounds.mean(axis=0)
+    return cam_T_obj[:3, :3] @ local + cam_T_obj[:3, 3]
