@@ -278,3 +278,15 @@ def test_compare_real_cat_cropped_statistics_on_whole_frames(linemod, tmp_path, 
     x0, y0, w, h = sim.record["crop"]
     assert depth.shape == (480, 640) and (depth > 0).sum() == (depth[y0 : y0 + h, x0 : x0 + w] > 0).sum() > 1000
     assert sim.objects[0].visible_fraction > 0.9 and sim.record["source"] == "000006/000000"
+
+
+def test_crop_box_never_exceeds_the_image():
+    """An object box plus margin taller than the image is clipped to it (the window's size is its arrays' size)."""
+    from ddsgen.fit.simulate import _crop_box
+
+    instance = np.zeros((120, 160), np.uint16)
+    instance[2:118, 40:60] = 1
+    x0, y0, w, h = _crop_box(instance, margin=32, min_size=64)
+    assert (y0, h) == (0, 120) and 0 <= x0 and x0 + w <= 160 and w == 20 + 64
+    instance[:] = 1
+    assert _crop_box(instance, margin=32, min_size=64) == (0, 0, 160, 120)

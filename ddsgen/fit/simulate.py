@@ -225,9 +225,9 @@ def _crop_box(instance: np.ndarray, margin: int, min_size: int) -> tuple[int, in
         return 0, 0, w, h
     x0, x1 = int(cols.min()) - margin, int(cols.max()) + margin + 1
     y0, y1 = int(rows.min()) - margin, int(rows.max()) + margin + 1
-    # Grow to the minimum size around the centre, then clip to the image.
+    # Grow to the minimum size around the centre, then clip to the image (never larger than it).
     def grow(a, b, limit):
-        size = max(b - a, min(min_size, limit))
+        size = min(max(b - a, min_size), limit)
         centre = (a + b) // 2
         a = max(0, min(centre - size // 2, limit - size))
         return a, a + size

@@ -62,11 +62,8 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
     s = settings or RefineSettings()
     prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
                              crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
-    # prepare_frame's window may be listed larger than the image when the objects' box plus margin is;
-    # the arrays are the clipped window (its origin is right): take the size from them.
-    height, width = prepared.real_depth.shape
-    x0, y0 = prepared.crop[:2]
-    window = dataclasses.replace(prepared.intrinsics, width=int(width), height=int(height))
+    x0, y0, width, height = prepared.crop
+    window = prepared.intrinsics
     scene = frame_scene(frame, plane=prepared.plane)
     if sensor is None:
         sensor = DepthSensor(preset, intrinsics=window)
