@@ -31,7 +31,7 @@ $(VENV)/.installed: pyproject.toml setup.py
 
 demo: install
 	$(DDSGEN) render presets/kinect_v1.yaml -n 12 --out demo_out --workers $(WORKERS) --seed 0
-	@echo "demo dataset: demo_out/ (open demo_out/manifest.jsonl, depth/*.png, ir/*.png)"
+	@echo "demo dataset: demo_out/ (look at demo_out/preview.png; files: manifest.jsonl, depth/*.png, ir/*.png)"
 
 # Two pytest workers: the slow tests (diagnose, fit) run one torch thread each.
 test: install
