@@ -298,6 +298,14 @@ def shipped_preset(name: str) -> Path | None:
     return Path(candidate) if candidate.is_file() else None
 
 
+def source_label(preset: SensorPreset) -> str:
+    """Where a preset came from, the same on every install: "shipped preset NAME" or the user's file path."""
+    source = Path(preset.source) if preset.source else None
+    if source is not None and source.parent.resolve() == Path(str(PRESET_DIR)).resolve():
+        return f"shipped preset {source.stem}"
+    return str(source) if source is not None else "built in code"
+
+
 def shipped_preset_names() -> list[str]:
     """Names of the shipped presets (``ddsgen render NAME``), sorted."""
     return sorted(entry.name[: -len(".yaml")] for entry in PRESET_DIR.iterdir() if entry.name.endswith(".yaml"))

@@ -26,7 +26,7 @@ from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_write_text
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import append_record, dumps_record, read_manifest, repair_manifest, sorted_records
-from ddsgen.preset import SensorPreset, load_preset, save_preset
+from ddsgen.preset import SensorPreset, load_preset, save_preset, source_label
 from ddsgen.scene.scenelist import SceneList, load_scene_list
 
 MANIFEST = "manifest.jsonl"
@@ -158,7 +158,7 @@ def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, see
         raise InputError(f"{out}: {what}; use a new --out folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        save_preset(preset, out / "sensor.yaml", comment=f"resolved from {preset.source}")
+        save_preset(preset, out / "sensor.yaml", comment=f"resolved from {source_label(preset)}")
         atomic_write_text(run_file, json.dumps(identity, indent=1, sort_keys=True) + "\n")
     except OSError as error:
         raise InputError(f"{out}: cannot write the output folder ({_os_reason(error)})") from None

@@ -71,3 +71,15 @@ def test_field_is_blurred_and_sub_pixel_phases_shift_it():
     shifted = field.sample(torch.arange(64.0) - 4 - 0.25 + 0.25, torch.full((64,), float(row)))
     assert torch.allclose(phases[0, row], shifted, atol=1e-4)
     assert phases.shape == (4, 40, 64)
+
+
+def test_pattern_command_writes_into_the_current_folder_not_the_package(tmp_path, monkeypatch):
+    """`ddsgen pattern` without --out writes the preset's pattern file into the current folder (in a wheel
+    install the package folder is site-packages); seed 0 regenerates the shipped asset exactly."""
+    from ddsgen.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    shipped = (PATTERN_DIR / "kinect_like_640.png").read_bytes()
+    assert main(["pattern", "kinect_v1"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kinect_like_640.png"]
+    assert (tmp_path / "kinect_like_640.png").read_bytes() == shipped

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from ddsgen.io.atomic import atomic_write_bytes
-from ddsgen.preset import PATTERN_DIR, load_preset
+from ddsgen.preset import load_preset
 from ddsgen.sensor.pattern import generate_pattern, load_pattern, pattern_requirements, pattern_statistics
 
 
@@ -27,7 +27,8 @@ def _print_statistics(label: str, stats: dict) -> None:
 @click.option("--seed", default=0, show_default=True, help="Random seed: the same seed gives the same pattern.")
 @click.option("--density", default=0.11, show_default=True, help="Fraction of lit pixels (real Kinect V1: 0.111).")
 @click.option("--out", type=click.Path(dir_okay=False), default=None,
-              help="Output PNG [default: pattern_assets/<the preset's pattern file>].")
+              help="Output PNG [default: the preset's pattern file name, in the current folder]. To use it, "
+                   "put it beside your preset file (a preset's pattern is looked up there first).")
 @click.option("--compare", "compare_with", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Also measure another pattern image (e.g. the real Kinect pattern) the same way.")
 def pattern(preset, seed, density, out, compare_with):
@@ -44,7 +45,8 @@ def pattern(preset, seed, density, out, compare_with):
     image = generate_pattern(
         need["width"], need["height"], seed=seed, density=density, block=need["block"], max_shift=need["max_shift"]
     )
-    target = Path(out) if out else PATTERN_DIR / sensor.pattern
+    # Never into the package's own folder (site-packages in a wheel install): the current folder by default.
+    target = Path(out) if out else Path(Path(sensor.pattern).name)
     ok, data = cv2.imencode(".png", image)
     atomic_write_bytes(target, data.tobytes())
     _print_statistics(f"wrote {target}", pattern_statistics(image, need["block"], need["max_shift"]))
