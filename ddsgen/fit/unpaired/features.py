@@ -1,0 +1,176 @@
+"""Scene-independent patch features of depth frames, pooled as additive per-frame counts.
+
+A sensor parameter should move because of how the sensor renders, not because the real scenes
+hold other objects. So every feature is conditioned on local geometry or depth:
+
+* **noise texture** ``noise`` (2, D, B+1): histograms of |second difference| of the disparity
+  proxy q = f b / z (px), along rows and along columns, per depth bin, over valid triples.
+  On any plane 1/z is affine in (u, v), so its second difference is zero whatever the plane's
+  pose: what remains is the sensor's noise and its disparity quantisation (a quantised
+  disparity gives multiples of the sub-pixel step). Curved surfaces add little; depth edges
+  land in the overflow bin, which the distance leaves out.
+* **isolated dropouts by depth** ``dropout`` (D,) and ``valid`` (D,): pixels of small invalid
+  components (< 20 px, the definition of :mod:`ddsgen.depth_statistics`), binned by the mean
+  valid depth around them, over the valid pixels of the same depth bin: a rate per surface
+  depth, not per scene.
+* **validity by image radius** ``radius_valid`` / ``radius_all`` (R,): valid pixels per ring of
+  the normalised image radius (projector beam and lens fall-off); compared relative to the
+  whole frame's valid share.
+
+Counts add over frames (:func:`pool`), so a bootstrap over frames only re-sums arrays.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ddsgen.depth_statistics import ISOLATED_MAX_PX, normalised_radius
+
+#: Depth bin edges (m) of the conditioned features.
+DEPTH_EDGES = np.array([0.4, 0.8, 1.2, 1.8, 4.0])
+#: |second difference| histogram: bins of 1/32 px centred on multiples of 1/32, up to 1.5 px;
+#: one overflow bin after (edges, not noise).
+NOISE_BIN_PX = 1.0 / 32.0
+NOISE_MAX_PX = 1.5
+NOISE_EDGES = np.append(np.arange(0.0, NOISE_MAX_PX + NOISE_BIN_PX, NOISE_BIN_PX) - NOISE_BIN_PX / 2, np.inf)
+NOISE_EDGES[0] = 0.0
+RADIUS_EDGES = np.array([0.0, 0.3, 0.5, 0.7, 0.85, 1.01])
+#: Window (px) of the mean valid depth that places a dropout in a depth bin.
+_DROPOUT_CONTEXT_PX = 9
+#: Bins with fewer samples than this (real or simulated) are left out of the distance.
+MIN_SAMPLES = 200
+
+FEATURE_KEYS = ("noise", "dropout", "valid", "radius_valid", "radius_all")
+
+
+def _depth_bin(depth: np.ndarray) -> np.ndarray:
+    """Bin index per pixel (-1 outside the edges)."""
+    index = np.digitize(depth, DEPTH_EDGES) - 1
+    return np.where((index >= 0) & (index < len(DEPTH_EDGES) - 1), index, -1)
+
+
+def _second_difference_hist(q: np.ndarray, valid: np.ndarray, depth: np.ndarray, axis: int) -> np.ndarray:
+    """(D, B+1) histogram of |q[i-1] - 2 q[i] + q[i+1]| along ``axis`` per depth bin of the centre."""
+    q, valid, depth = (np.moveaxis(a, axis, -1) for a in (q, valid, depth))
+    second = np.abs(q[..., :-2] - 2 * q[..., 1:-1] + q[..., 2:])
+    ok = valid[..., :-2] & valid[..., 1:-1] & valid[..., 2:]
+    bins = _depth_bin(depth[..., 1:-1])[ok]
+    values = second[ok]
+    n_depth, n_noise = len(DEPTH_EDGES) - 1, len(NOISE_EDGES) - 1
+    noise_bin = np.clip(np.digitize(values, NOISE_EDGES) - 1, 0, n_noise - 1)
+    keep = bins >= 0
+    flat = np.bincount(bins[keep] * n_noise + noise_bin[keep], minlength=n_depth * n_noise)
+    return flat.reshape(n_depth, n_noise)
+
+
+def frame_features(depth_m: np.ndarray, focal_baseline_px_m: float) -> dict[str, np.ndarray]:
+    """The additive feature counts of one frame.
+
+    Args:
+        depth_m: (H, W) metres, 0 = invalid.
+        focal_baseline_px_m: f * b (px * m) converting depth to the disparity proxy f b / z.
+            Use the same value for real and simulated frames (the preset's).
+
+    Returns:
+        dict of int64 arrays: ``noise`` (2, D, B+1), ``dropout`` (D,), ``valid`` (D,),
+        ``radius_valid`` (R,), ``radius_all`` (R,).
+    """
+    depth = np.asarray(depth_m, np.float64)
+    valid = depth > 0
+    q = np.where(valid, focal_baseline_px_m / np.where(valid, depth, 1.0), 0.0)
+    noise = np.stack([_second_difference_hist(q, valid, depth, axis) for axis in (1, 0)])
+
+    invalid = (~valid).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(invalid, connectivity=8)
+    small = np.zeros(n, bool)
+    small[1:] = stats[1:, cv2.CC_STAT_AREA] < ISOLATED_MAX_PX
+    dropout_px = small[labels] & ~valid
+    k = (_DROPOUT_CONTEXT_PX, _DROPOUT_CONTEXT_PX)
+    depth_sum = cv2.boxFilter(np.where(valid, depth, 0.0), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    valid_sum = cv2.boxFilter(valid.astype(np.float64), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    context = np.where(valid_sum > 0, depth_sum / np.maximum(valid_sum, 1.0), 0.0)
+    n_depth = len(DEPTH_EDGES) - 1
+    drop_bins = _depth_bin(context[dropout_px])
+    valid_bins = _depth_bin(depth[valid])
+    dropout = np.bincount(drop_bins[drop_bins >= 0], minlength=n_depth)
+    valid_count = np.bincount(valid_bins[valid_bins >= 0], minlength=n_depth)
+
+    ring = np.digitize(normalised_radius(*depth.shape), RADIUS_EDGES) - 1
+    n_ring = len(RADIUS_EDGES) - 1
+    radius_valid = np.bincount(ring[valid], minlength=n_ring)[:n_ring]
+    radius_all = np.bincount(ring.ravel(), minlength=n_ring)[:n_ring]
+    return {"noise": noise.astype(np.int64), "dropout": dropout.astype(np.int64), "valid": valid_count.astype(np.int64),
+            "radius_valid": radius_valid.astype(np.int64), "radius_all": radius_all.astype(np.int64)}  # fmt: skip
+
+
+def pool(per_frame: list[dict[str, np.ndarray]], indices=None) -> dict[str, np.ndarray]:
+    """Sum the counts of the frames ``indices`` (default all; repeats allowed, for the bootstrap)."""
+    indices = range(len(per_frame)) if indices is None else indices
+    return {key: np.sum([per_frame[i][key] for i in indices], axis=0) for key in FEATURE_KEYS}
+
+
+# ---- distance -----------------------------------------------------------------------------------
+#: Weights of the feature groups in the distance (noise is a Hellinger^2 in [0, 1]; the rates are
+#: squared log ratios, so a factor of 2 costs 0.48 x weight).
+WEIGHTS = {"noise": 1.0, "dropout": 0.25, "radius": 0.25}
+#: Floor of a dropout rate (per valid pixel) so that "none" and "almost none" compare finitely.
+_RATE_FLOOR = 1e-4
+
+
+def distance_terms(sim: dict[str, np.ndarray], real: dict[str, np.ndarray]) -> dict[str, float]:
+    """Per-group distances between pooled simulated and real features (0 = same distribution).
+
+    Bins are weighted by the real frames' share of samples in them; bins where either side has
+    fewer than :data:`MIN_SAMPLES` samples are left out (a depth the fit's scenes do not cover
+    says nothing about the sensor).
+    """
+    terms = {}
+    hellinger, weight = 0.0, 0.0
+    for axis in range(2):
+        for d in range(len(DEPTH_EDGES) - 1):
+            s, r = sim["noise"][axis, d, :-1].astype(float), real["noise"][axis, d, :-1].astype(float)
+            if s.sum() < MIN_SAMPLES or r.sum() < MIN_SAMPLES:
+                continue
+            h = 1.0 - np.sum(np.sqrt(s / s.sum() * r / r.sum()))
+            hellinger, weight = hellinger + r.sum() * h, weight + r.sum()
+    terms["noise"] = hellinger / weight if weight else 0.0
+
+    rate_err, weight = 0.0, 0.0
+    for d in range(len(DEPTH_EDGES) - 1):
+        if sim["valid"][d] < MIN_SAMPLES or real["valid"][d] < MIN_SAMPLES:
+            continue
+        rs = sim["dropout"][d] / sim["valid"][d] + _RATE_FLOOR
+        rr = real["dropout"][d] / real["valid"][d] + _RATE_FLOOR
+        rate_err, weight = rate_err + real["valid"][d] * np.log(rs / rr) ** 2, weight + real["valid"][d]
+    terms["dropout"] = rate_err / weight if weight else 0.0
+
+    def relative_share(f):
+        whole = f["radius_valid"].sum() / max(f["radius_all"].sum(), 1)
+        return (f["radius_valid"] + 1.0) / (f["radius_all"] + 1.0) / max(whole, 1e-6)
+
+    terms["radius"] = float(np.mean(np.log(relative_share(sim) / relative_share(real)) ** 2))
+    terms["total"] = float(sum(WEIGHTS[k] * terms[k] for k in WEIGHTS))
+    return {k: float(v) for k, v in terms.items()}
+
+
+def summary(pooled: dict[str, np.ndarray]) -> dict:
+    """Readable statistics of pooled features (for the report): per depth bin the median and
+    90th percentile of |second difference| (px, rows), the dropout rate (per 1e4 valid px), and
+    the valid share per radius ring."""
+    centres = (NOISE_EDGES[:-1] + np.minimum(NOISE_EDGES[1:], NOISE_MAX_PX + NOISE_BIN_PX)) / 2
+    rows = []
+    for d in range(len(DEPTH_EDGES) - 1):
+        hist = pooled["noise"][0, d, :-1].astype(float)
+        cdf = np.cumsum(hist) / hist.sum() if hist.sum() else None
+        pick = (lambda p: float(centres[:-1][np.searchsorted(cdf, p)]) if cdf is not None else None)  # noqa: E731
+        rows.append({
+            "depth_m": [float(DEPTH_EDGES[d]), float(DEPTH_EDGES[d + 1])],
+            "samples": int(hist.sum()),
+            "second_diff_median_px": pick(0.5), "second_diff_p90_px": pick(0.9),
+            "dropouts_per_1e4_valid": (float(1e4 * pooled["dropout"][d] / pooled["valid"][d])
+                                       if pooled["valid"][d] else None),
+        })  # fmt: skip
+    share = pooled["radius_valid"] / np.maximum(pooled["radius_all"], 1)
+    return {"depth_bins": rows, "valid_share_by_radius": [round(float(s), 4) for s in share],
+            "radius_edges": RADIUS_EDGES.tolist()}  # fmt: skip
