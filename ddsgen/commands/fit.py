@@ -29,9 +29,16 @@ from ddsgen.errors import InputError
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
               help="Report folder (default: OUT without .yaml + _report).")
 @click.option("--no-search", is_flag=True, help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches.")
+@click.option("--unpaired", is_flag=True,
+              help="REAL_DIR is any folder of depth images (16-bit PNG, EXR in m), no poses: fit the sensor by "
+                   "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md).")
+@click.option("--scenes", type=click.Path(dir_okay=False), default=None,
+              help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
+@click.option("--depth-scale", type=float, default=0.001, show_default=True,
+              help="With --unpaired: metres per PNG unit of the real depth images.")
 @common_options
-def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, no_plane, crop, plausible_px, region,
-        seed, quiet):  # fmt: skip
+def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, unpaired, scenes, depth_scale,
+        no_plane, crop, plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
     Frames are split into fit and held-out sets. Adam (Huber + Sobel-gradient + validity
@@ -41,6 +48,13 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     OUT, and REPORT/fit_report.json, loss_curve.png, residuals.png (held-out, before/after),
     comparison_before/after.json.
     """
+    if unpaired:
+        from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
+
+        content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
+                                   report_dir=report_dir, seed=seed, progress=not quiet)  # fmt: skip
+        print_summary(content)
+        return
     import torch
 
     from ddsgen.fit.compare import gap, plot_residuals, write_report

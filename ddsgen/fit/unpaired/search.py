@@ -136,28 +136,24 @@ def _profile_points(param: UnpairedParameter, value: float, width: float) -> lis
     return [param.from_unit(centre + o * width) for o in PROFILE_OFFSETS]
 
 
-def fit_unpaired(preset, real: list[RealDepthFrame], scene_list, *, sim_frames: int = 8, seed: int = 0,
-                 bootstrap: int = 200, progress: bool = True) -> tuple[UnpairedResult, dict]:  # fmt: skip
+def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: int = 0, bootstrap: int = 200,
+                 progress: bool = True) -> UnpairedResult:  # fmt: skip
     """Fit the table's parameters of ``preset`` to the real frames' feature distribution.
 
     Args:
-        preset: the sensor preset (its camera is scaled to the real image size).
+        preset: the sensor preset with the real frames' camera (:func:`camera_for`).
         real: the real frames (:func:`~.realfolder.read_depth_folder`).
-        scene_list: a :class:`~ddsgen.scene.scenelist.SceneList` resembling the real scenes.
-        sim_frames: frames rendered per evaluation.
-        seed: scene sampling and noise seed.
-        bootstrap: resamples for the uncertainties.
+        geometries: the fit scenes (:func:`cast_scenes`), resembling the real scenes.
+        seed: noise seed of the renders; bootstrap: resamples for the uncertainties.
 
     Returns:
-        (result, fitted values as preset keys).
+        :class:`UnpairedResult` (``after``: the fitted values as preset keys).
     """
     from tqdm import tqdm
 
     start = time.time()
-    height, width = real[0].depth.shape
-    preset = camera_for(preset, width, height)
     params = parameters_for(preset)
-    geometries = cast_scenes(preset, scene_list, sim_frames, seed, progress)
+    sim_frames = len(geometries)
     fb = preset.focal_px * preset.baseline_m
     real_features = [frame_features(f.depth, fb) for f in real]
     resolution = max(f.resolution_m for f in real)
@@ -194,9 +190,8 @@ def fit_unpaired(preset, real: list[RealDepthFrame], scene_list, *, sim_frames: 
         boots[p.key] = {"p05": float(np.percentile(draws, 5)), "p95": float(np.percentile(draws, 95))}
     distance_after = ev.distance(values)
     bar.close()
-    result = UnpairedResult(
+    return UnpairedResult(
         before=before, after=dict(values), uncertainty=uncertainty, bootstrap=boots,
         distance_before=distance_before, distance_after=distance_after, evaluations=len(ev.cache),
         history=ev.history, profiles=profiles, seconds=time.time() - start,
     )  # fmt: skip
-    return result, dict(values)
