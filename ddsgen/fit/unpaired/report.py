@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.depth_statistics import realism_statistics
-from ddsgen.fit.unpaired.features import DEPTH_EDGES, NOISE_BIN_PX, RADIUS_EDGES, summary
+from ddsgen.fit.unpaired.features import DEPTH_EDGES, ISOLATED_CLASSES, NOISE_BIN_PX, RADIUS_EDGES, summary
 from ddsgen.io.atomic import atomic_path, atomic_write_text
 
 COLOURS = {"real": "black", "stock": "tab:orange", "fitted": "tab:blue"}
@@ -72,7 +72,8 @@ def plot_distributions(pooled: dict[str, dict], path: Path) -> None:
     axes[0].legend(fontsize=8)
     mids = (DEPTH_EDGES[:-1] + DEPTH_EDGES[1:]) / 2
     for label, f in pooled.items():
-        rate = np.where(f["valid"] > 0, 1e4 * f["dropout"] / np.maximum(f["valid"], 1), np.nan)
+        isolated = f["holes"][:, :, :ISOLATED_CLASSES].sum(axis=(0, 2))
+        rate = np.where(f["valid"] > 0, 1e4 * isolated / np.maximum(f["valid"], 1), np.nan)
         axes[n_depth].plot(mids, rate, "o-", color=COLOURS[label], label=label)
         share = f["radius_valid"] / np.maximum(f["radius_all"], 1)
         axes[n_depth + 1].plot((RADIUS_EDGES[:-1] + RADIUS_EDGES[1:]) / 2, share, "o-", color=COLOURS[label])

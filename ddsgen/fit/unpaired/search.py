@@ -8,8 +8,9 @@
    values, not re-drawn noise), round depth like the real files, pool the patch features
    (:mod:`.features`) and measure the distance to the real frames' features.
 3. Coordinate search over the table's parameters (:mod:`.parameters`): a coarse grid over each
-   parameter's bounds, then a local profile of 5 points around the best value, whose parabola
-   vertex is the fitted value.
+   parameter's bounds; a second, local pass (+-1 coarse step: the parameters interact, e.g. a
+   lower SNR and a higher confidence threshold both make holes); then a profile of 5 points
+   (+-1/2 coarse step) around the best value, whose parabola vertex is the fitted value.
 4. Uncertainty: a bootstrap over real *and* simulated frames re-sums the cached per-frame
    features of each profile (no new rendering) and takes the parabola vertex again; the
    standard deviation of the vertices is the reported uncertainty (conditional on the other
@@ -159,7 +160,7 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
     profile = sum(3 if p.integer else len(PROFILE_OFFSETS) for p in params)
-    bar = tqdm(total=1 + coarse + profile, desc="unpaired fit", unit="render", disable=not progress)
+    bar = tqdm(total=1 + coarse + 2 * profile, desc="unpaired fit", unit="render", disable=not progress)
     ev = _Evaluator(preset, geometries, real_features, resolution, seed, bar)
     values = {p.key: getattr(preset, p.key) for p in params}
     before = dict(values)
@@ -169,6 +170,10 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
         grid = p.coarse_grid()
         totals = [ev.distance({**values, p.key: v})["total"] for v in grid]
         values[p.key] = grid[int(np.argmin(totals))]
+    for p in params:  # local: the parameters interact (SNR and threshold both make holes)
+        points = _profile_points(p, values[p.key], p.step())
+        totals = [ev.distance({**values, p.key: v})["total"] for v in points]
+        values[p.key] = points[int(np.argmin(totals))]
 
     profiles, uncertainty, boots = {}, {}, {}
     rng = np.random.default_rng(seed)
