@@ -152,7 +152,7 @@ def pool(per_frame: list[dict[str, np.ndarray]], indices=None) -> dict[str, np.n
 # ---- distance -----------------------------------------------------------------------------------
 #: Weights of the feature groups in the distance (noise is a Hellinger^2 in [0, 1]; the rates are
 #: squared log ratios, so a factor of 2 costs 0.48 x weight).
-WEIGHTS = {"noise": 1.0, "holes": 0.25, "radius": 0.25}
+WEIGHTS = {"noise": 1.0, "holes": 0.05, "radius": 0.05}
 #: Floor of a hole rate (invalid pixels per valid pixel) so that "none" and "almost none" compare finitely.
 _RATE_FLOOR = 1e-4
 
