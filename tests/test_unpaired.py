@@ -128,3 +128,68 @@ def test_real_icbin_folder_is_read_and_its_lattice_is_one_eighth_px():
     hist = pooled["noise"][0, 1, :17].astype(float)  # 0.8-1.2 m, |second difference| up to 0.5 px
     eighths = hist[::4].sum() + hist[1::4].sum() + hist[3::4].sum()  # within a bin of k/8 (mm rounding)
     assert eighths / hist.sum() > 0.85
+
+
+# ---- the fit ----------------------------------------------------------------------------------
+HIDDEN = {"subpixel_level": 3, "emitted_intensity": 5e6, "softargmax_beta": 30.0, "min_confidence": 0.2}
+
+
+def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
+    from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
+
+    data = default_scene_list_dict()
+    pool_ = [o for o in data["scenes"][0]["objects"] if o["class"] in classes]
+    data["scenes"] = [s for s in data["scenes"] if (s["name"] == "against_wall") == wall]
+    for scene in data["scenes"]:
+        scene["objects"], scene["camera"]["distance"] = pool_, distance
+    return scene_list_from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def hidden_device():
+    """(stock preset at 160x120, real-like frames of a hidden device on scene list A)."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
+    from ddsgen.preset import load_preset
+
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    stock = camera_for(load_preset("kinect_v1"), W, H)
+    hidden = stock.replace(**HIDDEN)
+    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
+    depths = render_depths(hidden, cast_scenes(hidden, scenes_a, 8, seed=11), seed=11)
+    return stock, [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+
+
+def _fit(stock, real, scene_list):
+    from ddsgen.fit.unpaired.search import cast_scenes, fit_unpaired
+
+    return fit_unpaired(stock, real, cast_scenes(stock, scene_list, 6, seed=3), seed=0, bootstrap=40, progress=False)
+
+
+def _assert_near_hidden(after: dict):
+    assert after["subpixel_level"] == HIDDEN["subpixel_level"]  # the disparity lattice: exact
+    # SNR and confidence threshold trade off in the hole statistics; within a factor 2.5 / 0.08.
+    assert abs(np.log(after["emitted_intensity"] / HIDDEN["emitted_intensity"])) < np.log(2.5)
+    assert abs(after["min_confidence"] - HIDDEN["min_confidence"]) < 0.08
+
+
+def test_unpaired_fit_recovers_a_hidden_device_from_other_scenes(hidden_device):
+    """Targets rendered on scene list A, fit on the built-in default list: the stock preset
+    (n_sub 2, eta 1.5e6, confidence 0.15) moves to the hidden device's lattice and SNR."""
+    from ddsgen.scene.scenelist import load_scene_list
+
+    stock, real = hidden_device
+    result = _fit(stock, real, load_scene_list(None))
+    assert result.distance_after["total"] < 0.5 * result.distance_before["total"]
+    _assert_near_hidden(result.after)
+    assert all(result.uncertainty[k] >= 0 for k in HIDDEN) and result.uncertainty["emitted_intensity"] > 0
+
+
+@pytest.mark.slow
+def test_unpaired_fit_does_not_follow_scene_content(hidden_device):
+    """Same hidden device, a different fit scene list (a wall, round objects): same values
+    within the tolerances above."""
+    stock, real = hidden_device
+    result = _fit(stock, real, _scene_list(("ball", "ring", "cone", "bracket"), [0.8, 1.6], wall=True))
+    _assert_near_hidden(result.after)
