@@ -193,3 +193,23 @@ def test_unpaired_fit_does_not_follow_scene_content(hidden_device):
     stock, real = hidden_device
     result = _fit(stock, real, _scene_list(("ball", "ring", "cone", "bracket"), [0.8, 1.6], wall=True))
     _assert_near_hidden(result.after)
+
+
+@pytest.mark.slow
+def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys):
+    from ddsgen.cli import main
+    from ddsgen.io.png import write_depth_png
+    from ddsgen.preset import load_preset, save_preset
+
+    stock, real = hidden_device
+    for frame in real[:4]:
+        write_depth_png(tmp_path / "real" / "depth" / frame.name, frame.depth)
+    save_preset(stock, tmp_path / "stock.yaml")
+    out = tmp_path / "out" / "fitted.yaml"
+    assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--out", str(out),
+                 "--quiet", "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+    fitted = load_preset(out)
+    assert fitted.subpixel_level == HIDDEN["subpixel_level"] and fitted.width_px == W
+    assert "+-" in capsys.readouterr().out
+    for name in ("distributions.png", "patches.png", "unpaired_report.json"):
+        assert (tmp_path / "report" / name).stat().st_size > 1000
