@@ -90,8 +90,9 @@ def main(width: int = 320) -> None:
     feats = {k: pool([frame_features(d, fb) for d in v]) for k, v in (("s1a", s1a), ("s1b", s1b), ("s2a", s2a))}
     scene = distance_terms(feats["s1b"], feats["s1a"])
     sensor = distance_terms(feats["s2a"], feats["s1a"])
-    print(f"bench: choice_feature_distance_scene {scene['total']:.4f} (noise {scene['noise']:.4f}, holes {scene['holes']:.4f})")
-    print(f"bench: choice_feature_distance_sensor {sensor['total']:.4f} (noise {sensor['noise']:.4f}, holes {sensor['holes']:.4f})")
+    for name, terms in (("scene", scene), ("sensor", sensor)):
+        print(f"bench: choice_feature_distance_{name} {terms['total']:.4f} "
+              f"(noise {terms['noise']:.4f}, holes {terms['holes']:.4f})")
     print(f"bench: choice_discriminator_accuracy_scene {discriminator_accuracy(s1a, s1b):.3f}")
     print(f"bench: choice_discriminator_accuracy_sensor {discriminator_accuracy(s1a, s2a):.3f}")
 

@@ -101,7 +101,8 @@ def test_holes_are_counted_by_size_and_by_the_depth_of_their_rim():
     depth = _plane_depth(1.0, 0.0, 0.0)
     depth[:, W // 2:] = _plane_depth(2.0, 0.0, 0.0)[:, W // 2:]
     rng = np.random.default_rng(0)
-    ys, xs = rng.choice(np.arange(10, H - 10, 4), 12, replace=False), rng.choice(np.arange(10, W // 2 - 10, 4), 12)
+    ys = rng.choice(np.arange(10, H - 10, 4), 12, replace=False)
+    xs = rng.choice(np.arange(10, W // 2 - 10, 4), 12)
     depth[ys, xs] = 0  # 12 single-pixel dropouts on the 1 m half
     depth[40:50, W // 2 + 20:W // 2 + 30] = 0  # a 100-px hole on the 2 m half: not an isolated dropout
     features = frame_features(depth, FB)
@@ -115,7 +116,8 @@ def test_holes_are_counted_by_size_and_by_the_depth_of_their_rim():
     assert distance_terms(pool([features]), pool([features]))["total"] == 0.0
     fewer = depth.copy()
     fewer[ys[:6], xs[:6]] = 1.0
-    assert distance_terms(pool([frame_features(fewer, FB)]), pool([features]))["holes"] > 0.02  # half the 1-px holes at 1 m
+    # half the 1-px holes at 1 m
+    assert distance_terms(pool([frame_features(fewer, FB)]), pool([features]))["holes"] > 0.02
 
 
 def test_real_icbin_folder_is_read_and_its_lattice_is_one_eighth_px():

@@ -1,8 +1,8 @@
 """Unpaired fit: tune the sensor to a folder of plain real depth images (no poses, no meshes).
 
-    real folder (depth PNG/EXR) ──► patch features ─┐
-                                                     ├─► distance ─► 1-D searches ─► fitted preset
-    scene list ─► ray cast once ─► DepthSensor ─► patch features ─┘            └─► bootstrap uncertainties
+    real folder (PNG / EXR) ──────────────────────────────► patch features ─┐
+    scene list ─► ray cast once ─► DepthSensor(values) ─► patch features ─┴─► distance
+    distance ─► coordinate searches over the table ─► fitted values ± bootstrap uncertainty
 
 Modules: :mod:`.realfolder` (read any folder of depth images), :mod:`.features`
 (scene-independent patch features, pooled per frame so frames can be resampled),

@@ -12,8 +12,9 @@ hold other objects. So every feature is conditioned on local geometry or depth:
   lands in an overflow bin, which the distance leaves out too.
 * **hole structure by depth** ``holes`` (2, D, S) and ``valid`` (D,): invalid pixels of holes
   inside one surface (row 0) and on depth edges (row 1: the rim spans > 2 px of disparity;
-  occlusions and shadows, i.e. scene content, left out of the distance), per hole size class (1, 2-3, 4-7, 8-19 px -- the isolated dropouts of :mod:`ddsgen.depth_statistics`
-  -- then 20-79, ..., 1280+ px), binned by the mean depth of the hole's valid rim, over the
+  occlusions and shadows, i.e. scene content, left out of the distance), per hole size class
+  (1, 2-3, 4-7, 8-19 px -- the isolated dropouts of :mod:`ddsgen.depth_statistics` -- then
+  20-79, ..., 1280+ px), binned by the mean depth of the hole's valid rim, over the
   valid pixels of the same depth bin: a rate per surface depth, not per scene. Only interior
   holes below 80 px enter the distance.
 * **validity by image radius** ``radius_valid`` / ``radius_all`` (R,): valid pixels per ring of
@@ -198,21 +199,23 @@ def summary(pooled: dict[str, np.ndarray]) -> dict:
     90th percentile of |second difference| (px, rows), the isolated-dropout rate and the hole
     rate per size class (invalid px per 1e4 valid px), and
     the valid share per radius ring."""
-    centres = (NOISE_EDGES[:-1] + np.minimum(NOISE_EDGES[1:], NOISE_MAX_PX + NOISE_BIN_PX)) / 2
+    centres = np.arange(len(NOISE_EDGES) - 2) * NOISE_BIN_PX  # bin k holds |second difference| ~ k/32 px
     rows = []
     for d in range(len(DEPTH_EDGES) - 1):
         hist = pooled["noise"][0, d, :-1].astype(float)
         cdf = np.cumsum(hist) / hist.sum() if hist.sum() else None
-        pick = (lambda p: float(centres[:-1][np.searchsorted(cdf, p)]) if cdf is not None else None)  # noqa: E731
+        pick = (lambda p: float(centres[np.searchsorted(cdf, p)]) if cdf is not None else None)  # noqa: E731
+        per_valid = 1e4 / pooled["valid"][d] if pooled["valid"][d] else None
         rows.append({
             "depth_m": [float(DEPTH_EDGES[d]), float(DEPTH_EDGES[d + 1])],
             "samples": int(hist.sum()),
             "second_diff_median_px": pick(0.5), "second_diff_p90_px": pick(0.9),
-            "dropouts_per_1e4_valid": (float(1e4 * pooled["holes"][:, d, :ISOLATED_CLASSES].sum() / pooled["valid"][d])
-                                       if pooled["valid"][d] else None),
-            "interior_hole_px_per_1e4_valid": ([round(float(1e4 * h / pooled["valid"][d]), 2) for h in pooled["holes"][0, d]]
-                                      if pooled["valid"][d] else None),
+            "dropouts_per_1e4_valid": (float(pooled["holes"][:, d, :ISOLATED_CLASSES].sum() * per_valid)
+                                       if per_valid else None),
+            "interior_hole_px_per_1e4_valid": ([round(float(h * per_valid), 2) for h in pooled["holes"][0, d]]
+                                               if per_valid else None),
         })  # fmt: skip
     share = pooled["radius_valid"] / np.maximum(pooled["radius_all"], 1)
-    return {"depth_bins": rows, "hole_size_edges_px": HOLE_SIZE_EDGES[:-1].tolist(), "valid_share_by_radius": [round(float(s), 4) for s in share],
+    return {"depth_bins": rows, "hole_size_edges_px": HOLE_SIZE_EDGES[:-1].tolist(),
+            "valid_share_by_radius": [round(float(s), 4) for s in share],
             "radius_edges": RADIUS_EDGES.tolist()}  # fmt: skip

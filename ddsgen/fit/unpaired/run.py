@@ -77,5 +77,8 @@ def print_summary(content: dict) -> None:
     click.echo(f"feature distance: {before:.4f} (stock) -> {after:.4f} (fitted) over {len(content['real_frames'])} "
                f"real frame(s), {content['evaluations']} renders of {content['sim_frames']} frames")  # fmt: skip
     for key, value in content["after"].items():
-        click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} +- {content['uncertainty'][key]:.2g}")
+        bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
+        note = "  (flat profile: weakly identified)" if bound else ""
+        sigma = content["uncertainty"][key]
+        click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} +- {bound}{sigma:.2g}{note}")
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")
