@@ -125,7 +125,9 @@ class _Evaluator:
 
 def _vertex(xs: np.ndarray, ys: np.ndarray) -> float:
     """Argmin of the parabola through (xs, ys) (least squares), kept inside [xs.min(), xs.max()];
-    the best point when the parabola opens downwards."""
+    the best point when the parabola opens downwards or there are fewer than 3 points."""
+    if len(xs) < 3:
+        return float(xs[np.argmin(ys)])
     a, b, _ = np.polyfit(xs, ys, 2)
     if a <= 0:
         return float(xs[np.argmin(ys)])
@@ -136,7 +138,8 @@ def _profile_points(param: UnpairedParameter, value: float, width: float) -> lis
     if param.integer:
         return sorted({param.from_unit(value + d) for d in (-1, 0, 1)})
     centre = param.to_unit(value)
-    return [param.from_unit(centre + o * width) for o in PROFILE_OFFSETS]
+    # distinct points only: near a bound several offsets clip to the bound
+    return sorted({param.from_unit(centre + o * width) for o in PROFILE_OFFSETS})
 
 
 def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: int = 0, bootstrap: int = 200,
@@ -161,7 +164,7 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     real_features = [frame_features(f.depth, fb) for f in real]
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
-    profile = sum(3 if p.integer else len(PROFILE_OFFSETS) for p in params)
+    profile = sum(3 if p.integer else len(PROFILE_OFFSETS) for p in params)  # at most: near bounds, fewer
     bar = tqdm(total=1 + coarse + 2 * profile, desc="unpaired fit", unit="render", disable=not progress)
     ev = _Evaluator(preset, geometries, real_features, resolution, seed, bar)
     values = {p.key: getattr(preset, p.key) for p in params}
