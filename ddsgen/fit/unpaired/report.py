@@ -98,6 +98,7 @@ def plot_patches(columns: dict[str, list[np.ndarray]], path: Path, rows: int = 4
     """``columns``: label -> depth frames; ``rows`` patches per column, from different frames."""
     plt = _plt()
     rng = np.random.default_rng(seed)
+    cmap = plt.get_cmap("viridis").with_extremes(bad="black")  # invalid pixels black
     fig, axes = plt.subplots(rows, len(columns), figsize=(2.2 * len(columns), 2.2 * rows), squeeze=False)
     for c, (label, frames) in enumerate(columns.items()):
         for r in range(rows):
@@ -107,8 +108,6 @@ def plot_patches(columns: dict[str, list[np.ndarray]], path: Path, rows: int = 4
             valid = patch > 0
             lo, hi = np.percentile(patch[valid], [2, 98]) if valid.any() else (0.0, 1.0)
             shown = np.ma.masked_where(~valid, patch)
-            cmap = plt.get_cmap("viridis").copy()
-            cmap.set_bad("black")
             axes[r, c].imshow(shown, cmap=cmap, vmin=lo, vmax=max(hi, lo + 1e-3), interpolation="nearest")
             axes[r, c].set_xticks([]), axes[r, c].set_yticks([])
             if r == 0:
