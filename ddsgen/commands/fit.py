@@ -33,9 +33,16 @@ from ddsgen.errors import InputError
               help="Poses as nuisance parameters: refine every frame's object poses (ddsgen refine's loop) with the "
                    "current sensor before the fit and again after it; the held-out gap after uses the final poses.")
 @click.option("--pose-steps", type=int, default=40, show_default=True, help="Pose-refinement steps per frame and round.")
+@click.option("--unpaired", is_flag=True,
+              help="REAL_DIR is any folder of depth images (16-bit PNG, EXR in m), no poses: fit the sensor by "
+                   "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md).")
+@click.option("--scenes", type=click.Path(dir_okay=False), default=None,
+              help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
+@click.option("--depth-scale", type=float, default=0.001, show_default=True,
+              help="With --unpaired: metres per PNG unit of the real depth images.")
 @common_options
-def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, refine_poses, pose_steps, no_plane,
-        crop, plausible_px, region, seed, quiet):  # fmt: skip
+def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, refine_poses, pose_steps, unpaired,
+        scenes, depth_scale, no_plane, crop, plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
     Frames are split into fit and held-out sets. Adam (Huber + Sobel-gradient + validity
@@ -45,6 +52,13 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     OUT, and REPORT/fit_report.json, loss_curve.png, residuals.png (held-out, before/after),
     comparison_before/after.json.
     """
+    if unpaired:
+        from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
+
+        content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
+                                   report_dir=report_dir, seed=seed, progress=not quiet)  # fmt: skip
+        print_summary(content)
+        return
     import torch
 
     from ddsgen.fit.compare import gap, plot_residuals, write_report

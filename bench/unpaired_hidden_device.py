@@ -1,0 +1,104 @@
+"""The unpaired fit against a synthetic hidden device (issue 17's synthetic target).
+
+1. A hidden device: the preset at WIDTHxHEIGHT with the unpaired table's parameters drawn
+   at random within their bounds (log-uniform where the search is in log space).
+2. Target frames of the hidden device rendered on scene list A (procedural shapes, closer
+   camera, other objects); only their depth PNGs are given to the fit.
+3. ``run_unpaired_fit`` of the stock preset on the built-in default scene list (B).
+4. New frames of the hidden device (scene list A, another seed): the paired gap
+   (ddsgen.fit.compare.gap) of the stock and of the fitted preset on them, and whether each
+   parameter lies within 2 reported standard deviations of the hidden value.
+
+Prints ``bench: NAME VALUE`` lines. Usage: python bench/unpaired_hidden_device.py [SEED] [WIDTH]
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS  # noqa: E402
+from ddsgen.fit.unpaired.run import run_unpaired_fit  # noqa: E402
+from ddsgen.fit.unpaired.search import camera_for  # noqa: E402
+from ddsgen.preset import load_preset, save_preset  # noqa: E402
+from ddsgen.scene.scenelist import default_scene_list_dict  # noqa: E402
+
+
+def scene_list_a() -> dict:
+    """Other objects, other camera distances than the built-in default list."""
+    data = default_scene_list_dict()
+    pool = [o for o in data["scenes"][0]["objects"] if o["class"] in ("box", "can", "ring", "mug")]
+    for scene in data["scenes"]:
+        scene["objects"] = pool
+        scene["camera"]["distance"] = [0.6, 1.3]
+        scene["clutter"]["count"] = [6, 10]
+    data["description"] = "hidden-device target scenes"
+    return data
+
+
+def hidden_values(seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    values = {}
+    for p in UNPAIRED_PARAMETERS.values():
+        if p.integer:
+            values[p.key] = int(rng.integers(int(p.low), int(p.high) + 1))
+        else:
+            # stay off the bounds by 10 % of the range: a value on a bound has a one-sided profile
+            lo, hi = p.to_unit(p.low), p.to_unit(p.high)
+            values[p.key] = p.from_unit(float(rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))))
+    return values
+
+
+def paired_gap(preset_path: Path, scan_dir: Path) -> float:
+    from ddsgen.fit.compare import gap
+    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    preset = load_preset(preset_path)
+    frames = prepare_frames(preset, read_scan_folder(scan_dir), progress=False)
+    return gap(DepthSensor(preset), frames, seed=5, noise_floor=False).gap
+
+
+def main(seed: int = 1, width: int = 320) -> None:
+    from ddsgen.runner import render_dataset
+
+    work = Path(tempfile.mkdtemp(prefix="ddsgen_unpaired_"))
+    stock = camera_for(load_preset("kinect_v1"), width, width * 3 // 4)
+    stock_path, hidden_path, scenes_a = work / "stock.yaml", work / "hidden.yaml", work / "scenes_a.yaml"
+    save_preset(stock, stock_path)
+    hidden = hidden_values(seed)
+    save_preset(stock.replace(**hidden, name="hidden"), hidden_path)
+    scenes_a.write_text(yaml.safe_dump(scene_list_a()))
+    render_dataset(str(hidden_path), str(scenes_a), 16, str(work / "target_scans"), seed=seed + 100, progress=False)
+    target = work / "target_png"
+    target.mkdir()
+    for png in sorted((work / "target_scans" / "depth").glob("*.png")):
+        shutil.copy(png, target / png.name)
+    content = run_unpaired_fit(str(stock_path), target, out=work / "fitted.yaml", seed=seed, progress=False)
+    render_dataset(str(hidden_path), str(scenes_a), 6, str(work / "new_scans"), seed=seed + 200, progress=False)
+    stock_gap = paired_gap(stock_path, work / "new_scans")
+    fitted_gap = paired_gap(work / "fitted.yaml", work / "new_scans")
+    print(f"bench: unpaired_seconds {content['seconds']:.1f}")
+    print(f"bench: unpaired_gap_stock_mm {stock_gap:.3f}")
+    print(f"bench: unpaired_gap_fitted_mm {fitted_gap:.3f}")
+    print(f"bench: unpaired_gap_ratio {fitted_gap / stock_gap:.3f}")
+    for key, value in hidden.items():
+        fitted, sigma = content["after"][key], content["uncertainty"][key]
+        inside = abs(fitted - value) <= max(2 * sigma, 1e-9)
+        print(f"bench: unpaired_{key} hidden {value:.4g} stock {content['before'][key]:.4g} fitted {fitted:.4g} "
+              f"+- {sigma:.2g} within_2sigma {inside}")
+    shutil.rmtree(work)
+
+
+if __name__ == "__main__":
+    main(*(int(a) for a in sys.argv[1:]))

@@ -1,0 +1,84 @@
+"""``ddsgen fit PRESET REAL_DIR --unpaired``: read, fit, report, write the fitted preset.
+
+Inputs are checked before any rendering (bad input -> InputError, nothing written); the
+fitted preset is written last, after the report.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ddsgen.errors import InputError
+from ddsgen.fit.unpaired.features import frame_features, pool
+from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
+from ddsgen.fit.unpaired.report import write_report
+from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+
+#: Frames of the scene list rendered per evaluation.
+DEFAULT_SIM_FRAMES = 8
+
+
+def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Path | None = None,
+                     depth_scale: float = 0.001, out: str | Path = "fitted.yaml", report_dir: str | Path | None = None,
+                     seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200,
+                     progress: bool = True) -> dict:  # fmt: skip
+    """Fit the preset to the real depth frames below ``real_dir``; write OUT and the report.
+
+    Returns the report's JSON content.
+    """
+    from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
+    from ddsgen.scene.scenelist import load_scene_list
+
+    out = Path(out)
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
+    if sim_frames < 2:
+        raise InputError(f"--sim-frames: {sim_frames}: need at least 2 frames")
+    report = Path(report_dir) if report_dir else out.with_name(out.stem + "_report")
+    original = load_preset(preset_ref)
+    scene_list = load_scene_list(scenes)
+    real = read_depth_folder(real_dir, depth_scale)
+
+    height, width = real[0].depth.shape
+    camera = camera_for(original, width, height)
+    geometries = cast_scenes(camera, scene_list, sim_frames, seed, progress)
+    result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, progress=progress)
+
+    resolution = max(f.resolution_m for f in real)
+    fb = camera.focal_px * camera.baseline_m
+    depths = {"real": [f.depth for f in real]}
+    for label, values in (("stock", result.before), ("fitted", result.after)):
+        rendered = render_depths(camera.replace(**values), geometries, seed + 1)  # fresh noise: not the fit's
+        depths[label] = [round_like(d, resolution) for d in rendered]
+    pooled = {label: pool([frame_features(d, fb) for d in ds]) for label, ds in depths.items()}
+    content = {
+        "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
+        "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
+        "assumed_intrinsics": camera.intrinsics.as_dict(), "sim_frames": sim_frames, **result.to_dict(),
+    }  # fmt: skip
+    content = write_report(report, content, pooled, depths, resolution, seed)
+    changes = dict(result.after)
+    for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
+        name = getattr(original, key)
+        if name and not (key == "pattern" and (PATTERN_DIR / name).exists()):
+            changes[key] = str(original.resolve_path(name).resolve())
+    fitted = original.replace(**changes, name=f"{original.name}_unpaired")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_preset(fitted, out, comment=f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}\n"
+                                     f"params: {', '.join(result.after)}")  # fmt: skip
+    return content
+
+
+def print_summary(content: dict) -> None:
+    """The command's closing lines: distance before/after, each value with its uncertainty."""
+    import click
+
+    before, after = content["distance_before"]["total"], content["distance_after"]["total"]
+    click.echo(f"feature distance: {before:.4f} (stock) -> {after:.4f} (fitted) over {len(content['real_frames'])} "
+               f"real frame(s), {content['evaluations']} renders of {content['sim_frames']} frames")  # fmt: skip
+    for key, value in content["after"].items():
+        bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
+        note = "  (flat profile: weakly identified)" if bound else ""
+        sigma = content["uncertainty"][key]
+        click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} +- {bound}{sigma:.2g}{note}")
+    click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")

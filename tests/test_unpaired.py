@@ -1,0 +1,217 @@
+"""Unpaired fit (issue 17): plain depth folders, scene-independent patch features, the fit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ddsgen.errors import InputError
+from ddsgen.fit.unpaired.features import NOISE_BIN_PX, distance_terms, frame_features, pool
+from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+FB = 572.41 * 0.075  # f b of kinect_v1 (px m)
+H, W = 120, 160
+
+
+def _plane_depth(z0: float, tilt_u: float, tilt_v: float, sigma_px: float = 0.0, step_px: float = 0.0,
+                 seed: int = 0) -> np.ndarray:  # fmt: skip
+    """(H, W) depth of a plane (inverse depth affine in u, v) seen through disparity noise
+    ``sigma_px`` and a disparity lattice ``step_px`` (0 = none)."""
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    disparity = FB / z0 + tilt_u * (u - W / 2) + tilt_v * (v - H / 2)
+    disparity = disparity + np.random.default_rng(seed).normal(0, sigma_px, disparity.shape)
+    if step_px:
+        disparity = np.round(disparity / step_px) * step_px
+    return (FB / disparity).astype(np.float32)
+
+
+# ---- the real folder --------------------------------------------------------------------------
+def test_read_depth_folder_reads_png_and_exr_and_prefers_depth_subfolders(tmp_path):
+    from ddsgen.io.exr import write_exr
+
+    depth_mm = np.full((H, W), 1234, np.uint16)
+    depth_mm[0, 0] = 0
+    (tmp_path / "seq" / "depth").mkdir(parents=True)
+    (tmp_path / "seq" / "rgb").mkdir()
+    cv2.imwrite(str(tmp_path / "seq" / "depth" / "0.png"), depth_mm)
+    write_exr(tmp_path / "seq" / "depth" / "1.exr", np.full((H, W), 2.5, np.float32))
+    cv2.imwrite(str(tmp_path / "seq" / "rgb" / "0.png"), np.zeros((H, W, 3), np.uint8))  # not depth: skipped
+    frames = read_depth_folder(tmp_path, depth_scale=0.0005)
+    assert [f.name for f in frames] == ["seq/depth/0.png", "seq/depth/1.exr"]
+    assert frames[0].depth[1, 1] == pytest.approx(0.617) and frames[0].depth[0, 0] == 0
+    assert frames[0].resolution_m == 0.0005 and frames[1].resolution_m == 0.0
+    assert frames[1].depth.mean() == pytest.approx(2.5)
+    assert round_like(np.array([1.23449]), 0.001)[0] == pytest.approx(1.234)
+
+
+def test_read_depth_folder_refuses_bad_input(tmp_path):
+    with pytest.raises(InputError, match="no depth images"):
+        read_depth_folder(tmp_path)
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((H, W), 9, np.uint8))  # 8-bit: not a depth image
+    with pytest.raises(InputError, match="a.png: depth PNG must be"):
+        read_depth_folder(tmp_path)
+
+
+def test_cli_unpaired_bad_file_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
+    from ddsgen.cli import main
+
+    real = tmp_path / "real"
+    real.mkdir()
+    (real / "0.png").write_bytes(b"not a png")
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit", "kinect_v1", str(real), "--unpaired", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "0.png: cannot read depth PNG" in err and len(err.splitlines()) == 1
+    assert not out.exists() and not (tmp_path / "fitted_report").exists()
+
+
+# ---- features ---------------------------------------------------------------------------------
+def test_noise_texture_does_not_depend_on_the_plane_pose_but_on_the_noise():
+    """Second differences of f b / z vanish on any plane: two planes of other poses and depths
+    (same depth bin) with the same disparity noise have the same feature histogram; twice the
+    noise does not."""
+    flat = frame_features(_plane_depth(1.0, 0.0, 0.0, 0.1, seed=1), FB)
+    tilted = frame_features(_plane_depth(0.9, 0.08, -0.05, 0.1, seed=2), FB)
+    noisier = frame_features(_plane_depth(1.0, 0.0, 0.0, 0.2, seed=3), FB)
+    assert distance_terms(pool([tilted]), pool([flat]))["noise"] < 0.01
+    pose_effect = distance_terms(pool([tilted]), pool([flat]))["noise"]
+    assert distance_terms(pool([noisier]), pool([flat]))["noise"] > max(0.05, 10 * pose_effect)
+    clean = frame_features(_plane_depth(1.0, 0.1, 0.05), FB)["noise"]
+    assert clean[:, :, 0].sum() == clean.sum()  # no noise: every second difference is ~0
+
+
+def test_quantised_disparity_shows_as_a_lattice_of_second_differences():
+    """A disparity lattice of 1/8 px puts every |second difference| on a multiple of 1/8 px
+    (every 4th bin of 1/32 px); the matching lattice distance is small, another lattice's large."""
+    eighth = frame_features(_plane_depth(1.0, 0.03, 0.0, 0.15, step_px=1 / 8), FB)
+    hist = eighth["noise"][0].sum(axis=0)[:-1]
+    on_lattice = hist[:: round((1 / 8) / NOISE_BIN_PX)].sum()
+    assert on_lattice == hist.sum()
+    again = frame_features(_plane_depth(1.0, -0.02, 0.01, 0.15, step_px=1 / 8, seed=4), FB)
+    quarter = frame_features(_plane_depth(1.0, -0.02, 0.01, 0.15, step_px=1 / 4, seed=4), FB)
+    assert distance_terms(pool([again]), pool([eighth]))["noise"] < 0.02
+    assert distance_terms(pool([quarter]), pool([eighth]))["noise"] > 0.2
+
+
+def test_holes_are_counted_by_size_and_by_the_depth_of_their_rim():
+    depth = _plane_depth(1.0, 0.0, 0.0)
+    depth[:, W // 2:] = _plane_depth(2.0, 0.0, 0.0)[:, W // 2:]
+    rng = np.random.default_rng(0)
+    ys = rng.choice(np.arange(10, H - 10, 4), 12, replace=False)
+    xs = rng.choice(np.arange(10, W // 2 - 10, 4), 12)
+    depth[ys, xs] = 0  # 12 single-pixel dropouts on the 1 m half
+    depth[40:50, W // 2 + 20:W // 2 + 30] = 0  # a 100-px hole on the 2 m half: not an isolated dropout
+    features = frame_features(depth, FB)
+    # (interior / edge, depth bin 0.4-0.8-1.2-1.8-4 m, size class 1, 2-3, 4-7, 8-19, 20-79, 80-319, ...)
+    holes = features["holes"]
+    assert holes[0, 1, 0] == 12 and holes[0, 3, 5] == 100 and holes.sum() == 112
+    step = depth.copy()
+    step[60:64, W // 2 - 2:W // 2 + 2] = 0  # a 16-px hole on the 1 m / 2 m edge: the rim spans 21 px of disparity
+    assert frame_features(step, FB)["holes"][1].sum() == 16
+    assert features["valid"].sum() == (depth > 0).sum()
+    assert distance_terms(pool([features]), pool([features]))["total"] == 0.0
+    fewer = depth.copy()
+    fewer[ys[:6], xs[:6]] = 1.0
+    # half the 1-px holes at 1 m
+    assert distance_terms(pool([frame_features(fewer, FB)]), pool([features]))["holes"] > 0.02
+
+
+def test_real_icbin_folder_is_read_and_its_lattice_is_one_eighth_px():
+    folder = DATA / "icbin_primesense_unpaired"
+    if not folder.is_dir():
+        pytest.skip(f"real data absent: {folder}")
+    frames = read_depth_folder(folder)
+    assert len(frames) == 9 and all("/depth/" in f.name for f in frames)
+    pooled = pool([frame_features(f.depth, FB) for f in frames])
+    hist = pooled["noise"][0, 1, :17].astype(float)  # 0.8-1.2 m, |second difference| up to 0.5 px
+    eighths = hist[::4].sum() + hist[1::4].sum() + hist[3::4].sum()  # within a bin of k/8 (mm rounding)
+    assert eighths / hist.sum() > 0.85
+
+
+# ---- the fit ----------------------------------------------------------------------------------
+HIDDEN = {"subpixel_level": 3, "emitted_intensity": 5e6, "softargmax_beta": 30.0, "min_confidence": 0.2}
+
+
+def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
+    from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
+
+    data = default_scene_list_dict()
+    pool_ = [o for o in data["scenes"][0]["objects"] if o["class"] in classes]
+    data["scenes"] = [s for s in data["scenes"] if (s["name"] == "against_wall") == wall]
+    for scene in data["scenes"]:
+        scene["objects"], scene["camera"]["distance"] = pool_, distance
+    return scene_list_from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def hidden_device():
+    """(stock preset at 160x120, real-like frames of a hidden device on scene list A)."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
+    from ddsgen.preset import load_preset
+
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    stock = camera_for(load_preset("kinect_v1"), W, H)
+    hidden = stock.replace(**HIDDEN)
+    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
+    depths = render_depths(hidden, cast_scenes(hidden, scenes_a, 8, seed=11), seed=11)
+    return stock, [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+
+
+def _fit(stock, real, scene_list):
+    from ddsgen.fit.unpaired.search import cast_scenes, fit_unpaired
+
+    return fit_unpaired(stock, real, cast_scenes(stock, scene_list, 6, seed=3), seed=0, bootstrap=40, progress=False)
+
+
+def _assert_near_hidden(after: dict):
+    assert after["subpixel_level"] == HIDDEN["subpixel_level"]  # the disparity lattice: exact
+    # SNR and confidence threshold trade off in the hole statistics; within a factor 2.5 / 0.08.
+    assert abs(np.log(after["emitted_intensity"] / HIDDEN["emitted_intensity"])) < np.log(2.5)
+    assert abs(after["min_confidence"] - HIDDEN["min_confidence"]) < 0.08
+
+
+def test_unpaired_fit_recovers_a_hidden_device_from_other_scenes(hidden_device):
+    """Targets rendered on scene list A, fit on the built-in default list: the stock preset
+    (n_sub 2, eta 1.5e6, confidence 0.15) moves to the hidden device's lattice and SNR."""
+    from ddsgen.scene.scenelist import load_scene_list
+
+    stock, real = hidden_device
+    result = _fit(stock, real, load_scene_list(None))
+    assert result.distance_after["total"] < 0.5 * result.distance_before["total"]
+    _assert_near_hidden(result.after)
+    assert all(result.uncertainty[k] >= 0 for k in HIDDEN) and result.uncertainty["emitted_intensity"] > 0
+
+
+@pytest.mark.slow
+def test_unpaired_fit_does_not_follow_scene_content(hidden_device):
+    """Same hidden device, a different fit scene list (a wall, round objects): same values
+    within the tolerances above."""
+    stock, real = hidden_device
+    result = _fit(stock, real, _scene_list(("ball", "ring", "cone", "bracket"), [0.8, 1.6], wall=True))
+    _assert_near_hidden(result.after)
+
+
+@pytest.mark.slow
+def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys):
+    from ddsgen.cli import main
+    from ddsgen.io.png import write_depth_png
+    from ddsgen.preset import load_preset, save_preset
+
+    stock, real = hidden_device
+    for frame in real[:4]:
+        write_depth_png(tmp_path / "real" / "depth" / frame.name, frame.depth)
+    save_preset(stock, tmp_path / "stock.yaml")
+    out = tmp_path / "out" / "fitted.yaml"
+    assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--out", str(out),
+                 "--quiet", "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+    fitted = load_preset(out)
+    assert fitted.subpixel_level == HIDDEN["subpixel_level"] and fitted.width_px == W
+    assert "+-" in capsys.readouterr().out
+    for name in ("distributions.png", "patches.png", "unpaired_report.json"):
+        assert (tmp_path / "report" / name).stat().st_size > 1000
