@@ -67,6 +67,8 @@ FIELDS: dict[str, Field] = {
     "ambient_counts": Field(float, "ambient IR level added everywhere (IR counts)", 0, 1e6, default=0.0),
     "projector_falloff_exponent": Field(float, "projector beam profile: signal x cos^m(angle off the projector's axis); 0 = flat", 0, 32, default=0.0),
     "vignetting_exponent": Field(float, "IR lens vignetting: signal x cos^n(angle off the camera's axis); 4 = the cos^4 law, 0 = none", 0, 32, default=0.0),
+    "lens_aperture_m": Field(float, "IR lens aperture diameter (m): > 0 blurs the dots by the defocus at their depth; 0 = pinhole", 0, 0.1, default=0.0),
+    "focus_distance_m": Field(float, "IR lens focus distance (m), where the dots are sharpest", 0, 1e3, low_open=True, default=2.0),
     "ir_bits": Field(int, "IR sensor bit depth (clip and quantise to 2^bits - 1)", 4, 16, default=10),
     "min_confidence": Field(float, "matcher confidence (best minus second-best ZNCC) below which depth is invalid", 0, 1, default=0.15),
     "cleanup_speckle_px": Field(int, "device clean-up: valid regions smaller than this are removed (px; 0 = off)", 0, 1_000_000, default=0),
@@ -129,6 +131,8 @@ class SensorPreset:
     ambient_counts: float
     projector_falloff_exponent: float
     vignetting_exponent: float
+    lens_aperture_m: float
+    focus_distance_m: float
     ir_bits: int
     min_confidence: float
     cleanup_speckle_px: int

@@ -253,7 +253,8 @@ class DepthSensor(nn.Module):
             geometry.points, geometry.normals, geometry.albedo, lit, self.pattern_field(),
             fx, fy, intr.cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
             self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
-            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count,
+            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, p.lens_aperture_m,
+            p.focus_distance_m,
         )  # fmt: skip
         ctx = {
             "geometry": geometry, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,

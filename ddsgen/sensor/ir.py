@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ddsgen.sensor.optics import defocus_blur, defocus_sigma_px
 from ddsgen.sensor.pattern import PatternField
 from ddsgen.sensor.speckle import speckle_field
 
@@ -117,6 +118,8 @@ def render_ir(
     projector_falloff_exponent: float = 0.0,
     vignetting_exponent: float = 0.0,
     electrons_per_count: float = 0.0,
+    lens_aperture_m: float = 0.0,
+    focus_distance_m: float = 2.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Simulate the IR camera image.
 
@@ -139,6 +142,9 @@ def render_ir(
         vignetting_exponent: n of the IR lens's fall-off cos^n(angle off the camera's axis).
         electrons_per_count: photo-electrons per IR count; > 0 adds photon shot noise (variance
             = light / electrons_per_count counts^2) to the read noise; 0: read noise only.
+        lens_aperture_m, focus_distance_m: the IR lens's aperture diameter and focus distance (m); an
+            aperture > 0 blurs the projected dots by the defocus at each pixel's depth
+            (:mod:`ddsgen.sensor.optics`); 0: a pinhole, everything sharp.
 
     Returns:
         ir: (H, W) IR image in counts.
@@ -158,6 +164,9 @@ def render_ir(
     if vignetting_exponent:
         camera_distance = torch.linalg.vector_norm(points, dim=-1).clamp_min(1e-6)
         signal = signal * (z / camera_distance).clamp(0.0, 1.0) ** vignetting_exponent
+    if lens_aperture_m > 0:
+        depth = torch.where(lit > 0, z, torch.zeros_like(z)).detach()
+        signal = defocus_blur(signal, defocus_sigma_px(depth, float(fx), lens_aperture_m, focus_distance_m))
     if noise is None:
         return signal + ambient, signal
     # Speckle is a property of the coherent laser light only; ambient light is incoherent.
