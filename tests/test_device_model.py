@@ -264,3 +264,19 @@ def test_defocus_blur_grows_away_from_the_focus_and_keeps_the_light():
     image = torch.rand(16, 16, requires_grad=True)
     defocus_blur(image, torch.full((16, 16), 0.6)).sum().backward()
     assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
+
+
+def test_device_frame_is_the_same_bytes_whatever_the_thread_count():
+    """Scene-seeded speckle, shot noise and the OpenCV clean-up add no run-to-run or thread-count variation."""
+    geometry = plane_geometry(_device(160, 120).intr, 1.7, tilt_deg=35.0)
+    geometry.shadow[:, 70:78] = True
+    outputs = []
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            with torch.no_grad():
+                outputs.append(_device(160, 120)(geometry, seed=[5, 2, 1]))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(outputs[0].depth, outputs[1].depth) and torch.equal(outputs[0].ir, outputs[1].ir)
