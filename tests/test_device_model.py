@@ -280,3 +280,21 @@ def test_device_frame_is_the_same_bytes_whatever_the_thread_count():
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(outputs[0].depth, outputs[1].depth) and torch.equal(outputs[0].ir, outputs[1].ir)
+
+
+def test_no_depth_in_the_devices_left_border_columns_even_in_a_crop():
+    from ddsgen.preset import Intrinsics
+
+    sensor = _device(160, 120, output_left_border_px=8)
+    geometry = plane_geometry(sensor.intr, 1.0)
+    with torch.no_grad():
+        out = sensor(geometry, seed=0)
+    assert not out.valid[:, :8].any() and out.valid[:, 8:20].float().mean() > 0.9
+    # Crops as compare --crop makes them: the band follows the full image's columns (the matcher itself
+    # leaves the first w // 2 = 4 columns of any image invalid).
+    full = sensor.intr
+    for x0, band in ((2, 6), (20, 4)):
+        crop = Intrinsics(100, 120, full.fx, full.fy, full.cx - x0, full.cy)
+        with torch.no_grad():
+            out = DepthSensor(sensor.preset, intrinsics=crop)(plane_geometry(crop, 1.0), seed=0)
+        assert not out.valid[:, :band].any() and out.valid[:, band : band + 12].float().mean() > 0.9, x0

@@ -302,6 +302,14 @@ class DepthSensor(nn.Module):
             removed = valid & ~cleaned
             valid_soft = valid_soft.reshape(-1)[flat].reshape(valid_soft.shape) * (~removed).float()
             valid = cleaned
+        if p.output_left_border_px:
+            # The device's output window starts this many columns into the full image; a crop of it
+            # (compare --crop) is offset by the shift of its principal point.
+            offset = int(round(p.cx_px - intr.cx)) if intr.width < p.width_px else 0
+            columns = torch.arange(valid.shape[1], device=valid.device) + offset
+            inside = columns >= p.output_left_border_px
+            valid = valid & inside[None, :]
+            valid_soft = valid_soft * inside[None, :].to(valid_soft.dtype)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         if self.postprocess is not None:
             depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)
