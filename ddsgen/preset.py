@@ -63,11 +63,22 @@ FIELDS: dict[str, Field] = {
     "subpixel_level": Field(int, "sub-pixel refinement level n_sub (steps of 2^-n_sub px)", 0, 6),
     "speckle_shape": Field(float, "multiplicative speckle ~ Gamma(shape, scale): shape", 0, 1e4, low_open=True, default=4.54),
     "speckle_scale": Field(float, "multiplicative speckle ~ Gamma(shape, scale): scale", 0, 1e3, low_open=True, default=0.196),
+    "speckle_grain_px": Field(float, "speckle grain: correlation sigma of the speckle field (camera px); 0 = independent per pixel", 0, 50, default=0.0),
+    "speckle_fixed_to_scene": Field(bool, "speckle seeded by the scene's geometry (the same static scene shows the same speckle) instead of per frame", default=False),
     "read_noise_mean_counts": Field(float, "additive detector noise mean (IR counts)", -1e4, 1e4, default=-0.126),
     "read_noise_std_counts": Field(float, "additive detector noise std (IR counts)", 0, 1e4, default=10.4),
+    "electrons_per_count": Field(float, "IR camera gain (photo-electrons per count): > 0 adds photon shot noise, variance = light / gain (counts^2); 0 = read noise only", 0, 1e6, default=0.0),
     "ambient_counts": Field(float, "ambient IR level added everywhere (IR counts)", 0, 1e6, default=0.0),
+    "projector_falloff_exponent": Field(float, "projector beam profile: signal x cos^m(angle off the projector's axis); 0 = flat", 0, 32, default=0.0),
+    "vignetting_exponent": Field(float, "IR lens vignetting: signal x cos^n(angle off the camera's axis); 4 = the cos^4 law, 0 = none", 0, 32, default=0.0),
+    "lens_aperture_m": Field(float, "IR lens aperture diameter (m): > 0 blurs the dots by the defocus at their depth; 0 = pinhole", 0, 0.1, default=0.0),
+    "focus_distance_m": Field(float, "IR lens focus distance (m), where the dots are sharpest", 0, 1e3, low_open=True, default=2.0),
     "ir_bits": Field(int, "IR sensor bit depth (clip and quantise to 2^bits - 1)", 4, 16, default=10),
     "min_confidence": Field(float, "matcher confidence (best minus second-best ZNCC) below which depth is invalid", 0, 1, default=0.15),
+    "cleanup_speckle_px": Field(int, "device clean-up: valid regions smaller than this are removed (px; 0 = off)", 0, 1_000_000, default=0),
+    "cleanup_max_diff_px": Field(float, "device clean-up: neighbours differing by more disparity than this are separate regions (px)", 0, 1000, low_open=True, default=1.0),
+    "cleanup_hole_px": Field(int, "device clean-up: invalid holes smaller than this take their nearest valid pixel's disparity (px; 0 = off)", 0, 1_000_000, default=0),
+    "output_left_border_px": Field(int, "the device outputs no depth in this many leftmost columns (px; 0 = none)", 0, 16384, default=0),
     "band_rows": Field(int, "rows per matching band (bounds matcher memory)", 1, 16384, default=64),
     "pattern": Field(str, "dot pattern: a file in pattern_assets/ or a path (relative to the preset)", default="kinect_like_640.png"),
     "pattern_psf_px": Field(float, "Gaussian point-spread sigma of a projected dot (px)", 0, 10, low_open=True, default=0.5),
@@ -117,11 +128,22 @@ class SensorPreset:
     subpixel_level: int
     speckle_shape: float
     speckle_scale: float
+    speckle_grain_px: float
+    speckle_fixed_to_scene: bool
     read_noise_mean_counts: float
     read_noise_std_counts: float
+    electrons_per_count: float
     ambient_counts: float
+    projector_falloff_exponent: float
+    vignetting_exponent: float
+    lens_aperture_m: float
+    focus_distance_m: float
     ir_bits: int
     min_confidence: float
+    cleanup_speckle_px: int
+    cleanup_max_diff_px: float
+    cleanup_hole_px: int
+    output_left_border_px: int
     band_rows: int
     pattern: str
     pattern_psf_px: float
@@ -263,6 +285,10 @@ def preset_from_dict(data: Any, source: str | Path = "") -> SensorPreset:
         elif field.kind is str:
             if not isinstance(value, str) or not value.strip():
                 raise InputError(f"{where(source, key)}expected a non-empty string ({field.help}), got {value!r}")
+            values[key] = value
+        elif field.kind is bool:
+            if not isinstance(value, bool):
+                raise InputError(f"{where(source, key)}expected true or false ({field.help}), got {value!r}")
             values[key] = value
         elif key == "effects":
             values[key] = _check_effects(source, value)

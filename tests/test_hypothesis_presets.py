@@ -56,6 +56,16 @@ def valid_presets(draw) -> dict:
         "pattern_psf_px": st.floats(1e-3, 10.0),
         "cx_px": st.floats(0.0, float(width)),
         "focal_y_px": st.floats(1.0, 1e5),
+        "speckle_grain_px": st.floats(0.0, 50.0),
+        "speckle_fixed_to_scene": st.booleans(),
+        "electrons_per_count": st.floats(0.0, 1e6),
+        "projector_falloff_exponent": st.floats(0.0, 32.0),
+        "vignetting_exponent": st.floats(0.0, 32.0),
+        "lens_aperture_m": st.floats(0.0, 0.1),
+        "focus_distance_m": st.floats(1e-3, 1e3),
+        "cleanup_speckle_px": st.integers(0, 1_000_000),
+        "cleanup_max_diff_px": st.floats(1e-3, 1000.0),
+        "cleanup_hole_px": st.integers(0, 1_000_000),
     }
     for key in draw(st.lists(st.sampled_from(sorted(optional)), unique=True)):
         data[key] = draw(optional[key])

@@ -14,7 +14,7 @@ def _kinect_dict():
 
 
 def test_shipped_presets_match_the_paper_supplementary():
-    kinect = load_preset("kinect_v1")
+    kinect = load_preset("kinect_v1_paper")
     assert (kinect.width_px, kinect.height_px, kinect.focal_px) == (640, 480, 572.41)
     assert (kinect.baseline_m, kinect.z_min_m, kinect.z_max_m, kinect.block_size_px) == (0.075, 0.4, 4.0, 9)
     assert (kinect.emitted_intensity, kinect.shadow_bias_m, kinect.softargmax_beta, kinect.subpixel_level) == (
@@ -26,6 +26,26 @@ def test_shipped_presets_match_the_paper_supplementary():
     assert mp.emitted_intensity == 1.5e7
     # Disparity range f*b/z: Kinect 10.7 .. 107.3 px
     assert math.isclose(kinect.disparity_max_px, 572.41 * 0.075 / 0.4)
+    # The paper's sketch has none of the device's extras (all off by default).
+    assert (kinect.speckle_grain_px, kinect.speckle_fixed_to_scene, kinect.electrons_per_count) == (0.0, False, 0.0)
+    assert (kinect.projector_falloff_exponent, kinect.vignetting_exponent) == (0.0, 0.0)
+    assert (kinect.cleanup_speckle_px, kinect.cleanup_hole_px, kinect.lens_aperture_m, kinect.output_left_border_px) == (
+        0, 0, 0.0, 0)
+
+
+def test_device_preset_departs_from_the_paper_only_where_its_comments_say():
+    """kinect_v1 = kinect_v1_paper plus the modelled device causes, each marked DEVICE in the file."""
+    paper, device = load_preset("kinect_v1_paper").to_dict(), load_preset("kinect_v1").to_dict()
+    changed = {key for key in paper if key != "name" and paper[key] != device[key]}
+    assert "subpixel_level" in changed and device["subpixel_level"] == 3  # the device's 1/8-px quantum
+    lines = (PRESET_DIR / "kinect_v1.yaml").read_text().splitlines()
+    for key in changed:  # each departure sits in a run of departures and comments opened by "# DEVICE"
+        j = next(i for i, line in enumerate(lines) if line.startswith(f"{key}:")) - 1
+        while j >= 0 and not lines[j].startswith("# DEVICE"):
+            allowed = changed | {"cleanup_max_diff_px"}  # a setting of the clean-up departure, at its default
+            assert lines[j].startswith("#") or lines[j].split(":")[0] in allowed, (key, lines[j])
+            j -= 1
+        assert j >= 0, key
 
 
 def test_save_and_reload_round_trip(tmp_path):
@@ -50,6 +70,11 @@ def test_save_and_reload_round_trip(tmp_path):
         ({"subpixel_level": 1.5}, "subpixel_level: expected an integer"),
         ({"z_min_m": 5.0}, "z_min_m: must be smaller than z_max_m"),
         ({"effects": [{"name": "lens_distorsion"}]}, "unknown effect 'lens_distorsion'"),
+        ({"speckle_fixed_to_scene": "yes"}, "speckle_fixed_to_scene: expected true or false"),
+        ({"speckle_fixed_to_scene": 1}, "speckle_fixed_to_scene: expected true or false"),
+        ({"cleanup_hole_px": -1}, "cleanup_hole_px: must be >= 0"),
+        ({"cleanup_max_diff_px": 0}, "cleanup_max_diff_px: must be > 0"),
+        ({"vignetting_exponent": 40}, "vignetting_exponent: must be <= 32"),
     ],
 )
 def test_bad_fields_name_file_key_and_problem(change, message):

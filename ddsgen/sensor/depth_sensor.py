@@ -2,7 +2,7 @@
 
     geometry (ray cast, constant) -> IR image -> [ir effects] -> block matching
     -> [disparity effects] -> depth z = f b / d -> [depth effects] -> validity
-    (-> optional post-processing CNN)
+    -> the device's clean-up (specks and small holes) (-> optional post-processing CNN)
 
 Everything in :meth:`DepthSensor.forward` is a torch function of the sensor's
 parameters. Positive parameters are stored as logarithms (baseline, focal length,
@@ -21,10 +21,12 @@ import torch
 from torch import nn
 
 from ddsgen.preset import Intrinsics, SensorPreset
+from ddsgen.sensor.cleanup import device_cleanup
 from ddsgen.sensor.effects import build_effects
 from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
+from ddsgen.sensor.speckle import scene_seed
 
 # Fraction of disparity range added to the reference padding, so that fitting the
 # baseline or focal length a little up does not run out of reference pattern.
@@ -210,10 +212,20 @@ class DepthSensor(nn.Module):
         """(S, H, W + pad) reference images at infinity, cached once per process and sensor."""
         return _reference_phases(*self._pattern_key(), self.preset.subpixel_level).to(self.device_)
 
-    def draw_noise(self, seed) -> IRNoise:
-        """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator."""
+    def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
+        """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator.
+
+        With ``speckle_fixed_to_scene`` and a ``geometry``, the speckle is seeded by the geometry
+        (the same static scene gets the same speckle whatever the frame seed); the read noise
+        always comes from ``seed``.
+        """
+        p = self.preset
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-        return IRNoise.draw(self.intr.height, self.intr.width, self.preset.speckle_shape, rng, self.device_)
+        speckle_rng = None
+        if p.speckle_fixed_to_scene and geometry is not None:
+            speckle_rng = np.random.default_rng(scene_seed(geometry.points, geometry.hit))
+        return IRNoise.draw(self.intr.height, self.intr.width, p.speckle_shape, rng, self.device_,
+                            p.speckle_grain_px, speckle_rng)  # fmt: skip
 
     # ---- the pipeline ---------------------------------------------------------------------
     def forward(
@@ -232,7 +244,7 @@ class DepthSensor(nn.Module):
         if geometry.shape != (intr.height, intr.width):
             raise ValueError(f"geometry is {geometry.shape}, sensor expects {(intr.height, intr.width)}")
         if noise is None:
-            noise = self.draw_noise(seed)
+            noise = self.draw_noise(seed, geometry)
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
         baseline = self.baseline
@@ -241,6 +253,8 @@ class DepthSensor(nn.Module):
             geometry.points, geometry.normals, geometry.albedo, lit, self.pattern_field(),
             fx, fy, intr.cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
             self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
+            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, p.lens_aperture_m,
+            p.focus_distance_m,
         )  # fmt: skip
         ctx = {
             "geometry": geometry, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,
@@ -277,8 +291,26 @@ class DepthSensor(nn.Module):
                 keep = keep * effect(raw_depth, ctx)
         in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
         valid = result.valid & geometry.hit & ~geometry.shadow & in_range & (keep > 0.5)
-        depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         valid_soft = keep * in_range.float()
+        if p.cleanup_speckle_px or p.cleanup_hole_px:
+            # A selection: each pixel keeps its own value or copies its nearest valid neighbour's.
+            cleaned, source = device_cleanup(disparity, valid, p.cleanup_speckle_px, p.cleanup_max_diff_px,
+                                             p.cleanup_hole_px)  # fmt: skip
+            flat = source.reshape(-1)
+            raw_depth = raw_depth.reshape(-1)[flat].reshape(raw_depth.shape)
+            disparity = disparity.reshape(-1)[flat].reshape(disparity.shape)
+            removed = valid & ~cleaned
+            valid_soft = valid_soft.reshape(-1)[flat].reshape(valid_soft.shape) * (~removed).float()
+            valid = cleaned
+        if p.output_left_border_px:
+            # The device's output window starts this many columns into the full image; a crop of it
+            # (compare --crop) is offset by the shift of its principal point.
+            offset = int(round(p.cx_px - intr.cx)) if intr.width < p.width_px else 0
+            columns = torch.arange(valid.shape[1], device=valid.device) + offset
+            inside = columns >= p.output_left_border_px
+            valid = valid & inside[None, :]
+            valid_soft = valid_soft * inside[None, :].to(valid_soft.dtype)
+        depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         if self.postprocess is not None:
             depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)
         return SensorOutput(

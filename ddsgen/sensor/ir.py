@@ -12,9 +12,19 @@ bilinear, so the image is differentiable in b and f. Noise constants follow Land
 et al. 2016 (Kinect V1): speckle ~ Gamma(shape, scale) multiplicative, read noise
 ~ N(mean, std) additive, in IR counts.
 
-Noise draws come from a numpy Generator seeded per frame, as unit-scale samples
-(Gamma(shape, 1), N(0, 1)) that are then scaled by the (differentiable) noise
-parameters: bit-identical on any worker, and reparameterised for gradients.
+Noise draws come from numpy Generators, as unit-scale samples (Gamma(shape, 1),
+N(0, 1)) that are then scaled by the (differentiable) noise parameters: bit-identical
+on any worker, and reparameterised for gradients. The read noise is fresh per frame;
+the speckle may carry the optics' grain and be fixed to the scene
+(:mod:`ddsgen.sensor.speckle`).
+
+Two fall-offs toward the image corners multiply the signal (off with exponent 0): the
+projector's beam profile cos^m of the angle between the projector's axis and its ray
+to the point, and the IR lens's vignetting cos^n of the camera ray's angle (n = 4 is
+the natural cos^4 law of a thin lens).
+
+Detector noise: read noise N(mean, std) and, optionally, photon shot noise whose variance
+is the light in counts divided by the photo-electrons per count (the camera's gain).
 """
 
 from __future__ import annotations
@@ -24,7 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ddsgen.sensor.optics import defocus_blur, defocus_sigma_px
 from ddsgen.sensor.pattern import PatternField
+from ddsgen.sensor.speckle import speckle_field
 
 # Intensity of a fully lit dot (8-bit pattern value 255) in the units eta_c multiplies.
 # Chosen so that the paper's eta_c = 1.5e6 (counts * mm^2) reproduces Landau et al.'s
@@ -46,8 +58,19 @@ class IRNoise:
     read_unit: torch.Tensor
 
     @classmethod
-    def draw(cls, height: int, width: int, speckle_shape: float, rng: np.random.Generator, device="cpu") -> "IRNoise":
-        speckle = rng.gamma(speckle_shape, 1.0, size=(height, width)).astype(np.float32)
+    def draw(cls, height: int, width: int, speckle_shape: float, rng: np.random.Generator, device="cpu",
+             speckle_grain_px: float = 0.0, speckle_rng: np.random.Generator | None = None) -> "IRNoise":
+        """Draw a frame's noise.
+
+        Args:
+            rng: the frame's generator (read noise; the speckle too unless ``speckle_rng`` is given).
+            speckle_grain_px: correlation sigma of the speckle (camera px); 0 = independent per pixel.
+            speckle_rng: the scene's generator, to fix the speckle to the scene.
+        """
+        if speckle_grain_px <= 0 and speckle_rng is None:
+            speckle = rng.gamma(speckle_shape, 1.0, size=(height, width)).astype(np.float32)
+        else:
+            speckle = speckle_field(height, width, speckle_shape, speckle_grain_px, speckle_rng or rng)
         read = rng.standard_normal(size=(height, width)).astype(np.float32)
         return cls(torch.from_numpy(speckle).to(device), torch.from_numpy(read).to(device))
 
@@ -92,6 +115,11 @@ def render_ir(
     noise: IRNoise | None,
     ir_bits: int = 10,
     quantise: bool = True,
+    projector_falloff_exponent: float = 0.0,
+    vignetting_exponent: float = 0.0,
+    electrons_per_count: float = 0.0,
+    lens_aperture_m: float = 0.0,
+    focus_distance_m: float = 2.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Simulate the IR camera image.
 
@@ -110,6 +138,13 @@ def render_ir(
         ir_bits: ADC bit depth; the image is clipped to [0, 2^bits - 1] and, if ``quantise``,
             rounded to whole counts (straight-through gradient) when ``noise`` is given.
         quantise: round to whole counts (False only for finite-difference gradient checks).
+        projector_falloff_exponent: m of the projector beam profile cos^m(angle off the projector's axis).
+        vignetting_exponent: n of the IR lens's fall-off cos^n(angle off the camera's axis).
+        electrons_per_count: photo-electrons per IR count; > 0 adds photon shot noise (variance
+            = light / electrons_per_count counts^2) to the read noise; 0: read noise only.
+        lens_aperture_m, focus_distance_m: the IR lens's aperture diameter and focus distance (m); an
+            aperture > 0 blurs the projected dots by the defocus at each pixel's depth
+            (:mod:`ddsgen.sensor.optics`); 0: a pinhole, everything sharp.
 
     Returns:
         ir: (H, W) IR image in counts.
@@ -123,10 +158,24 @@ def render_ir(
     cos_incidence = ((normals * to_projector).sum(-1) / distance_m).clamp_min(0.0)
     distance_mm = distance_m * 1000.0
     signal = albedo * emitted_intensity * pattern * cos_incidence / distance_mm**2 * lit
+    z = points[..., 2].clamp_min(1e-6)
+    if projector_falloff_exponent:
+        signal = signal * (z / distance_m).clamp(0.0, 1.0) ** projector_falloff_exponent
+    if vignetting_exponent:
+        camera_distance = torch.linalg.vector_norm(points, dim=-1).clamp_min(1e-6)
+        signal = signal * (z / camera_distance).clamp(0.0, 1.0) ** vignetting_exponent
+    if lens_aperture_m > 0:
+        depth = torch.where(lit > 0, z, torch.zeros_like(z)).detach()
+        signal = defocus_blur(signal, defocus_sigma_px(depth, float(fx), lens_aperture_m, focus_distance_m))
     if noise is None:
         return signal + ambient, signal
     # Speckle is a property of the coherent laser light only; ambient light is incoherent.
-    ir = signal * (noise.speckle_unit * speckle_scale) + ambient + read_noise_mean + read_noise_std * noise.read_unit
+    light = signal * (noise.speckle_unit * speckle_scale) + ambient
+    noise_std = read_noise_std
+    if electrons_per_count > 0:
+        # Photon shot noise (Poisson in electrons, Gaussian at these counts) adds to the read noise's variance.
+        noise_std = torch.sqrt(read_noise_std**2 + light.clamp_min(0.0) / electrons_per_count)
+    ir = light + read_noise_mean + noise_std * noise.read_unit
     ir = ir.clamp(0.0, 2.0**ir_bits - 1.0)
     if quantise:
         ir = straight_through_round(ir)

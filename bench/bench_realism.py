@@ -1,0 +1,155 @@
+"""Realism benchmark: issue 12's hole, validity and quantisation statistics, real frames and simulated.
+
+Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statistics``):
+  real_cat_*        the real LineMOD cat frame (../shared/data/linemod_bop/test/000006) in the compare region
+  sim_cat_*         the same frame simulated at its ground-truth pose (ddsgen compare's region and seed 0)
+  real_icbin_*      the nine real IC-BIN PrimeSense frames, whole image (min and max over the frames)
+  sim_render_*      frames of the built-in scene list (`ddsgen render PRESET -n 4`), whole image (min and max)
+  distreal_step_at_1m_mm   the level spacing of the real Kinect for Windows list distReal_mm.txt at 1 m
+
+Usage: python bench/bench_realism.py [PRESET] [--frames N] [--pictures DIR]
+(PRESET defaults to kinect_v1; --pictures writes side-by-side PNGs of real and simulated depth.)
+Statistics of missing real data are skipped with a note.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+DATA = ROOT.parent / "shared" / "data"
+
+from ddsgen.depth_statistics import realism_statistics  # noqa: E402
+
+KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
+        "isolated_dropout_share": "", "depth_step_at_1m_mm": "mm"}  # fmt: skip
+
+
+def _print(name: str, stats: dict) -> None:
+    for key, unit in KEYS.items():
+        value = stats.get(key)
+        if value is not None:
+            print(f"bench: {name}_{key} {value:.4g} {unit}".rstrip(), flush=True)
+
+
+def _print_range(name: str, all_stats: list[dict]) -> None:
+    for key, unit in KEYS.items():
+        values = [s[key] for s in all_stats if s.get(key) is not None]
+        if values:
+            print(f"bench: {name}_{key}_min {min(values):.4g} {unit}".rstrip(), flush=True)
+            print(f"bench: {name}_{key}_max {max(values):.4g} {unit}".rstrip(), flush=True)
+
+
+def colour_depth(depth_m: np.ndarray, z_lo: float, z_hi: float) -> np.ndarray:
+    """(H, W, 3) uint8 BGR: depth colour-mapped between z_lo and z_hi (m), invalid (0) black."""
+    scaled = np.clip((depth_m - z_lo) / max(z_hi - z_lo, 1e-6), 0.0, 1.0)
+    image = cv2.applyColorMap((255 * scaled).astype(np.uint8), cv2.COLORMAP_TURBO)
+    image[depth_m <= 0] = 0
+    return image
+
+
+def side_by_side(path: Path, left: np.ndarray, right: np.ndarray, labels: tuple[str, str]) -> None:
+    """Two depth images (m) colour-mapped on one shared scale, next to each other, labelled."""
+    both = np.concatenate([left[left > 0], right[right > 0]])
+    z_lo, z_hi = (np.percentile(both, 1), np.percentile(both, 99)) if both.size else (0.0, 1.0)
+    tiles = []
+    for depth, label in zip((left, right), labels):
+        tile = colour_depth(depth, z_lo, z_hi)
+        cv2.putText(tile, label, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
+        tiles.append(tile)
+    gap = np.full((tiles[0].shape[0], 8, 3), 255, np.uint8)
+    cv2.imwrite(str(path), np.concatenate([tiles[0], gap, tiles[1]], axis=1))
+
+
+def cat_frame(preset_name: str, pictures: Path | None) -> None:
+    scene = DATA / "linemod_bop" / "test" / "000006"
+    if not scene.is_dir():
+        print(f"# {scene} absent: cat frame skipped", flush=True)
+        return
+    from ddsgen.commands.compare import load_inputs
+    from ddsgen.fit.simulate import simulate
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    _, camera_preset, _, frames = load_inputs(preset_name, str(scene), progress=False)
+    frame = frames[0]
+    sensor = DepthSensor(camera_preset).eval()
+    with torch.no_grad():
+        out = simulate(sensor, frame, seed=0)
+    region = frame.region.numpy()
+    real = frame.real_depth.numpy()
+    sim = out.depth.numpy()
+    _print("real_cat", realism_statistics(real, real > 0, region, resolution_m=0.001))
+    # The simulation is compared as the device writes it: millimetre PNG values.
+    sim_mm = np.round(sim * 1000.0) / 1000.0
+    _print("sim_cat", realism_statistics(sim_mm, out.valid.numpy(), region, resolution_m=0.001))
+    if pictures is not None:
+        side_by_side(pictures / "realism_cat.png", np.where(region, real, 0.0), np.where(region, sim_mm, 0.0),
+                     ("real Kinect V1 (LineMOD cat)", f"ddsgen {preset_name}, GT pose"))  # fmt: skip
+
+
+def _read_mm(path: Path) -> np.ndarray:
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
+
+
+def icbin_frames() -> list[Path]:
+    folder = DATA / "icbin_primesense_unpaired"
+    return sorted(folder.glob("seq*/depth/*.png")) if folder.is_dir() else []
+
+
+def real_icbin() -> None:
+    paths = icbin_frames()
+    if not paths:
+        print("# IC-BIN frames absent: skipped", flush=True)
+        return
+    _print_range("real_icbin", [realism_statistics(_read_mm(p)) for p in paths])
+
+
+def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
+    from ddsgen.runner import render_dataset
+
+    with tempfile.TemporaryDirectory() as tmp:
+        render_dataset(preset_name, None, n, tmp, workers=1, seed=0, progress=False)
+        depths = [_read_mm(p) for p in sorted(Path(tmp, "depth").glob("*.png"))]
+    _print_range("sim_render", [realism_statistics(d) for d in depths])
+    paths = icbin_frames()
+    if pictures is not None and paths and depths:
+        side_by_side(pictures / "realism_render.png", _read_mm(paths[0]), depths[0],
+                     ("real PrimeSense (IC-BIN)", f"ddsgen {preset_name}, rendered"))  # fmt: skip
+
+
+def distreal_step() -> None:
+    path = DATA / "kinect_v1_landau_simulator_data" / "distReal_mm.txt"
+    if not path.is_file():
+        print(f"# {path} absent: skipped", flush=True)
+        return
+    levels = np.unique(np.loadtxt(path).ravel()) / 1000.0
+    near = levels[(levels > 0.95) & (levels < 1.05)]
+    print(f"bench: distreal_step_at_1m_mm {1000 * np.mean(np.diff(near) / near[1:] ** 2):.4g} mm", flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("preset", nargs="?", default="kinect_v1")
+    parser.add_argument("--frames", type=int, default=4)
+    parser.add_argument("--pictures", type=Path, default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    if args.pictures is not None:
+        args.pictures.mkdir(parents=True, exist_ok=True)
+    real_icbin()
+    distreal_step()
+    cat_frame(args.preset, args.pictures)
+    rendered(args.preset, args.frames, args.pictures)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,95 @@
+"""The device's clean-up of its disparity map: small specks of valid pixels and small holes removed.
+
+A Kinect V1 does not output the salt-and-pepper of a bare block matcher: its invalid pixels
+come in clusters (shadows, dark and far surfaces, edges). Two morphological passes, both
+OpenCV's, model that:
+
+* **speckle filter** (``cv2.filterSpeckles``): a connected region of valid pixels whose
+  disparities differ by at most ``max_diff_px`` between neighbours, smaller than
+  ``speckle_px`` pixels, is a lone wrong match and is invalidated;
+* **hole filling** (``cv2.connectedComponentsWithStats`` + ``cv2.distanceTransformWithLabels``):
+  an 8-connected component of invalid pixels smaller than ``hole_px`` pixels takes the
+  disparity of its nearest valid pixel.
+
+Both are a selection, not arithmetic: the output at a pixel is the matcher's disparity of
+that pixel or of its nearest valid neighbour, so the cleaned depth stays differentiable (the
+gradient of a filled pixel flows to the pixel it copied) and keeps the device's disparity
+levels.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+# filterSpeckles works on 16-bit fixed-point disparity with this many fractional steps per pixel.
+_FIXED_POINT = 16
+
+
+def remove_valid_specks(disparity: np.ndarray, valid: np.ndarray, speckle_px: int, max_diff_px: float) -> np.ndarray:
+    """(H, W) bool: ``valid`` without the valid regions smaller than ``speckle_px`` pixels.
+
+    Args:
+        disparity: (H, W) float px.
+        valid: (H, W) bool.
+        speckle_px: regions of fewer pixels are removed (0: nothing removed).
+        max_diff_px: neighbours whose disparities differ by more than this belong to different regions.
+    """
+    if speckle_px <= 0:
+        return valid.copy()
+    fixed = np.where(valid, np.clip(np.round(disparity * _FIXED_POINT), 1, np.iinfo(np.int16).max), 0).astype(np.int16)
+    # Invalid pixels hold newVal = 0, which filterSpeckles never joins into a region.
+    cv2.filterSpeckles(fixed, 0, int(speckle_px), float(max_diff_px * _FIXED_POINT))
+    return valid & (fixed != 0)
+
+
+def fill_small_holes(valid: np.ndarray, hole_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-valid-pixel source of every pixel of a small hole.
+
+    Args:
+        valid: (H, W) bool.
+        hole_px: invalid 8-connected components of fewer pixels are filled (0: none).
+
+    Returns:
+        source: (H, W) int64 flat index of the pixel whose value each pixel takes (itself unless filled).
+        filled: (H, W) bool, True where a hole pixel was filled.
+    """
+    height, width = valid.shape
+    source = np.arange(height * width, dtype=np.int64).reshape(height, width)
+    if hole_px <= 0 or valid.all() or not valid.any():
+        return source, np.zeros_like(valid)
+    invalid = (~valid).astype(np.uint8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(invalid, connectivity=8)
+    small = stats[:, cv2.CC_STAT_AREA] < hole_px
+    small[0] = False  # label 0 is the valid background
+    filled = small[labels]
+    if not filled.any():
+        return source, filled
+    # Every valid pixel (a zero of `invalid`) gets its own label; each pixel learns its nearest one's.
+    _, nearest = cv2.distanceTransformWithLabels(invalid, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
+    label_to_index = np.zeros(int(nearest.max()) + 1, np.int64)
+    label_to_index[nearest[valid]] = source[valid]
+    source[filled] = label_to_index[nearest[filled]]
+    return source, filled
+
+
+def device_cleanup(disparity: torch.Tensor, valid: torch.Tensor, speckle_px: int, max_diff_px: float,
+                   hole_px: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The clean-up as a selection: which pixels stay valid and where each takes its value from.
+
+    Args:
+        disparity: (H, W) px (any grad; read only).
+        valid: (H, W) bool, the matcher's validity.
+        speckle_px, max_diff_px, hole_px: see the module docstring (0 switches a pass off).
+
+    Returns:
+        valid: (H, W) bool after the clean-up.
+        source: (H, W) int64 flat index into the (H, W) image of each pixel's value (gather with it).
+    """
+    d = disparity.detach().cpu().numpy()
+    v = valid.detach().cpu().numpy()
+    kept = remove_valid_specks(d, v, speckle_px, max_diff_px)
+    source, filled = fill_small_holes(kept, hole_px)
+    device = valid.device
+    return torch.from_numpy(kept | filled).to(device), torch.from_numpy(source).to(device)
