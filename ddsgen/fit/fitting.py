@@ -300,6 +300,10 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     if search and snr:
         searches["snr"] = search_snr(sensor, frames, snr[0], seed)
         searched.update(snr)  # the other one is not identifiable separately: held
+    if search and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
+        from ddsgen.fit.starts import start_distortion_grid
+
+        searches["distortion"] = start_distortion_grid(sensor, frames, seed)
     groups = []
     for name, tensors in resolved.items():
         if name in searched:

@@ -80,7 +80,7 @@ def spatial_halves(frame) -> tuple:
         return frame, frame
     along_x = int(xs.max() - xs.min()) >= int(ys.max() - ys.min())
     coords = xs if along_x else ys
-    cut = int(torch.median(coords.float()).round())
+    cut = int(torch.sort(coords).values[coords.numel() // 2])  # the first column (row) of the second half
     grid = torch.arange(region.shape[1] if along_x else region.shape[0])
     first = (grid < cut)[None, :] if along_x else (grid < cut)[:, None]
     first = first.expand_as(region)

@@ -31,8 +31,8 @@ import torch
 from ddsgen.fit.losses import LossWeights, frame_loss, local_window
 from ddsgen.fit.simulate import simulate
 
-#: Tile side in loss windows (15 px at 640 x 480 -> 60 px tiles).
-TILE_WINDOWS = 4
+#: Tile side in loss windows (15 px at 640 x 480 -> 90 px tiles).
+TILE_WINDOWS = 6
 #: A tile counts when at least this share of it is in the region.
 MIN_TILE_SHARE = 0.25
 #: Step of unbounded effect raw values.
@@ -86,7 +86,7 @@ def sandwich_sigma(minus: list[float], centre: list[float], plus: list[float], s
 
 
 def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, weights: LossWeights = LossWeights(),
-                         priors=None) -> dict[str, dict]:  # fmt: skip
+                         priors=None, names=None) -> dict[str, dict]:  # fmt: skip
     """Uncertainty of every scalar parameter of ``result`` (a FitResult) at the sensor's current values.
 
     Args:
@@ -95,6 +95,7 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
         result: :class:`~ddsgen.fit.fitting.FitResult` (its params and searches).
         table: ``SENSOR_PARAMS`` (name -> :class:`~ddsgen.fit.priors.SensorParam`).
         weights: the fit's loss weights; priors: the fit's :class:`~ddsgen.fit.priors.Priors` (its curvature).
+        names: only these of ``result.params`` (default all).
 
     Returns:
         name -> {"key", "value", "sigma", "relative", "method"}; CNN weights are left out.
@@ -105,7 +106,7 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
     snr = result.searches.get("snr", {}).get("parameter")
     out: dict[str, dict] = {}
     for name in result.params:
-        if name == "cnn":
+        if name == "cnn" or (names is not None and name not in names):
             continue
         if name in table:
             spec = table[name]
@@ -137,7 +138,7 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
                 tensor.fill_(x0 + delta)
             sides.append(_tile_losses(sensor, frames, tiles, seed, w))
             if name not in table:
-                sides[-1] = (sides[-1], float(effect.value(raw_key)))
+                sides[-1] = (sides[-1], float(effect.value(raw_key).detach()))
         with torch.no_grad():
             tensor.fill_(x0)
         if name not in table:  # effect: convert the raw value's sigma with the finite-difference derivative
