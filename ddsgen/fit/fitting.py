@@ -29,6 +29,12 @@
     (e.g. Kinect's 1/8 px with a 1/4 px preset) leaves b unchanged and says so.
 
   Searched parameters are not moved by Adam afterwards (their gradients are noise).
+
+Every sensor parameter stays within its bounds (:data:`SENSOR_PARAMS`, :mod:`ddsgen.fit.priors`:
+projected after each Adam step, the searches' ranges) and a prior pulls it toward the input
+preset (``prior_mm``). With ``search``, a ``disparity_distortion`` grid in the fit starts from the
+least-squares solve of :mod:`ddsgen.fit.starts`. What transfers to other scenes is decided by the
+caller on held-out frames (:mod:`ddsgen.fit.split`, :mod:`ddsgen.fit.revert`).
 """
 
 from __future__ import annotations
@@ -50,16 +56,19 @@ DEFAULT_PARAMS = ("emitted_intensity", "read_noise_std", "beta", "baseline")
 #: Fittable sensor parameters by CLI name: the DepthSensor tensor, bounds, prior and group
 #: (see :mod:`ddsgen.fit.priors`). A new sensor parameter joins the fit with one entry here.
 SENSOR_PARAMS = {
-    "emitted_intensity": SensorParam("log_emitted_intensity", "emitted_intensity", True, ("factor", 0.25, 4.0), 0.7, "snr"),
-    "read_noise_std": SensorParam("log_read_noise_std", "read_noise_std_counts", True, ("factor", 0.25, 4.0), 0.7, "snr"),
-    "beta": SensorParam("log_beta", "softargmax_beta", True, ("range", 5.0, 40.0), 0.35, "matching"),
+    "emitted_intensity": SensorParam("log_emitted_intensity", "emitted_intensity", True, ("factor", 0.25, 4.0),
+                                     0.7, "snr", 0.25),
+    "read_noise_std": SensorParam("log_read_noise_std", "read_noise_std_counts", True, ("factor", 0.25, 4.0),
+                                  0.7, "snr", 0.25),
+    "beta": SensorParam("log_beta", "softargmax_beta", True, ("range", 5.0, 40.0), 0.35, "matching", 0.15),
     "baseline": SensorParam("log_baseline", "baseline_m", True, ("factor", 0.95, 1.05), 0.02, "geometry", 0.005),
     "focal": SensorParam("log_focal_scale", "focal_px", True, ("factor", 0.97, 1.03), 0.01, "geometry", 0.003),
-    "speckle_scale": SensorParam("log_speckle_scale", "speckle_scale", True, ("factor", 0.25, 4.0), 0.7, "pattern"),
+    "speckle_scale": SensorParam("log_speckle_scale", "speckle_scale", True, ("factor", 0.25, 4.0), 0.7, "pattern",
+                                 0.2),
     "ambient": SensorParam("log_ambient", "ambient_counts", True, ("range", 1e-6, 255.0), 3.0, "ambient", 0.1),
     "read_noise_mean": SensorParam("read_noise_mean", "read_noise_mean_counts", False, ("range", -64.0, 64.0), 16.0,
-                                   "snr", 1.0),
-}
+                                   "ir_offset", 1.0),
+}  # fmt: skip
 LOG_LR_SCALE = 30.0
 LATTICE_MIN_COHERENCE = 0.3
 
@@ -293,6 +302,11 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     before = physical_values(sensor)
     searches: dict = {}
     searched: set[str] = set()
+    # The distortion first: the SNR search's validity and texture terms are judged with it in place.
+    if search and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
+        from ddsgen.fit.starts import start_distortion_grid
+
+        searches["distortion"] = start_distortion_grid(sensor, frames, seed)
     if search and "baseline" in resolved:
         searches["baseline"] = estimate_baseline(sensor, frames)
         searched.add("baseline")
@@ -300,10 +314,6 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     if search and snr:
         searches["snr"] = search_snr(sensor, frames, snr[0], seed)
         searched.update(snr)  # the other one is not identifiable separately: held
-    if search and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
-        from ddsgen.fit.starts import start_distortion_grid
-
-        searches["distortion"] = start_distortion_grid(sensor, frames, seed)
     groups = []
     for name, tensors in resolved.items():
         if name in searched:
