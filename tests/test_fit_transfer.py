@@ -137,15 +137,15 @@ SCENES_B = textwrap.dedent(
 def hidden_device(rng) -> tuple[str, dict]:
     """A random device within the fit's bounds: its SNR (eta_c) and a smooth disparity distortion field.
 
-    beta stays the stock value: against a distortion field the depth loss does not identify it (measured on
-    this test's frames: a device with beta 23.6 came out 15.0 +- 1.9, the loss minimum sits near 16 even with
-    the true SNR), so the test checks that fitting beta does not move it away from the truth.
+    beta stays the stock value and is not fitted: against a distortion field the depth loss does not
+    identify it (measured on these frames: a device with beta 23.6 came out 15.0 +- 1.9, and a device with
+    beta 15 came out 21.3 +- 1.3 -- the sandwich sigma of a confounded parameter is optimistic).
     """
     eta = 1.5e6 * float(np.exp(rng.uniform(math.log(2.5), math.log(3.5))))  # within x0.25..x4
     grid = rng.uniform(-0.6, 0.6, len(GRID_KEYS)).round(3).tolist()  # a few Kinect disparity units
     text = (SMALL_PRESET.replace("emitted_intensity: 1.5e6", f"emitted_intensity: {eta:.6g}")
             + f"effects:\n  - {{name: disparity_distortion, alpha0: 0.0, alpha1: 0.02, grid: {grid}}}\n")  # fmt: skip
-    return text, {"emitted_intensity": eta, "softargmax_beta": 15.0}
+    return text, {"emitted_intensity": eta}
 
 
 @pytest.mark.slow
@@ -162,14 +162,12 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     fit_frames = prepare_frames(stock, read_scan_folder(tmp_path / "A"))
     held = prepare_frames(stock, read_scan_folder(tmp_path / "B"))
     sensor = DepthSensor(stock)
-    names = ["emitted_intensity", "read_noise_std", "beta", *[f"effect:disparity_distortion.{k}" for k in GRID_KEYS]]
+    names = ["emitted_intensity", "read_noise_std", *[f"effect:disparity_distortion.{k}" for k in GRID_KEYS]]
     start = snapshot(resolve_params(sensor, names))
     stock_gap = gap(sensor, held, seed=1, noise_floor=False).gap
     true_gap = gap(DepthSensor(load_preset(tmp_path / "hidden.yaml")), held, seed=1, noise_floor=False).gap
     result = fit_sensor(sensor, fit_frames, names, steps=30, progress=False)
-    priors = Priors(sensor, {"beta": SENSOR_PARAMS["beta"]})
-    sigma = estimate_uncertainty(sensor, fit_frames, result, SENSOR_PARAMS, priors=priors,
-                                 names={"emitted_intensity", "beta"})  # fmt: skip
+    sigma = estimate_uncertainty(sensor, fit_frames, result, SENSOR_PARAMS, names={"emitted_intensity"})
     outcome = revert_unhelpful(sensor, resolve_params(sensor, names), start, held, SENSOR_PARAMS, seed=1)
     fitted_gap = outcome["gap_kept"]
     report = {k: (round(v["value"], 4), round(v["sigma"], 4), truth[v["key"]]) for k, v in sigma.items()}

@@ -31,7 +31,7 @@ from ddsgen.errors import InputError
               help="Report folder: index.html with held-out real | sim | difference pictures before/after, loss "
                    "curve, parameter table with uncertainties (default: OUT without .yaml + _report).")
 @click.option("--no-search", is_flag=True, help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches.")
-@click.option("--prior", "prior_mm", type=float, default=0.5, show_default=True,
+@click.option("--prior", "prior_mm", type=float, default=0.1, show_default=True,
               help="Weight (mm) of the regulariser toward the input preset, per prior width squared; 0: bounds only.")
 @click.option("--keep-all", is_flag=True,
               help="Keep every fitted change (default: revert groups that do not lower the held-out gap).")

@@ -60,7 +60,7 @@ SENSOR_PARAMS = {
                                      0.7, "snr", 0.25),
     "read_noise_std": SensorParam("log_read_noise_std", "read_noise_std_counts", True, ("factor", 0.25, 4.0),
                                   0.7, "snr", 0.25),
-    "beta": SensorParam("log_beta", "softargmax_beta", True, ("range", 5.0, 40.0), 0.35, "matching", 0.15),
+    "beta": SensorParam("log_beta", "softargmax_beta", True, ("range", 5.0, 40.0), 1.0, "matching", 0.15),
     "baseline": SensorParam("log_baseline", "baseline_m", True, ("factor", 0.95, 1.05), 0.02, "geometry", 0.005),
     "focal": SensorParam("log_focal_scale", "focal_px", True, ("factor", 0.97, 1.03), 0.01, "geometry", 0.003),
     "speckle_scale": SensorParam("log_speckle_scale", "speckle_scale", True, ("factor", 0.25, 4.0), 0.7, "pattern",

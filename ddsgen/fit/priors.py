@@ -29,7 +29,7 @@ import math
 import torch
 
 #: Weight of the regulariser toward the input preset (mm of loss at one prior width).
-DEFAULT_PRIOR_MM = 0.5
+DEFAULT_PRIOR_MM = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
