@@ -70,6 +70,8 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         raise click.BadParameter("must be > 0", param_hint="--lr")
     if not prior_mm >= 0:
         raise click.BadParameter("must be >= 0", param_hint="--prior")
+    if not 0.0 <= holdout < 1.0:
+        raise InputError(f"--holdout: must be in [0, 1), got {holdout}")
     names = split_names(params) or list(DEFAULT_PARAMS)
     out_path = Path(out)
     if out_path.suffix.lower() not in (".yaml", ".yml"):
