@@ -16,6 +16,7 @@ from test_compare import SMALL_PRESET, render
 
 from ddsgen.errors import InputError
 from ddsgen.fit.compare import gap
+from ddsgen.fit.fit_report import at_bound
 from ddsgen.fit.fitting import SENSOR_PARAMS, fit_sensor, resolve_params
 from ddsgen.fit.priors import Priors
 from ddsgen.fit.revert import revert_unhelpful, snapshot
@@ -82,6 +83,9 @@ def test_bounds_and_prior_keep_parameters_physical():
     assert values["baseline_m"] == pytest.approx(0.075 * 1.05, rel=1e-5)
     assert values["emitted_intensity"] == pytest.approx(3.0e6, rel=1e-5)
     assert sorted(priors.at_bound()) == ["baseline", "beta"]
+    # The report flags a value on a bound (the real cat frame's SNR search ends at x4 of kinect_v1's eta_c).
+    assert at_bound(["factor", 0.25, 4.0], 1.5e6, 6.0e6) and not at_bound(["factor", 0.25, 4.0], 1.5e6, 5.9e6)
+    assert at_bound(["range", 5.0, 40.0], 15.0, 5.0) and not at_bound(["range", 5.0, 40.0], 15.0, 25.9)
 
 
 def test_sandwich_sigma_matches_the_spread_of_independent_minima():

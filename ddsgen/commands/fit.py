@@ -168,7 +168,8 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         click.echo(f"  {line}")
     for r in rows:
         click.echo(f"  {r['key']:24s} {r['before']:.6g} -> fitted {r['fitted']:.6g} +- {r['sigma']:.2g}"
-                   + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})"))  # fmt: skip
+                   + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})")
+                   + (" -- at a bound: the data push beyond the physical range" if r["at_bound"] else ""))  # fmt: skip
     for name, info in result.searches.items():
         click.echo(f"  {name}: {info['method']}" + ("" if info.get("accepted", True) else " (not identifiable: kept)"))
     click.echo(f"wrote {out_path} and {report}/")

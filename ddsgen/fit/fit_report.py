@@ -39,8 +39,20 @@ def parameter_rows(before: dict, fitted: dict, after: dict, uncertainty: dict, k
         rows.append({"param": name, "key": key, "before": before.get(key), "fitted": fitted.get(key),
                      "after": after.get(key),
                      "sigma": info["sigma"], "method": info["method"], "bound": bound_of.get(name),
-                     "kept": kept.get(name, True)})  # fmt: skip
+                     "kept": kept.get(name, True),
+                     "at_bound": at_bound(bound_of.get(name), before.get(key), fitted.get(key))})  # fmt: skip
     return rows
+
+
+def at_bound(bound, before, fitted, tolerance: float = 1e-3) -> bool:
+    """Whether ``fitted`` sits on a bound (``("factor"|"range", lo, hi)``; factors of ``before``)."""
+    if not bound or before is None or fitted is None:
+        return False
+    kind, lo, hi = bound
+    if kind == "factor":
+        lo, hi = lo * before, hi * before
+    span = max(abs(hi - lo), 1e-12)
+    return abs(fitted - lo) <= tolerance * span or abs(fitted - hi) <= tolerance * span
 
 
 def parameter_table(rows: list[dict]) -> str:
@@ -54,7 +66,7 @@ def parameter_table(rows: list[dict]) -> str:
         before = "" if r["before"] is None else f"{r['before']:.6g}"
         lines.append(f"{r['key']:26s} {before:>12s} {format_value(r['fitted'], r['sigma']):>24s} {r['after']:12.6g}  "
                      f"{bound_text:14s} "
-                     f"{'yes ' if r['kept'] else 'no  '}  {r['method']}")  # fmt: skip
+                     f"{'yes ' if r['kept'] else 'no  '}  {r['method']}" + ("; AT A BOUND" if r["at_bound"] else ""))  # fmt: skip
     return "\n".join(lines)
 
 
