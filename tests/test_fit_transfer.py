@@ -170,7 +170,7 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     start = snapshot(resolve_params(sensor, names))
     stock_gap = gap(sensor, held, seed=1, noise_floor=False).gap
     true_gap = gap(DepthSensor(load_preset(tmp_path / "hidden.yaml")), held, seed=1, noise_floor=False).gap
-    result = fit_sensor(sensor, fit_frames, names, steps=30, progress=False)
+    result = fit_sensor(sensor, fit_frames, names, steps=30, progress=False, start_effects=True)
     sigma = estimate_uncertainty(sensor, fit_frames, result, SENSOR_PARAMS, names={"emitted_intensity"})
     outcome = revert_unhelpful(sensor, resolve_params(sensor, names), start, held, SENSOR_PARAMS, seed=1)
     fitted_gap = outcome["gap_kept"]

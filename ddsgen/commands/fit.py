@@ -30,7 +30,9 @@ from ddsgen.errors import InputError
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
               help="Report folder: index.html with held-out real | sim | difference pictures before/after, loss "
                    "curve, parameter table with uncertainties (default: OUT without .yaml + _report).")
-@click.option("--no-search", is_flag=True, help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches.")
+@click.option("--no-search", is_flag=True,
+              help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches (and no least-squares "
+                   "start of a disparity_distortion grid).")
 @click.option("--prior", "prior_mm", type=float, default=0.1, show_default=True,
               help="Weight (mm) of the regulariser toward the input preset, per prior width squared; 0: bounds only.")
 @click.option("--keep-all", is_flag=True,
@@ -98,7 +100,7 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
 
     before = gaps_now(keep_maps=True)
     result = fit_sensor(sensor, fit_on, names, steps=steps, lr=lr, progress=progress, seed=seed,
-                        search=not no_search, prior_mm=prior_mm)  # fmt: skip
+                        search=not no_search, prior_mm=prior_mm, start_effects=not no_search)  # fmt: skip
     searched = {result.searches.get("snr", {}).get("parameter"), "baseline" if "baseline" in result.searches else None}
     priors = Priors(sensor, {n: SENSOR_PARAMS[n] for n in result.params if n in SENSOR_PARAMS and n not in searched},
                     prior_mm)  # fmt: skip

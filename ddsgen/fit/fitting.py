@@ -32,7 +32,7 @@
 
 Every sensor parameter stays within its bounds (:data:`SENSOR_PARAMS`, :mod:`ddsgen.fit.priors`:
 projected after each Adam step, the searches' ranges) and a prior pulls it toward the input
-preset (``prior_mm``). With ``search``, a ``disparity_distortion`` grid in the fit starts from the
+preset (``prior_mm``). With ``start_effects``, a ``disparity_distortion`` grid in the fit starts from the
 least-squares solve of :mod:`ddsgen.fit.starts`. What transfers to other scenes is decided by the
 caller on held-out frames (:mod:`ddsgen.fit.split`, :mod:`ddsgen.fit.revert`).
 """
@@ -270,7 +270,7 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
 def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: int = 100, lr: float = 1e-3,
                progress: bool = True, *, seed: int = 0, weights: LossWeights = LossWeights(), search: bool = True,
                batch_frames: int | None = None, callback: Callable[[int, dict], None] | None = None,
-               prior_mm: float = DEFAULT_PRIOR_MM) -> FitResult:  # fmt: skip
+               prior_mm: float = DEFAULT_PRIOR_MM, start_effects: bool = False) -> FitResult:  # fmt: skip
     """Fit ``params`` of ``sensor`` (in place) to the real scans of ``frames``.
 
     Args:
@@ -288,6 +288,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         callback: called after every step with (step, terms).
         prior_mm: weight of the regulariser toward the start values (:mod:`ddsgen.fit.priors`);
             every table parameter is also kept within its bounds (searches included).
+        start_effects: start a fitted ``disparity_distortion`` grid from least squares (:mod:`ddsgen.fit.starts`).
 
     Returns:
         :class:`FitResult`.
@@ -303,7 +304,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     searches: dict = {}
     searched: set[str] = set()
     # The distortion first: the SNR search's validity and texture terms are judged with it in place.
-    if search and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
+    if start_effects and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
         from ddsgen.fit.starts import start_distortion_grid
 
         searches["distortion"] = start_distortion_grid(sensor, frames, seed)
