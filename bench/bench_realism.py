@@ -74,7 +74,7 @@ def cat_frame(preset_name: str, pictures: Path | None) -> None:
     if not scene.is_dir():
         print(f"# {scene} absent: cat frame skipped", flush=True)
         return
-    from ddsgen.commands.compare import load_inputs
+    from ddsgen.fit.inputs import load_inputs
     from ddsgen.fit.simulate import simulate
     from ddsgen.sensor.depth_sensor import DepthSensor
 

@@ -91,17 +91,29 @@ def test_cnn_parameter_count_and_identity_at_start():
 def test_fit_cli_writes_loadable_preset_with_cnn(perturbed, tmp_path, capsys):
     out = tmp_path / "fitted.yaml"
     code = main(["fit", str(perturbed["stock"]), str(perturbed["real"]), "--out", str(out), "--steps", "2",
-                 "--params", "beta,cnn", "--holdout", "0.25", "--quiet"])  # fmt: skip
+                 "--params", "beta,cnn", "--holdout", "0.25", "--quiet", "--keep-all"])  # fmt: skip
     assert code == 0, capsys.readouterr().err
     fitted = load_preset(out)
     assert fitted.postprocess == "fitted.postprocess.pt"
     sensor = DepthSensor(fitted)  # loads the CNN weights named by the preset
     assert sensor.postprocess is not None and parameter_count(sensor.postprocess) == 2531
-    assert fitted.softargmax_beta != 15.0 and fitted.width_px == 160
+    assert fitted.width_px == 160
     report = json.loads((tmp_path / "fitted_report" / "fit_report.json").read_text())
     assert len(report["fit"]["history"]) == 2 and report["fit"]["trainable"] == 2532
-    for name in ("loss_curve.png", "residuals.png", "comparison_before.json", "comparison_after.json"):
+    for name in ("loss_curve.png", "residuals.png", "comparison_before.json", "comparison_after.json", "index.html",
+                 "frames/000_before.png", "frames/000_after.png"):  # fmt: skip
         assert (tmp_path / "fitted_report" / name).stat().st_size > 500
+    # One scene in a rendered folder: frames are held out (and the report says what that means).
+    assert report["split"]["kind"] == "frame" and len(report["frames"]["held_out"]) == 1
+    assert {(g["frames"], g["region"]) for g in report["gaps_mm"]} == {
+        ("fit", "all"), ("fit", "objects"), ("held-out", "all"), ("held-out", "objects")}
+    rows = {r["key"]: r for r in report["parameters"]}
+    assert rows["softargmax_beta"]["sigma"] > 0 and rows["softargmax_beta"]["bound"] == ["range", 5.0, 40.0]
+    # Kept or reverted, the preset holds what the report says, and its comments carry the uncertainty.
+    beta = rows["softargmax_beta"]
+    assert load_preset(out).softargmax_beta == pytest.approx(beta["fitted"] if beta["kept"] else 15.0, rel=1e-5)
+    assert "softargmax_beta: " in out.read_text() and " +- " in out.read_text()
+    assert "uncertainty" in (tmp_path / "fitted_report" / "index.html").read_text()
     # render can use it
     assert main(["render", str(out), "-n", "1", "--out", str(tmp_path / "r"), "--quiet",
                  "--scenes", str(perturbed["scenes"])]) == 0  # fmt: skip

@@ -25,10 +25,18 @@ from ddsgen.errors import InputError
 @click.option("--lr", type=float, default=1e-3, show_default=True,
               help="Adam learning rate (CNN weights; log-space sensor parameters use 30 x lr).")
 @click.option("--holdout", type=float, default=0.25, show_default=True,
-              help="Fraction of frames held out to measure the gap before/after (one frame: it is used for both).")
+              help="Fraction of scenes held out (one scene: of frames; one frame: half its region is held out; "
+                   "0: measure in-sample).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
-              help="Report folder (default: OUT without .yaml + _report).")
-@click.option("--no-search", is_flag=True, help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches.")
+              help="Report folder: index.html with held-out real | sim | difference pictures before/after, loss "
+                   "curve, parameter table with uncertainties (default: OUT without .yaml + _report).")
+@click.option("--no-search", is_flag=True,
+              help="Fit eta_c/noise and baseline by Adam too, instead of the 1-D searches (and no least-squares "
+                   "start of a disparity_distortion grid).")
+@click.option("--prior", "prior_mm", type=float, default=0.1, show_default=True,
+              help="Weight (mm) of the regulariser toward the input preset, per prior width squared; 0: bounds only.")
+@click.option("--keep-all", is_flag=True,
+              help="Keep every fitted change (default: revert groups that do not lower the held-out gap).")
 @click.option("--refine-poses", is_flag=True,
               help="Poses as nuisance parameters: refine every frame's object poses (ddsgen refine's loop) with the "
                    "current sensor before the fit and again after it; the held-out gap after uses the final poses.")
@@ -41,16 +49,19 @@ from ddsgen.errors import InputError
 @click.option("--depth-scale", type=float, default=0.001, show_default=True,
               help="With --unpaired: metres per PNG unit of the real depth images.")
 @common_options
-def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, refine_poses, pose_steps, unpaired,
-        scenes, depth_scale, no_plane, crop, plausible_px, region, seed, quiet):  # fmt: skip
+def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
+        pose_steps, unpaired, scenes, depth_scale, no_plane, crop, plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
-    Frames are split into fit and held-out sets. Adam (Huber + Sobel-gradient + validity
-    loss) fits what has a useful gradient (beta, focal, effects, CNN); the IR signal-to-noise
-    ratio (only eta_c / noise is identifiable from depth) and the baseline (it cancels from
-    z = f b / d except through the disparity quantisation) are found by 1-D searches. Writes
-    OUT, and REPORT/fit_report.json, loss_curve.png, residuals.png (held-out, before/after),
-    comparison_before/after.json.
+    Whole scenes are held out (frames when there is one scene, half the region when there is
+    one frame). Adam (Huber + Sobel-gradient + validity loss, plus a prior toward PRESET)
+    fits what has a useful gradient (beta, focal, effects, CNN) within physical bounds; the IR
+    signal-to-noise ratio (only eta_c / noise is identifiable from depth) and the baseline (it
+    cancels from z = f b / d except through the disparity quantisation) are found by 1-D
+    searches. Each parameter gets an uncertainty; parameter groups whose change does not lower
+    the held-out gap are reverted to PRESET's values. Writes OUT (values and uncertainties in
+    its comments) and REPORT/ (index.html, fit_report.json, parameters.txt, gaps.txt,
+    loss_curve.png, residuals.png, frames/).
     """
     if unpaired:
         from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
@@ -59,12 +70,18 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
                                    report_dir=report_dir, seed=seed, progress=not quiet)  # fmt: skip
         print_summary(content)
         return
-    import torch
+    import dataclasses
 
     from ddsgen.fit.compare import gap, plot_residuals, write_report
-    from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, fitted_preset, refine_frame_poses, resolve_params, split_frames
+    from ddsgen.fit.fit_report import parameter_rows, write_fit_report
+    from ddsgen.fit.fitting import (DEFAULT_PARAMS, SENSOR_PARAMS, fit_sensor, physical_values, refine_frame_poses,
+                                    resolve_params)
+    from ddsgen.fit.priors import Priors
+    from ddsgen.fit.revert import param_group, revert_summary, revert_unhelpful, snapshot
+    from ddsgen.fit.split import SPLIT_MEANING, split_fit_held_out
+    from ddsgen.fit.uncertainty import estimate_uncertainty
     from ddsgen.io.atomic import atomic_write_text
-    from ddsgen.preset import PATTERN_DIR, save_preset
+    from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
     from ddsgen.sensor.depth_sensor import DepthSensor
     from ddsgen.sensor.postprocess import save_postprocess
 
@@ -72,6 +89,10 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if not lr > 0:
         raise click.BadParameter("must be > 0", param_hint="--lr")
+    if not prior_mm >= 0:
+        raise click.BadParameter("must be >= 0", param_hint="--prior")
+    if not 0.0 <= holdout < 1.0:
+        raise InputError(f"--holdout: must be in [0, 1), got {holdout}")
     if pose_steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--pose-steps")
     names = split_names(params) or list(DEFAULT_PARAMS)
@@ -79,38 +100,60 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
     report = Path(report_dir) if report_dir else out_path.with_name(out_path.stem + "_report")
-    from ddsgen.preset import load_preset
-
     resolve_params(DepthSensor(load_preset(preset)), names)  # validate names before any work
     original, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
-                                                     plausible_px=plausible_px, seed=seed, progress=not quiet, echo=echo_stderr)  # fmt: skip
+                                                         plausible_px=plausible_px, seed=seed, progress=not quiet,
+                                                         echo=echo_stderr)  # fmt: skip
     sensor = DepthSensor(camera_preset)
+    fit_frames, held, split_kind = split_fit_held_out(frames, holdout, seed)
 
-    def counted(frames):
-        if region == "objects":  # fit on the pixels that count
-            import dataclasses
+    def counted(frames):  # the pixels the fit works on
+        return [dataclasses.replace(f, region=f.object_region) for f in frames] if region == "objects" else frames
 
-            return [dataclasses.replace(f, region=f.object_region) for f in frames]
-        return frames
-
-    frames = counted(frames)
-    fit_frames, held = split_frames(frames, holdout, seed)
     progress = not quiet
-    before = gap(sensor, held, region=region, seed=seed + 1, keep_maps=True, progress=progress)
+    resolved = resolve_params(sensor, names)
+    start = snapshot(resolved)
+    sets = {"fit": fit_frames, "held-out": held}
+
+    def gaps_now(keep_maps=False):
+        return {(which, r): gap(sensor, fs, region=r, seed=seed + 1, keep_maps=keep_maps and which == "held-out",
+                                noise_floor=False, progress=progress)
+                for which, fs in sets.items() for r in ("all", "objects")}  # fmt: skip
+
+    before = gaps_now(keep_maps=True)
     pose_rounds = []
 
-    def refine_all():  # poses as nuisance parameters, with the sensor as it is now
+    def refine_all():  # poses as nuisance parameters, with the sensor as it is now; the same split again
         refined, changes = refine_frame_poses(sensor, camera_preset, scans, pose_steps, progress=progress, seed=seed,
                                               support_plane=not no_plane, crop=crop, plausible_px=plausible_px)  # fmt: skip
         pose_rounds.append(changes)
-        return split_frames(counted(refined), holdout, seed)
+        fit_frames, held, _ = split_fit_held_out(refined, holdout, seed)
+        sets.update({"fit": fit_frames, "held-out": held})
+        return fit_frames, held
 
     if refine_poses:
         fit_frames, held = refine_all()
-    result = fit_sensor(sensor, fit_frames, names, steps=steps, lr=lr, progress=progress, seed=seed)
+    fit_on = counted(fit_frames)
+    result = fit_sensor(sensor, fit_on, names, steps=steps, lr=lr, progress=progress, seed=seed,
+                        search=not no_search, prior_mm=prior_mm, start_effects=not no_search)  # fmt: skip
     if refine_poses:
         fit_frames, held = refine_all()
-    after = gap(sensor, held, region=region, seed=seed + 1, keep_maps=True, progress=progress)
+        fit_on = counted(fit_frames)
+    searched = {result.searches.get("snr", {}).get("parameter"), "baseline" if "baseline" in result.searches else None}
+    priors = Priors(sensor, {n: SENSOR_PARAMS[n] for n in result.params if n in SENSOR_PARAMS and n not in searched},
+                    prior_mm)  # fmt: skip
+    uncertainty = estimate_uncertainty(sensor, fit_on, result, SENSOR_PARAMS, seed=seed, priors=priors)
+    if keep_all or split_kind == "none":
+        outcome = None
+        revert_lines = ["--keep-all: every fitted change kept" if keep_all else
+                        "no held-out frames: every fitted change kept (nothing to judge transfer by)"]  # fmt: skip
+    else:
+        outcome = revert_unhelpful(sensor, resolved, start, held, SENSOR_PARAMS, region=region, seed=seed + 1)
+        revert_lines = revert_summary(outcome)
+    kept = {n: True if outcome is None else outcome["groups"][param_group(n, SENSOR_PARAMS)]["kept"]
+            for n in result.params}  # fmt: skip
+    after = gaps_now(keep_maps=True)
+    final_values = physical_values(sensor)
 
     # The fitted preset: the user's preset (its camera) with the fitted physical values.
     values = sensor.physical_parameters()
@@ -122,23 +165,30 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     if pattern_path.parent.resolve() != PATTERN_DIR.resolve():
         changes["pattern"] = str(pattern_path.resolve())
     weights_path = None
-    if sensor.postprocess is not None and "cnn" in result.params:
+    if sensor.postprocess is not None and "cnn" in result.params and kept.get("cnn", True):
         weights_path = out_path.with_name(out_path.stem + ".postprocess.pt")
         changes["postprocess"] = weights_path.name
     elif original.postprocess:
         changes["postprocess"] = str(original.resolve_path(original.postprocess).resolve())
     fitted = original.replace(**changes, name=f"{original.name}_fitted")
 
+    rows = parameter_rows(physical_values(DepthSensor(camera_preset)), result.after, final_values, uncertainty, kept, result.bounds)
+    held_key = ("held-out", region)
     report.mkdir(parents=True, exist_ok=True)
-    write_report(before, report, "comparison_before")
-    write_report(after, report, "comparison_after")
-    plot_residuals([before, after], report / "residuals.png", ["before fit", "after fit"])
-    _plot_loss(result.history, report / "loss_curve.png")
+    write_report(before[held_key], report, "comparison_before")
+    write_report(after[held_key], report, "comparison_after")
+    plot_residuals([before[held_key], after[held_key]], report / "residuals.png", ["before fit", "after fit"])
+    gap_pairs = {k: (before[k].gap, after[k].gap) for k in before}
+    write_fit_report(report, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs,
+                     split_kind=split_kind, split_meaning=SPLIT_MEANING[split_kind], revert_lines=revert_lines,
+                     history=result.history, before_maps=before[held_key], after_maps=after[held_key])  # fmt: skip
     summary = {
         "preset": str(preset), "real_dir": str(real_dir), "fitted_preset": str(out_path),
+        "split": {"kind": split_kind, "meaning": SPLIT_MEANING[split_kind]},
         "frames": {"fit": [f.name for f in fit_frames], "held_out": [f.name for f in held]},
-        "held_out_gap_before": before.gap, "held_out_gap_after": after.gap,
-        "noise_floor_before": before.noise_floor, "noise_floor_after": after.noise_floor,
+        "held_out_gap_before": before[held_key].gap, "held_out_gap_after": after[held_key].gap,
+        "gaps_mm": [{"frames": w, "region": r, "before": b, "after": a} for (w, r), (b, a) in gap_pairs.items()],
+        "parameters": rows, "revert": outcome, "revert_summary": revert_lines,
         "fit": result.to_dict(),
     }  # fmt: skip
     if refine_poses:
@@ -147,31 +197,21 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     if weights_path is not None:
         save_postprocess(sensor.postprocess, weights_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    save_preset(fitted, out_path, comment=f"fitted by ddsgen fit to {real_dir} from {preset}\nparams: {', '.join(names)}")
-    click.echo(f"held-out gap: {before.gap:.2f} mm -> {after.gap:.2f} mm (noise floor {after.noise_floor:.2f} mm) "
-               f"on {len(held)} frame(s)")  # fmt: skip
-    for key in ("emitted_intensity", "read_noise_std_counts", "softargmax_beta", "baseline_m", "focal_px"):
-        click.echo(f"  {key:24s} {result.before[key]:.6g} -> {result.after[key]:.6g}")
+    comment = [f"fitted by ddsgen fit to {real_dir} from {preset}", f"params: {', '.join(names)}",
+               f"split: {split_kind}; held-out gap ({region}) {before[held_key].gap:.2f} -> {after[held_key].gap:.2f} mm",
+               *revert_lines, "value +- uncertainty (1 s.d.) of each fitted parameter:"]  # fmt: skip
+    comment += [f"  {r['key']}: {r['fitted']:.6g} +- {r['sigma']:.2g}" + ("" if r["kept"] else
+                f" (reverted: the preset keeps the input's {r['after']:.6g})") for r in rows]  # fmt: skip
+    save_preset(fitted, out_path, comment="\n".join(comment))
+    click.echo(f"split: {split_kind} ({SPLIT_MEANING[split_kind]})")
+    for (which, r), (b, a) in gap_pairs.items():
+        click.echo(f"  {which:8s} gap, region {r:7s}: {b:.2f} mm -> {a:.2f} mm")
+    for line in revert_lines:
+        click.echo(f"  {line}")
+    for r in rows:
+        click.echo(f"  {r['key']:24s} {r['before']:.6g} -> fitted {r['fitted']:.6g} +- {r['sigma']:.2g}"
+                   + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})")
+                   + (" -- at a bound: the data push beyond the physical range" if r["at_bound"] else ""))  # fmt: skip
     for name, info in result.searches.items():
         click.echo(f"  {name}: {info['method']}" + ("" if info.get("accepted", True) else " (not identifiable: kept)"))
     click.echo(f"wrote {out_path} and {report}/")
-
-
-def _plot_loss(history: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
-    if history:
-        steps = [h["step"] for h in history]
-        for key in ("total", "depth", "gradient", "validity"):
-            ax.plot(steps, [h[key] for h in history], label=key)
-        ax.legend()
-    else:
-        ax.text(0.5, 0.5, "no Adam steps (searches only)", ha="center", transform=ax.transAxes)
-    ax.set_xlabel("Adam step")
-    ax.set_ylabel("loss (mm)")
-    fig.savefig(path, dpi=80)
-    plt.close(fig)

@@ -29,6 +29,12 @@
     (e.g. Kinect's 1/8 px with a 1/4 px preset) leaves b unchanged and says so.
 
   Searched parameters are not moved by Adam afterwards (their gradients are noise).
+
+Every sensor parameter stays within its bounds (:data:`SENSOR_PARAMS`, :mod:`ddsgen.fit.priors`:
+projected after each Adam step, the searches' ranges) and a prior pulls it toward the input
+preset (``prior_mm``). With ``start_effects``, a ``disparity_distortion`` grid in the fit starts from the
+least-squares solve of :mod:`ddsgen.fit.starts`. What transfers to other scenes is decided by the
+caller on held-out frames (:mod:`ddsgen.fit.split`, :mod:`ddsgen.fit.revert`).
 """
 
 from __future__ import annotations
@@ -43,23 +49,27 @@ import torch
 
 from ddsgen.errors import InputError
 from ddsgen.fit.losses import LossWeights, frame_loss
+from ddsgen.fit.priors import DEFAULT_PRIOR_MM, Priors, SensorParam
 from ddsgen.fit.simulate import FrameData, simulate
 
 DEFAULT_PARAMS = ("emitted_intensity", "read_noise_std", "beta", "baseline")
-#: Sensor parameters by CLI name -> DepthSensor attribute.
+#: Fittable sensor parameters by CLI name: the DepthSensor tensor, bounds, prior and group
+#: (see :mod:`ddsgen.fit.priors`). A new sensor parameter joins the fit with one entry here.
 SENSOR_PARAMS = {
-    "emitted_intensity": "log_emitted_intensity",
-    "read_noise_std": "log_read_noise_std",
-    "beta": "log_beta",
-    "baseline": "log_baseline",
-    "focal": "log_focal_scale",
-    "speckle_scale": "log_speckle_scale",
-    "ambient": "log_ambient",
-    "read_noise_mean": "read_noise_mean",
-}
+    "emitted_intensity": SensorParam("log_emitted_intensity", "emitted_intensity", True, ("factor", 0.25, 4.0),
+                                     0.7, "snr", 0.25),
+    "read_noise_std": SensorParam("log_read_noise_std", "read_noise_std_counts", True, ("factor", 0.25, 4.0),
+                                  0.7, "snr", 0.25),
+    "beta": SensorParam("log_beta", "softargmax_beta", True, ("range", 5.0, 40.0), 1.0, "matching", 0.15),
+    "baseline": SensorParam("log_baseline", "baseline_m", True, ("factor", 0.95, 1.05), 0.02, "geometry", 0.005),
+    "focal": SensorParam("log_focal_scale", "focal_px", True, ("factor", 0.97, 1.03), 0.01, "geometry", 0.003),
+    "speckle_scale": SensorParam("log_speckle_scale", "speckle_scale", True, ("factor", 0.25, 4.0), 0.7, "pattern",
+                                 0.2),
+    "ambient": SensorParam("log_ambient", "ambient_counts", True, ("range", 1e-6, 255.0), 3.0, "ambient", 0.1),
+    "read_noise_mean": SensorParam("read_noise_mean", "read_noise_mean_counts", False, ("range", -64.0, 64.0), 16.0,
+                                   "ir_offset", 1.0),
+}  # fmt: skip
 LOG_LR_SCALE = 30.0
-SNR_RANGE = (1.0 / 16.0, 16.0)
-LATTICE_RANGE = (0.85, 1.15)
 LATTICE_MIN_COHERENCE = 0.3
 
 
@@ -74,7 +84,8 @@ class FitResult:
     params: the names fitted; before/after: physical values (preset keys) before and after;
     history: one dict per Adam step (step, loss and its terms, mean over the fit frames);
     searches: what the 1-D searches found (see the module docstring); seconds: wall time;
-    trainable: number of scalars fitted (sensor parameters + effect parameters + CNN weights).
+    trainable: number of scalars fitted (sensor parameters + effect parameters + CNN weights);
+    bounds: the bounds/prior table of the fitted sensor parameters; at_bound: those that ended on a bound.
     """
 
     params: list[str]
@@ -84,6 +95,8 @@ class FitResult:
     searches: dict
     seconds: float
     trainable: int
+    bounds: list[dict] = dataclasses.field(default_factory=list)
+    at_bound: list[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -105,7 +118,7 @@ def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
     effects = {e.name: e for e in sensor.effects}
     for name in names:
         if name in SENSOR_PARAMS:
-            out[name] = [getattr(sensor, SENSOR_PARAMS[name])]
+            out[name] = [getattr(sensor, SENSOR_PARAMS[name].attr)]
         elif name == "effects":
             for effect in sensor.effects:
                 for key, p in effect.raw.items():
@@ -179,7 +192,7 @@ def estimate_baseline(sensor, frames: list[FrameData]) -> dict:
     z_min = min((float(z.min()) for z in zs if z.numel()), default=1.0)
     fx = max((f.full_intrinsics or f.intrinsics).fx for f in frames) * scale
     period = step * z_min / fx  # change of b that moves the nearest pixel by one lattice step
-    lo, hi = LATTICE_RANGE
+    _, lo, hi = SENSOR_PARAMS["baseline"].bound  # a factor of the start value
     grid = np.arange(lo * b0, hi * b0, period / 8.0)
     coherence = lattice_coherence(frames, grid / step, scale)
     best = grid[int(np.argmax(coherence))]
@@ -188,12 +201,15 @@ def estimate_baseline(sensor, frames: list[FrameData]) -> dict:
     best = float(fine[int(np.argmax(fine_coherence))])
     c_best = float(fine_coherence.max())
     c_start = float(lattice_coherence(frames, np.array([b0 / step]), scale)[0])
+    # Uncertainty: the half width at half maximum of the coherence peak (the lattice step it resolves).
+    above = fine[fine_coherence >= 0.5 * c_best]
+    hwhm = float(max(above.max() - above.min(), fine[1] - fine[0]) / 2.0)
     accepted = c_best >= LATTICE_MIN_COHERENCE and c_best >= 2.0 * c_start and abs(best - b0) > 1e-9
     if accepted:
         with torch.no_grad():
             sensor.log_baseline.fill_(math.log(best))
     return {"method": "disparity quantisation lattice", "start": b0, "estimate": best, "coherence_start": c_start,
-            "coherence": c_best, "accepted": bool(accepted)}  # fmt: skip
+            "coherence": c_best, "accepted": bool(accepted), "hwhm": hwhm}  # fmt: skip
 
 
 def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
@@ -210,8 +226,8 @@ def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
 def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 16) -> dict:
     """Golden-section search of log(eta_c) (``which="emitted_intensity"``) or log(sigma)
     (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames``."""
-    attr = SENSOR_PARAMS[which]
-    param = getattr(sensor, attr)
+    spec = SENSOR_PARAMS[which]
+    param = getattr(sensor, spec.attr)
     start = float(param)
     weights = LossWeights(depth=0.0, gradient=1.0, validity=1.0)
     cache: dict[float, float] = {}
@@ -224,7 +240,8 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
         return cache[x]
 
     start_value = objective(0.0)
-    a, b = math.log(SNR_RANGE[0]), math.log(SNR_RANGE[1])
+    _, lo, hi = spec.bound  # a factor of the start value: the search stays within the bounds
+    a, b = math.log(lo), math.log(hi)
     # Coarse grid first (the objective is noisy and may be flat far from the optimum), then golden section.
     grid = np.linspace(a, b, 9)
     values = [objective(float(x)) for x in grid]
@@ -252,7 +269,8 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
 
 def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: int = 100, lr: float = 1e-3,
                progress: bool = True, *, seed: int = 0, weights: LossWeights = LossWeights(), search: bool = True,
-               batch_frames: int | None = None, callback: Callable[[int, dict], None] | None = None) -> FitResult:  # fmt: skip
+               batch_frames: int | None = None, callback: Callable[[int, dict], None] | None = None,
+               prior_mm: float = DEFAULT_PRIOR_MM, start_effects: bool = False) -> FitResult:  # fmt: skip
     """Fit ``params`` of ``sensor`` (in place) to the real scans of ``frames``.
 
     Args:
@@ -268,6 +286,9 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         search: find eta_c/sigma and the baseline by the 1-D searches (else Adam moves them too).
         batch_frames: frames per Adam step (cycling through ``frames``); default all.
         callback: called after every step with (step, terms).
+        prior_mm: weight of the regulariser toward the start values (:mod:`ddsgen.fit.priors`);
+            every table parameter is also kept within its bounds (searches included).
+        start_effects: start a fitted ``disparity_distortion`` grid from least squares (:mod:`ddsgen.fit.starts`).
 
     Returns:
         :class:`FitResult`.
@@ -282,6 +303,11 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     before = physical_values(sensor)
     searches: dict = {}
     searched: set[str] = set()
+    # The distortion first: the SNR search's validity and texture terms are judged with it in place.
+    if start_effects and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
+        from ddsgen.fit.starts import start_distortion_grid
+
+        searches["distortion"] = start_distortion_grid(sensor, frames, seed)
     if search and "baseline" in resolved:
         searches["baseline"] = estimate_baseline(sensor, frames)
         searched.add("baseline")
@@ -296,6 +322,8 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         for t in tensors:
             t.requires_grad_(True)
         groups.append({"params": tensors, "lr": lr if name == "cnn" else lr * LOG_LR_SCALE, "name": name})
+    priors = Priors(sensor, {n: SENSOR_PARAMS[n] for n in resolved if n in SENSOR_PARAMS and n not in searched},
+                    prior_mm)  # fmt: skip
     history: list[dict] = []
     if groups and steps > 0:
         optimiser = torch.optim.Adam(groups)
@@ -310,11 +338,16 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
                 (terms["total"] / len(chosen)).backward()
                 for k, v in terms.items():
                     totals[k] = totals.get(k, 0.0) + float(v.detach()) / len(chosen)
+            penalty = priors.penalty()
+            if penalty.requires_grad:
+                penalty.backward()
+            totals["prior"] = float(penalty.detach())
             for group in groups:
                 for t in group["params"]:
                     if t.grad is not None:
                         t.grad.nan_to_num_(0.0, 0.0, 0.0)
             optimiser.step()
+            priors.project()
             totals["step"] = step
             history.append({k: round(v, 5) if isinstance(v, float) else v for k, v in totals.items()})
             bar.set_postfix(loss=f"{totals['total']:.3f}")
@@ -324,8 +357,10 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     for p in sensor.parameters():
         p.requires_grad_(False)
     trainable = sum(t.numel() for tensors in resolved.values() for t in tensors)
+    bounded = Priors(sensor, {n: SENSOR_PARAMS[n] for n in resolved if n in SENSOR_PARAMS}, 0.0)
     return FitResult(params=list(resolved), before=before, after=physical_values(sensor), history=history,
-                     searches=searches, seconds=time.perf_counter() - start_time, trainable=int(trainable))  # fmt: skip
+                     searches=searches, seconds=time.perf_counter() - start_time, trainable=int(trainable),
+                     bounds=bounded.table(), at_bound=[n for n in priors.at_bound()])  # fmt: skip
 
 
 def split_frames(frames: list, holdout: float, seed: int = 0) -> tuple[list, list]:

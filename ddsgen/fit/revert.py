@@ -1,0 +1,103 @@
+"""Keep only what helped: revert parameter groups whose change does not lower the held-out gap.
+
+A fit lowers the loss on its own frames by construction; whether a change *transfers* shows on
+held-out frames. :func:`revert_unhelpful` measures the held-out gap of the fitted sensor and of
+the input sensor, then, group by group (eta_c / sigma, beta, baseline / focal, each effect, the
+CNN: the ``group`` of :data:`ddsgen.fit.fitting.SENSOR_PARAMS`), puts the group's input values
+back and keeps them so when the held-out gap is not higher without the group's change. What
+remains is reported per group, and the output says plainly when the fit did not beat the input.
+
+The held-out frames choose what is kept, so the final held-out gap is no longer an unbiased
+test (it can only be <= min(input, fitted) up to noise); with more scenes, keep a second
+held-out set for the final word.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ddsgen.fit.compare import gap
+
+
+def param_group(name: str, table: dict) -> str:
+    """The revert group of a fitted parameter name (see the module docstring)."""
+    if name in table:
+        return table[name].group
+    if name.startswith("effect:"):
+        return name.split(".", 1)[0]
+    return name
+
+
+def snapshot(resolved: dict[str, list[torch.Tensor]]) -> dict[str, list[torch.Tensor]]:
+    """Copies of the current values of resolved parameters (``fitting.resolve_params``)."""
+    return {name: [t.detach().clone() for t in tensors] for name, tensors in resolved.items()}
+
+
+def _assign(resolved, values, names) -> None:
+    with torch.no_grad():
+        for name in names:
+            for tensor, value in zip(resolved[name], values[name]):
+                tensor.copy_(value)
+
+
+def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dict, *, region: str = "all",
+                     seed: int = 1) -> dict:  # fmt: skip
+    """Revert the groups that do not lower the held-out gap (in place on ``sensor``).
+
+    Args:
+        resolved: name -> tensors (``fitting.resolve_params`` of the fitted names).
+        start: :func:`snapshot` of the same names taken before the fit.
+        held: held-out FrameData; region/seed: as ``compare.gap``.
+
+    Returns:
+        {"gap_input", "gap_fitted", "gap_kept" (mm), "better" (bool: the kept preset beats the input),
+        "groups": {group: {"params", "kept" (bool), "gap_without_change"}}}.
+    """
+    fitted = snapshot(resolved)
+
+    def held_gap() -> float:
+        return gap(sensor, held, region=region, seed=seed, noise_floor=False).gap
+
+    gap_fitted = held_gap()
+    _assign(resolved, start, list(resolved))
+    gap_input = held_gap()
+    _assign(resolved, fitted, list(resolved))
+    groups: dict[str, list[str]] = {}
+    for name in resolved:
+        groups.setdefault(param_group(name, table), []).append(name)
+    current = gap_fitted
+    report = {}
+    for group, names in groups.items():
+        changed = any(not torch.equal(a, b) for n in names for a, b in zip(start[n], fitted[n]))
+        if not changed:
+            report[group] = {"params": names, "kept": False, "gap_without_change": current, "note": "unchanged"}
+            continue
+        _assign(resolved, start, names)
+        without = held_gap()
+        if without <= current:  # the change did not help on the held-out frames: keep the input's values
+            current = without
+            report[group] = {"params": names, "kept": False, "gap_without_change": without}
+        else:
+            _assign(resolved, fitted, names)
+            report[group] = {"params": names, "kept": True, "gap_without_change": without}
+    return {"gap_input": gap_input, "gap_fitted": gap_fitted, "gap_kept": current, "better": current < gap_input,
+            "groups": report}  # fmt: skip
+
+
+def revert_summary(outcome: dict) -> list[str]:
+    """Plain-language lines about what was kept and reverted."""
+    lines = []
+    if not outcome["gap_fitted"] < outcome["gap_input"]:
+        lines.append(f"the fitted preset is NOT better than the input on the held-out frames "
+                     f"({outcome['gap_fitted']:.2f} mm vs {outcome['gap_input']:.2f} mm)")  # fmt: skip
+    for group, info in outcome["groups"].items():
+        if info.get("note") == "unchanged":
+            continue
+        if info["kept"]:
+            lines.append(f"kept {group} ({', '.join(info['params'])}): without it {info['gap_without_change']:.2f} mm")
+        else:
+            lines.append(f"reverted {group} ({', '.join(info['params'])}) to the input's values: the change did not "
+                         f"lower the held-out gap ({info['gap_without_change']:.2f} mm without it)")  # fmt: skip
+    if not outcome["better"]:
+        lines.append("nothing the fit changed lowers the held-out gap: the output keeps the input's values")
+    return lines

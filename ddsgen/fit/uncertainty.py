@@ -1,0 +1,170 @@
+"""Uncertainty of each fitted parameter: the loss curvature with a sandwich over image tiles.
+
+The fit minimises L(theta) = sum_u w_u L_u(theta), a sum over independent pieces of evidence:
+the tiles u of every fit frame (squares of :data:`TILE_WINDOWS` x the loss's local window,
+weighted by their share w_u of their frame's region, over the number of frames). For one
+parameter with stored value x (its log for log-stored parameters), central finite differences
+with the same noise draws (common random numbers) give each tile's slope g_u and the curvature
+H = sum_u w_u L_u'' (+ the prior's). The M-estimator's standard error is then
+
+    sigma_x = sqrt(U / (U - 1) * sum_u (g_u - mean g)^2) / H
+
+(the "sandwich": how much the minimum would move if the tiles were drawn again, over how
+sharply the loss holds it). It needs no gradient, so it also covers the 1-D searches' eta_c /
+sigma (evaluated on the search's own terms). One frame is enough: its tiles are the samples.
+The baseline found from the disparity lattice gets the half width of the lattice coherence
+peak instead (the loss is flat in it, :mod:`ddsgen.fit.fitting`). Each parameter is treated
+alone (the diagonal): correlated parameters get an optimistic sigma.
+
+Reported in physical units (``sigma`` of the preset key's value; a log parameter's relative
+error times its value); ``inf`` when the curvature is not positive (the data do not hold the
+parameter: "not identified").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from ddsgen.fit.losses import LossWeights, frame_loss, local_window
+from ddsgen.fit.simulate import simulate
+
+#: Tile side in loss windows (15 px at 640 x 480 -> 90 px tiles).
+TILE_WINDOWS = 6
+#: A tile counts when at least this share of it is in the region.
+MIN_TILE_SHARE = 0.25
+#: Step of unbounded effect raw values.
+EFFECT_STEP = 0.1
+#: The 1-D SNR search's terms (fitting.search_snr).
+SEARCH_WEIGHTS = LossWeights(depth=0.0, gradient=1.0, validity=1.0)
+
+
+def tile_masks(frame) -> list[tuple[torch.Tensor, float]]:
+    """(mask, weight) of the tiles of ``frame``'s region; the weights sum to 1 over the frame."""
+    size = TILE_WINDOWS * local_window(frame.intrinsics.fx)
+    region = frame.region
+    height, width = region.shape
+    total = max(int(region.sum()), 1)
+    out = []
+    for y in range(0, height, size):
+        for x in range(0, width, size):
+            mask = torch.zeros_like(region)
+            mask[y : y + size, x : x + size] = True
+            mask &= region
+            n = int(mask.sum())
+            if n >= MIN_TILE_SHARE * size * size:
+                out.append((mask, n / total))
+    return out
+
+
+def _tile_losses(sensor, frames, tiles, seed, weights) -> list[float]:
+    values = []
+    with torch.no_grad():
+        for frame, frame_tiles in zip(frames, tiles):
+            sim = simulate(sensor, frame, seed)
+            for mask, w in frame_tiles:
+                loss = frame_loss(sim, dataclasses.replace(frame, region=mask), weights)["total"]
+                values.append(w * float(loss) / len(frames))
+    return values
+
+
+def sandwich_sigma(minus: list[float], centre: list[float], plus: list[float], step: float,
+                   extra_curvature: float = 0.0) -> float:  # fmt: skip
+    """Standard error of the stored value from per-tile losses at x - h, x, x + h (see the module docstring)."""
+    u = len(centre)
+    if u < 2:
+        return math.inf
+    slopes = [(p - m) / (2.0 * step) for m, p in zip(minus, plus)]
+    curvature = sum((p - 2.0 * c + m) for m, c, p in zip(minus, centre, plus)) / step**2 + extra_curvature
+    if not curvature > 0:
+        return math.inf
+    mean = sum(slopes) / u
+    spread = u / (u - 1) * sum((g - mean) ** 2 for g in slopes)
+    return math.sqrt(spread) / curvature
+
+
+def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, weights: LossWeights = LossWeights(),
+                         priors=None, names=None) -> dict[str, dict]:  # fmt: skip
+    """Uncertainty of every scalar parameter of ``result`` (a FitResult) at the sensor's current values.
+
+    Args:
+        sensor: the fitted DepthSensor (restored unchanged on return).
+        frames: the fit frames.
+        result: :class:`~ddsgen.fit.fitting.FitResult` (its params and searches).
+        table: ``SENSOR_PARAMS`` (name -> :class:`~ddsgen.fit.priors.SensorParam`).
+        weights: the fit's loss weights; priors: the fit's :class:`~ddsgen.fit.priors.Priors` (its curvature).
+        names: only these of ``result.params`` (default all).
+
+    Returns:
+        name -> {"key", "value", "sigma", "relative", "method"}; CNN weights are left out.
+    """
+    tiles = [tile_masks(f) for f in frames]
+    cache: dict[LossWeights, list[float]] = {}
+    effects = {e.name: e for e in sensor.effects}
+    snr = result.searches.get("snr", {}).get("parameter")
+    out: dict[str, dict] = {}
+    for name in result.params:
+        if name == "cnn" or (names is not None and name not in names):
+            continue
+        if name in table:
+            spec = table[name]
+            tensor, key, step, log = getattr(sensor, spec.attr), spec.key, spec.step, spec.log
+        else:
+            effect_name, _, raw_key = name[len("effect:"):].partition(".")
+            effect = effects[effect_name]
+            tensor, key, step, log = effect.raw[raw_key], name, EFFECT_STEP, False
+        if tensor.numel() != 1:
+            continue
+        value = _physical(sensor, name, table)
+        if name == "baseline" and "baseline" in result.searches:
+            info = result.searches["baseline"]
+            sigma = info["hwhm"] if info["accepted"] else math.inf
+            out[name] = _entry(key, value, sigma, "half width of the disparity-lattice coherence peak"
+                               if info["accepted"] else "not identified: the lattice search did not accept")  # fmt: skip
+            continue
+        if name in ("emitted_intensity", "read_noise_std") and snr is not None and name != snr:
+            out[name] = _entry(key, value, math.nan, f"held: only the ratio eta_c / sigma is identifiable ({snr} fitted)")
+            continue
+        searched = name == snr
+        w = SEARCH_WEIGHTS if searched else weights
+        if w not in cache:
+            cache[w] = _tile_losses(sensor, frames, tiles, seed, w)
+        x0 = float(tensor.detach())
+        sides = []
+        for delta in (-step, step):
+            with torch.no_grad():
+                tensor.fill_(x0 + delta)
+            sides.append(_tile_losses(sensor, frames, tiles, seed, w))
+            if name not in table:
+                sides[-1] = (sides[-1], float(effect.value(raw_key).detach()))
+        with torch.no_grad():
+            tensor.fill_(x0)
+        if name not in table:  # effect: convert the raw value's sigma with the finite-difference derivative
+            (minus, v_minus), (plus, v_plus) = sides
+        else:
+            minus, plus = sides
+        curvature = 0.0 if (searched or priors is None) else priors.curvature(name)
+        sigma_stored = sandwich_sigma(minus, cache[w], plus, step, curvature)
+        if name not in table:
+            sigma = abs(v_plus - v_minus) / (2.0 * step) * sigma_stored
+        elif log:
+            sigma = abs(value) * sigma_stored
+        else:
+            sigma = sigma_stored
+        method = "loss curvature, sandwich over tiles" + (" (search terms)" if searched else "")
+        out[name] = _entry(key, value, sigma, method)
+    return out
+
+
+def _physical(sensor, name: str, table: dict) -> float:
+    from ddsgen.fit.fitting import physical_values
+
+    values = physical_values(sensor)
+    return float(values[table[name].key] if name in table else values[name])
+
+
+def _entry(key: str, value: float, sigma: float, method: str) -> dict:
+    relative = sigma / abs(value) if value and math.isfinite(sigma) else math.nan
+    return {"key": key, "value": value, "sigma": sigma, "relative": relative, "method": method}
