@@ -33,9 +33,10 @@ demo: install
 	$(DDSGEN) render presets/kinect_v1.yaml -n 12 --out demo_out --workers $(WORKERS) --seed 0
 	@echo "demo dataset: demo_out/ (look at demo_out/preview.png; files: manifest.jsonl, depth/*.png, ir/*.png)"
 
-# Two pytest workers: the slow tests (diagnose, fit) run one torch thread each.
+# Two pytest workers: the slow tests (diagnose, fit) run one torch thread each. worksteal: the last slow tests
+# queued on one worker are taken by the idle one (with the default 'load' one core idled ~15 min at the end).
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider -n 2
+	$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist worksteal
 
 bench: install
 	$(PY) bench/run_all.py
