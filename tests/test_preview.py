@@ -7,7 +7,6 @@ through the CLI, with torch.compile off (DDSGEN_NO_COMPILE=1): a couple of secon
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import cv2
@@ -19,51 +18,16 @@ from ddsgen.io.ir_png import EXPOSURE_PERCENTILE, decode_ir, encode_ir, ir_white
 from ddsgen.io.manifest import read_manifest
 from ddsgen.io.png import read_depth_png, read_png8, read_png16
 from ddsgen.preview import PANEL_KINDS, layout, write_preview
+from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, written_inputs
 
 WIDTH, HEIGHT = 160, 120
-
-PRESET = f"""\
-name: tiny_preview
-width_px: {WIDTH}
-height_px: {HEIGHT}
-focal_px: 143.1          # kinect_v1's 572.41 px x 160/640
-baseline_m: 0.075
-z_min_m: 0.4
-z_max_m: 4.0
-block_size_px: 9
-emitted_intensity: 1.5e6
-shadow_bias_m: 0.005
-softargmax_beta: 15.0
-subpixel_level: 2
-"""
-
-SCENES = """\
-scenes:
-  - name: tiny
-    frames: 2
-    objects:
-      - {shape: box, size: [0.12, 0.08, 0.06], rest: upright}
-      - {shape: cylinder, rest: upright}
-      - {shape: sphere, rest: upright}
-    clutter: {count: [1, 2], area: [0.3, 0.3]}
-    wall: {distance: 0.5}
-    camera: {distance: [0.7, 1.0], elevation_deg: [30, 50], azimuth_deg: [-40, 40]}
-"""
-
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     """(preset path, scene list path), with torch.compile off in this process."""
-    old = os.environ.get("DDSGEN_NO_COMPILE")
-    os.environ["DDSGEN_NO_COMPILE"] = "1"
-    folder = tmp_path_factory.mktemp("inputs")
-    (folder / "tiny.yaml").write_text(PRESET)
-    (folder / "scenes.yaml").write_text(SCENES)
-    yield str(folder / "tiny.yaml"), str(folder / "scenes.yaml")
-    if old is None:
-        os.environ.pop("DDSGEN_NO_COMPILE", None)
-    else:
-        os.environ["DDSGEN_NO_COMPILE"] = old
+    with written_inputs(tmp_path_factory.mktemp("inputs"), tiny_preset_yaml(WIDTH, HEIGHT, "tiny_preview"),
+                        tiny_scenes_yaml(frames=2, clutter=(1, 2))) as paths:  # fmt: skip
+        yield paths
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import json
 import os
 import signal
 import subprocess
@@ -27,52 +26,17 @@ from ddsgen.cli import main
 from ddsgen.errors import InputError
 from ddsgen.io.manifest import read_manifest
 from ddsgen.runner import MANIFEST, render_dataset
+from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, written_inputs
 
 N_FRAMES = 24
 SEED = 7
 
-TINY_PRESET = """\
-name: tiny
-width_px: 96
-height_px: 72
-focal_px: 85.86          # kinect_v1's 572.41 px x 96/640
-baseline_m: 0.075
-z_min_m: 0.4
-z_max_m: 4.0
-block_size_px: 9
-emitted_intensity: 1.5e6
-shadow_bias_m: 0.005
-softargmax_beta: 15.0
-subpixel_level: 2
-"""
-
-TINY_SCENES = """\
-scenes:
-  - name: tiny
-    frames: 3
-    objects:
-      - {shape: box, size: [0.12, 0.08, 0.06], rest: upright}
-      - {shape: cylinder, rest: upright}
-      - {shape: sphere, rest: upright}
-    clutter: {count: [2, 3], area: [0.3, 0.3]}
-    wall: {distance: 0.5}
-    camera: {distance: [0.7, 1.0], elevation_deg: [30, 50], azimuth_deg: [-40, 40]}
-"""
-
-
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     """(preset path, scene list path), with torch.compile off in this process and its children."""
-    old = os.environ.get("DDSGEN_NO_COMPILE")
-    os.environ["DDSGEN_NO_COMPILE"] = "1"
-    folder = tmp_path_factory.mktemp("inputs")
-    (folder / "tiny.yaml").write_text(TINY_PRESET)
-    (folder / "tiny_scenes.yaml").write_text(TINY_SCENES)
-    yield str(folder / "tiny.yaml"), str(folder / "tiny_scenes.yaml")
-    if old is None:
-        os.environ.pop("DDSGEN_NO_COMPILE", None)
-    else:
-        os.environ["DDSGEN_NO_COMPILE"] = old
+    with written_inputs(tmp_path_factory.mktemp("inputs"), tiny_preset_yaml(96, 72),
+                        tiny_scenes_yaml(frames=3, clutter=(2, 3))) as paths:  # fmt: skip
+        yield paths
 
 
 def tree_hashes(folder: Path) -> dict[str, str]:
