@@ -94,7 +94,7 @@ def _ddsgen_row(folder: Path, scan: ScanFrame) -> SheetFrame:
 
 def projected_box(obj, intrinsics, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
     """(x, y, w, h) px of the object's mesh projected with its pose, clipped to the image; None if out of view."""
-    from ddsgen.scene.scenelist import load_mesh
+    from ddsgen.scene.meshes import load_mesh
 
     mesh = load_mesh(obj.mesh_path, obj.mesh_scale, source="" if obj.mesh_path.startswith("shape:") else obj.mesh_path)
     points = mesh.vertices @ obj.cam_T_obj[:3, :3].T + obj.cam_T_obj[:3, 3]

@@ -117,7 +117,7 @@ def _model_info(vertices_mm: np.ndarray) -> dict:
 
 def _load_model_mm(mesh_ref: str, mesh_scale: float, scans: Path):
     """(vertices mm, faces, vertex normals) of a manifest mesh reference."""
-    from ddsgen.scene.scenelist import load_mesh
+    from ddsgen.scene.meshes import load_mesh
 
     ref = mesh_ref
     if not ref.startswith("shape:") and not Path(ref).is_absolute():

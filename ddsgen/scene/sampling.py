@@ -114,7 +114,7 @@ def _rest_poses(mesh_ref: str, scale: float, rest: str) -> tuple[tuple[_RestPose
     """Resting poses of a mesh and their probabilities."""
     import trimesh
 
-    from ddsgen.scene.scenelist import load_mesh
+    from ddsgen.scene.meshes import load_mesh
 
     mesh = load_mesh(mesh_ref, scale)
     hull = mesh.convex_hull

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 import os
 from pathlib import Path
 from typing import Any
@@ -57,9 +56,18 @@ import numpy as np
 
 from ddsgen.errors import InputError, where
 from ddsgen.scene import shapes
+from ddsgen.scene.fields import (
+    check_keys,
+    describe,
+    field_number,
+    field_range,
+    field_size2,
+    field_text,
+    field_vector,
+)
+from ddsgen.scene.meshes import load_mesh
 from ddsgen.yamlfile import read_yaml
 
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 DEFAULT_SOURCE = "<built-in default scene list>"
 
 
@@ -163,155 +171,13 @@ class SceneList:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Mesh loading (cached per process)
-
-_MESH_CACHE: dict[tuple[str, float], Any] = {}
-
-
-def _load_mesh_file(path: str, scale: float, source: str = "", key: str | None = None):
-    """Load a mesh file with trimesh; InputError naming the file on any problem."""
-    import trimesh
-
-    label = f"{where(source, key)}{path}: " if source else f"{path}: "
-    if not os.path.isfile(path):
-        raise InputError(f"{label}mesh file not found")
-    suffix = Path(path).suffix.lower()
-    if suffix not in MESH_SUFFIXES:
-        raise InputError(f"{label}not a mesh file (expected one of {', '.join(MESH_SUFFIXES)})")
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as error:  # trimesh raises many kinds of errors on garbage
-        first = str(error).splitlines()[0] if str(error) else ""
-        raise InputError(f"{label}cannot read mesh ({error.__class__.__name__}: {first})") from None
-    if not isinstance(loaded, trimesh.Trimesh):
-        raise InputError(f"{label}not a triangle mesh (trimesh read a {type(loaded).__name__})")
-    faces = np.asarray(loaded.faces)
-    vertices = np.asarray(loaded.vertices, dtype=np.float64)
-    if faces.ndim != 2 or len(faces) == 0:
-        raise InputError(f"{label}mesh has no faces")
-    if not np.all(np.isfinite(vertices)):
-        raise InputError(f"{label}mesh has non-finite vertex coordinates")
-    mesh = trimesh.Trimesh(vertices=vertices * scale, faces=faces, process=False)
-    # Drop degenerate triangles (zero area): they only confuse normals.
-    area_ok = mesh.area_faces > 0
-    if not np.any(area_ok):
-        raise InputError(f"{label}mesh has no faces with non-zero area")
-    if not np.all(area_ok):
-        mesh.update_faces(area_ok)
-        mesh.remove_unreferenced_vertices()
-    return mesh
-
-
-def load_mesh(mesh_ref: str, scale: float = 1.0, source: str = "", key: str | None = None):
-    """The mesh of a reference (``shape:...`` or a file path), in metres; cached per process."""
-    cache_key = (mesh_ref, float(scale))
-    mesh = _MESH_CACHE.get(cache_key)
-    if mesh is None:
-        if mesh_ref.startswith("shape:"):
-            mesh = shapes.mesh_from_ref(mesh_ref)
-            if scale != 1.0:
-                mesh.apply_scale(scale)
-        else:
-            mesh = _load_mesh_file(mesh_ref, scale, source, key)
-        mesh.vertices.flags.writeable = False
-        _MESH_CACHE[cache_key] = mesh
-    return mesh
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Validation helpers (all raise InputError("FILE: KEY: problem"))
-
-
-def _check_keys(source, key: str, data: Any, allowed, what: str) -> dict:
-    if not isinstance(data, dict):
-        raise InputError(f"{where(source, key)}expected a mapping ({what}), got {_describe(data)}")
-    for name in data:
-        if not isinstance(name, str) or name not in allowed:
-            near = difflib.get_close_matches(str(name), list(allowed), n=1)
-            hint = f" (did you mean {near[0]!r}?)" if near else f" (valid keys: {', '.join(allowed)})"
-            sub = f"{key}.{name}" if key else str(name)
-            raise InputError(f"{where(source, sub)}unknown key{hint}")
-    return data
-
-
-def _describe(value: Any) -> str:
-    if value is None:
-        return "nothing (null)"
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _number(source, key: str, value: Any, *, low=None, high=None, low_open=False, integer=False, what="") -> float:
-    if isinstance(value, str):
-        try:
-            value = float(value.strip())  # YAML 1.1 reads 1e-3 as a string
-        except ValueError:
-            pass
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        kind = "an integer" if integer else "a number"
-        raise InputError(f"{where(source, key)}expected {kind}{' (' + what + ')' if what else ''}, got {_describe(value)}")
-    if not math.isfinite(value):
-        raise InputError(f"{where(source, key)}must be a finite number, got {value!r}")
-    if integer:
-        if isinstance(value, float) and not value.is_integer():
-            raise InputError(f"{where(source, key)}expected an integer, got {value!r}")
-        value = int(value)
-    else:
-        value = float(value)
-    if low is not None:
-        if low_open and not value > low:
-            raise InputError(f"{where(source, key)}must be > {low:g}, got {value!r}")
-        if not low_open and value < low:
-            raise InputError(f"{where(source, key)}must be >= {low:g}, got {value!r}")
-    if high is not None and value > high:
-        raise InputError(f"{where(source, key)}must be <= {high:g}, got {value!r}")
-    return value
-
-
-def _range(source, key: str, value: Any, **limits) -> tuple:
-    """A fixed number or a [lo, hi] list -> (lo, hi)."""
-    if isinstance(value, (list, tuple)):
-        if len(value) != 2:
-            raise InputError(f"{where(source, key)}expected a number or a range [lo, hi], got {_describe(value)}")
-        lo = _number(source, f"{key}[0]", value[0], **limits)
-        hi = _number(source, f"{key}[1]", value[1], **limits)
-        if lo > hi:
-            raise InputError(f"{where(source, key)}range [lo, hi] must have lo <= hi, got {_describe(list(value))}")
-        return (lo, hi)
-    number = _number(source, key, value, **limits)
-    return (number, number)
-
-
-def _vector(source, key: str, value: Any, length: int, **limits) -> tuple[float, ...]:
-    if length == 1 and not isinstance(value, (list, tuple)):
-        return (_number(source, key, value, **limits),)
-    if not isinstance(value, (list, tuple)) or len(value) != length:
-        raise InputError(f"{where(source, key)}expected a list of {length} numbers, got {_describe(value)}")
-    return tuple(_number(source, f"{key}[{i}]", v, **limits) for i, v in enumerate(value))
-
-
-def _size2(source, key: str, value: Any) -> tuple[float, float]:
-    """A square size (one number) or [x, y]."""
-    if isinstance(value, (list, tuple)):
-        return _vector(source, key, value, 2, low=0, low_open=True, high=1e4)
-    size = _number(source, key, value, low=0, low_open=True, high=1e4)
-    return (size, size)
-
-
-def _text(source, key: str, value: Any) -> str:
-    if not isinstance(value, str) or not value.strip():
-        raise InputError(f"{where(source, key)}expected a non-empty string, got {_describe(value)}")
-    return value.strip()
-
-
-# ----------------------------------------------------------------------------------------------------------------
 # Sections
 
 OBJECT_KEYS_COMMON = ("class", "albedo", "weight", "rest")
 
 
 def _resolve_mesh_path(source: str, key: str, value: Any, base_dir: Path | None) -> str:
-    text = _text(source, key, value)
+    text = field_text(source, key, value)
     path = Path(text).expanduser()
     candidates = [path] if path.is_absolute() else []
     if not path.is_absolute():
@@ -329,7 +195,7 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
     if isinstance(data, str) and data in shapes.SHAPES:
         data = {"shape": data}
     if not isinstance(data, dict):
-        raise InputError(f"{where(source, key)}expected a mapping with `shape:` or `mesh:`, got {_describe(data)}")
+        raise InputError(f"{where(source, key)}expected a mapping with `shape:` or `mesh:`, got {describe(data)}")
     if ("shape" in data) == ("mesh" in data):
         raise InputError(f"{where(source, key)}give exactly one of `shape:` (built-in) or `mesh:` (a file)")
     if "shape" in data:
@@ -339,11 +205,11 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
             hint = f" (did you mean {near[0]!r}?)" if near else f" (built-in: {', '.join(shapes.SHAPES)})"
             raise InputError(f"{where(source, key + '.shape')}unknown shape {name!r}{hint}")
         schema = shapes.shape_params(name)
-        _check_keys(source, key, data, ("shape", *schema, *OBJECT_KEYS_COMMON), f"a {name}")
+        check_keys(source, key, data, ("shape", *schema, *OBJECT_KEYS_COMMON), f"a {name}")
         params = {}
         for param, spec in schema.items():
             if param in data and data[param] is not None:
-                params[param] = _vector(source, f"{key}.{param}", data[param], spec.length, low=0, low_open=True, high=100)
+                params[param] = field_vector(source, f"{key}.{param}", data[param], spec.length, low=0, low_open=True, high=100)
             else:
                 params[param] = spec.default
         problem = shapes.check_shape_params(name, params)
@@ -353,9 +219,9 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
         scale = 1.0
         default_class = name
     else:
-        _check_keys(source, key, data, ("mesh", "scale", *OBJECT_KEYS_COMMON), "a mesh file entry")
+        check_keys(source, key, data, ("mesh", "scale", *OBJECT_KEYS_COMMON), "a mesh file entry")
         mesh_ref = _resolve_mesh_path(source, f"{key}.mesh", data["mesh"], base_dir)
-        scale = _number(source, f"{key}.scale", data.get("scale", 1.0), low=0, low_open=True, high=1e6)
+        scale = field_number(source, f"{key}.scale", data.get("scale", 1.0), low=0, low_open=True, high=1e6)
         default_class = Path(mesh_ref).stem
         mesh = load_mesh(mesh_ref, scale, source, f"{key}.mesh")  # validate now (and warm the cache)
         extent = float(np.max(mesh.extents))
@@ -364,27 +230,27 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
                 f"{where(source, key + '.scale')}{data['mesh']}: object is {extent:.4g} m across after scale {scale:g};"
                 " expected 1 mm..20 m (millimetre models need scale: 0.001)"
             )
-    class_name = _text(source, f"{key}.class", data["class"]) if "class" in data else default_class
-    albedo = _range(source, f"{key}.albedo", data.get("albedo", 0.6), low=0, high=1)
-    weight = _number(source, f"{key}.weight", data.get("weight", 1.0), low=0, low_open=True, high=1e6)
+    class_name = field_text(source, f"{key}.class", data["class"]) if "class" in data else default_class
+    albedo = field_range(source, f"{key}.albedo", data.get("albedo", 0.6), low=0, high=1)
+    weight = field_number(source, f"{key}.weight", data.get("weight", 1.0), low=0, low_open=True, high=1e6)
     rest = data.get("rest", "stable")
     if rest not in ("stable", "upright"):
-        raise InputError(f"{where(source, key + '.rest')}expected 'stable' or 'upright', got {_describe(rest)}")
+        raise InputError(f"{where(source, key + '.rest')}expected 'stable' or 'upright', got {describe(rest)}")
     return ObjectSpec(class_name=class_name, mesh_ref=mesh_ref, scale=scale, albedo=albedo, weight=weight, rest=rest)
 
 
 def _clutter(source, key: str, data: Any, pool_size: int) -> ClutterSpec:
     if data is None:
         data = {}
-    _check_keys(source, key, data, ("count", "area", "min_gap", "max_tries", "unique"), "the clutter rule")
+    check_keys(source, key, data, ("count", "area", "min_gap", "max_tries", "unique"), "the clutter rule")
     default = ClutterSpec()
-    count = _range(source, f"{key}.count", data.get("count", list(default.count)), low=0, high=1000, integer=True)
-    area = _size2(source, f"{key}.area", data.get("area", list(default.area)))
-    min_gap = _number(source, f"{key}.min_gap", data.get("min_gap", default.min_gap), low=0, high=10)
-    max_tries = _number(source, f"{key}.max_tries", data.get("max_tries", default.max_tries), low=1, high=100000, integer=True)
+    count = field_range(source, f"{key}.count", data.get("count", list(default.count)), low=0, high=1000, integer=True)
+    area = field_size2(source, f"{key}.area", data.get("area", list(default.area)))
+    min_gap = field_number(source, f"{key}.min_gap", data.get("min_gap", default.min_gap), low=0, high=10)
+    max_tries = field_number(source, f"{key}.max_tries", data.get("max_tries", default.max_tries), low=1, high=100000, integer=True)
     unique = data.get("unique", default.unique)
     if not isinstance(unique, bool):
-        raise InputError(f"{where(source, key + '.unique')}expected true or false, got {_describe(unique)}")
+        raise InputError(f"{where(source, key + '.unique')}expected true or false, got {describe(unique)}")
     if unique and count[1] > pool_size:
         raise InputError(
             f"{where(source, key + '.count')}at most {count[1]} unique objects asked for but the pool holds {pool_size}"
@@ -396,9 +262,9 @@ def _plane(source, key: str, data: Any) -> PlaneSpec | None:
     if data is None:
         return None
     default = PlaneSpec()
-    _check_keys(source, key, data, ("size", "albedo"), "the ground plane")
-    size = _size2(source, f"{key}.size", data.get("size", list(default.size)))
-    albedo = _range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1)
+    check_keys(source, key, data, ("size", "albedo"), "the ground plane")
+    size = field_size2(source, f"{key}.size", data.get("size", list(default.size)))
+    albedo = field_range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1)
     return PlaneSpec(size=size, albedo=albedo)
 
 
@@ -408,12 +274,12 @@ def _wall(source, key: str, data: Any) -> WallSpec | None:
     if data is True:
         data = {}
     default = WallSpec()
-    _check_keys(source, key, data, ("distance", "width", "height", "albedo"), "the back wall")
+    check_keys(source, key, data, ("distance", "width", "height", "albedo"), "the back wall")
     return WallSpec(
-        distance=_number(source, f"{key}.distance", data.get("distance", default.distance), low=0, low_open=True, high=1e3),
-        width=_number(source, f"{key}.width", data.get("width", default.width), low=0, low_open=True, high=1e4),
-        height=_number(source, f"{key}.height", data.get("height", default.height), low=0, low_open=True, high=1e4),
-        albedo=_range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1),
+        distance=field_number(source, f"{key}.distance", data.get("distance", default.distance), low=0, low_open=True, high=1e3),
+        width=field_number(source, f"{key}.width", data.get("width", default.width), low=0, low_open=True, high=1e4),
+        height=field_number(source, f"{key}.height", data.get("height", default.height), low=0, low_open=True, high=1e4),
+        albedo=field_range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1),
     )
 
 
@@ -421,19 +287,19 @@ def _camera(source, key: str, data: Any, has_wall: bool) -> CameraSpec:
     if data is None:
         data = {}
     default = CameraSpec()
-    _check_keys(
+    check_keys(
         source, key, data, ("distance", "elevation_deg", "azimuth_deg", "roll_deg", "look_at_jitter"), "the camera rule"
     )
     camera = CameraSpec(
-        distance=_range(source, f"{key}.distance", data.get("distance", list(default.distance)), low=0.01, high=1e3),
-        elevation_deg=_range(
+        distance=field_range(source, f"{key}.distance", data.get("distance", list(default.distance)), low=0.01, high=1e3),
+        elevation_deg=field_range(
             source, f"{key}.elevation_deg", data.get("elevation_deg", list(default.elevation_deg)), low=0.0, high=89.0
         ),
-        azimuth_deg=_range(
+        azimuth_deg=field_range(
             source, f"{key}.azimuth_deg", data.get("azimuth_deg", list(default.azimuth_deg)), low=-360.0, high=360.0
         ),
-        roll_deg=_range(source, f"{key}.roll_deg", data.get("roll_deg", list(default.roll_deg)), low=-180.0, high=180.0),
-        look_at_jitter=_number(
+        roll_deg=field_range(source, f"{key}.roll_deg", data.get("roll_deg", list(default.roll_deg)), low=-180.0, high=180.0),
+        look_at_jitter=field_number(
             source, f"{key}.look_at_jitter", data.get("look_at_jitter", default.look_at_jitter), low=0, high=10
         ),
     )
@@ -449,14 +315,14 @@ SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "wall", "camera"
 
 
 def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> SceneSpec:
-    _check_keys(source, key, data, SCENE_KEYS, "a scene")
-    name = _text(source, f"{key}.name", data["name"]) if "name" in data else f"scene{index}"
-    frames = _number(source, f"{key}.frames", data.get("frames", 1), low=1, high=10**9, integer=True)
+    check_keys(source, key, data, SCENE_KEYS, "a scene")
+    name = field_text(source, f"{key}.name", data["name"]) if "name" in data else f"scene{index}"
+    frames = field_number(source, f"{key}.frames", data.get("frames", 1), low=1, high=10**9, integer=True)
     pool = data.get("objects")
     if pool is None:
         raise InputError(f"{where(source, key + '.objects')}missing: a scene needs a pool of at least one object")
     if not isinstance(pool, list) or not pool:
-        raise InputError(f"{where(source, key + '.objects')}expected a non-empty list of objects, got {_describe(pool)}")
+        raise InputError(f"{where(source, key + '.objects')}expected a non-empty list of objects, got {describe(pool)}")
     objects = tuple(_object(source, f"{key}.objects[{i}]", entry, base_dir) for i, entry in enumerate(pool))
     wall = _wall(source, f"{key}.wall", data.get("wall"))
     return SceneSpec(
@@ -475,16 +341,16 @@ def scene_list_from_dict(data: Any, source: str | Path = "", base_dir: str | Pat
     source = str(source)
     base = Path(base_dir) if base_dir is not None else None
     if not isinstance(data, dict):
-        raise InputError(f"{where(source)}a scene list must be a YAML mapping with `scenes:`, got {_describe(data)}")
-    _check_keys(source, "", data, ("scenes", "description"), "a scene list")
+        raise InputError(f"{where(source)}a scene list must be a YAML mapping with `scenes:`, got {describe(data)}")
+    check_keys(source, "", data, ("scenes", "description"), "a scene list")
     if "scenes" not in data:
         raise InputError(f"{where(source, 'scenes')}missing: a scene list needs `scenes:` with at least one scene")
     scenes = data["scenes"]
     if not isinstance(scenes, list) or not scenes:
-        raise InputError(f"{where(source, 'scenes')}expected a non-empty list of scenes, got {_describe(scenes)}")
+        raise InputError(f"{where(source, 'scenes')}expected a non-empty list of scenes, got {describe(scenes)}")
     description = data.get("description", "")
     if not isinstance(description, str):
-        raise InputError(f"{where(source, 'description')}expected text, got {_describe(description)}")
+        raise InputError(f"{where(source, 'description')}expected text, got {describe(description)}")
     specs = tuple(_scene(source, f"scenes[{i}]", scene, base, i) for i, scene in enumerate(scenes))
     return SceneList(scenes=specs, source=source, description=description)
 
