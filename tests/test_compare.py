@@ -320,12 +320,12 @@ def test_unmodelled_shadow_has_the_projector_geometry():
 
 def test_plane_footprint_is_the_real_table_closed_and_filled():
     """The table's real extent: its on-plane pixels with their holes (a dark patch) filled, gaps narrower than a
-    block closed, and the posed objects with their modelled shadows (here at the table's edge) in; the plane beyond
-    the table's edge is outside."""
+    block closed, the posed objects with their modelled shadows (here at the table's edge) in; beyond the table's
+    edge, where the real frame sees the floor, out; an invalid far part with no sign of another surface, in."""
     from ddsgen.fit.compare_region import plane_footprint
 
     on_plane = np.zeros((100, 120), bool)
-    on_plane[10:60, 10:110] = True
+    on_plane[10:60, :] = True  # the table spans the view's width
     on_plane[20:30, 20:30] = False  # a dark patch on the table (no real depth)
     on_plane[30:55, 60:63] = False  # a 3 px crack, narrower than the block
     objects = np.zeros_like(on_plane)
@@ -333,14 +333,17 @@ def test_plane_footprint_is_the_real_table_closed_and_filled():
     on_plane[40:60, 70:80] = False  # its shadow on the table, to its left
     modelled = objects.copy()
     modelled[40:70, 70:80] = True  # the ray cast's shadow
-    foot = plane_footprint(on_plane, modelled, block_px=9)
-    assert foot[10:60, 10:110].all() and foot[objects].all()
-    assert not foot[75:].any() and not foot[:, :5].any()
+    floor = np.zeros_like(on_plane)
+    floor[80:95, 20:100] = True  # the floor seen beyond the front edge (rows 60-100 have no table depth)
+    foot = plane_footprint(on_plane, modelled, floor, block_px=9)
+    assert foot[10:60].all() and foot[objects].all()
+    assert not foot[75:].any() and not foot[65:, :60].any()
+    assert foot[:5].all()  # the far part (rows 0-10): invalid, no evidence that the table ends: a hole in it
     # A band of blind columns on the left (no real depth there) is taken to continue the table.
     blind = on_plane.copy()
     blind[:, :8] = False
     blind[:, 8:17] &= np.random.default_rng(0).random((100, 9)) < 0.3  # the real matcher's ramp beyond it
-    foot = plane_footprint(blind, modelled, block_px=9, blind_left_px=8)
+    foot = plane_footprint(blind, modelled, floor, block_px=9, blind_left_px=8)
     assert foot[10:60, :17].all() and not foot[75:, :17].any()
 
 
@@ -354,7 +357,8 @@ def test_comparison_region_keeps_what_the_scene_explains():
     objects[30:50, 100:120] = True
     clean[objects] = 0.9
     real = clean.copy()
-    real[70:, :] = 0.0  # beyond the table's front edge: the floor, too dark to return depth
+    real[70:, :] = 0.0  # beyond the table's front edge: nothing, or the floor, too dark to return depth ...
+    real[85:95, 40:160] = 1.6  # ... except a lit strip of it
     real[30:50, 95:100] = 0.0  # the posed object's own shadow (modelled)
     real[10:20, 150:160] = 0.6  # an unmodelled object on the table ...
     real[10:20, 120:150] = 0.0  # ... and its shadow (28.6 px + half a block)
@@ -363,12 +367,16 @@ def test_comparison_region_keeps_what_the_scene_explains():
     shadow = np.zeros_like(objects)
     shadow[30:50, 93:100] = True  # its modelled shadow
     region = comparison_region(real, clean, clean > 0, objects, shadow, FB, 2.0, 9, has_plane=True)
-    assert region[real > 0].sum() == (real > 0).sum() - 100  # every valid pixel but the unmodelled object
+    assert region[real > 0].sum() == (real > 0).sum() - 100 - 1200  # every valid pixel but the unmodelled ones
     assert region[30:50, 95:100].all() and region[55:60, 30:40].all() and region[40:45, 110:115].all()
     assert not region[75:].any() and not region[10:20, 125:150].any()
     # Without a support plane every hit real-invalid pixel counts except the unmodelled shadow.
     region = comparison_region(real, clean, clean > 0, objects, shadow, FB, 2.0, 9, has_plane=False)
-    assert region[75:].all() and not region[10:20, 125:150].any()
+    assert region[75:85].all() and not region[10:20, 125:150].any()
+    # Without the floor's lit strip nothing says where the table ends: its invalid far part is a hole in it.
+    real[85:95, 40:160] = 0.0
+    region = comparison_region(real, clean, clean > 0, objects, shadow, FB, 2.0, 9, has_plane=True)
+    assert region[70:].all()
 
 
 def test_linemod_cat_region_leaves_the_floor_beyond_the_table_out(linemod):
@@ -382,3 +390,4 @@ def test_linemod_cat_region_leaves_the_floor_beyond_the_table_out(linemod):
     assert region[220:270, 220:540].mean() > 0.95  # the table in front of the objects
     assert (region & (frame.instance.numpy() > 0)).sum() > 1500  # the cat
     assert real_valid[region].mean() > 0.93  # was 0.87 when the plane's invisible part counted
+

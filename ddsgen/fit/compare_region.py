@@ -9,15 +9,17 @@ simulation should answer for. The rule (:func:`comparison_region`), in disparity
 
 1. **modelled and plausible** -- modelled geometry is hit, and the real depth is either within
    ``plausible_px`` of the clean depth or invalid;
-2. **on the support plane's real extent** -- a real-invalid pixel of the support plane (hit, no
-   posed object) counts only inside the plane's real footprint: the pixels where the real depth
-   lies on the plane (within ``plausible_px``), together with the posed objects' silhouettes and
-   their modelled projector shadows, closed with a disc one matching block wide and with their
-   holes filled. The fitted plane is
-   infinite; the real table is not (beyond its edge the camera sees the floor, or nothing);
+2. **on the support plane's real extent** -- the fitted plane is infinite, the real table is not.
+   The pixels where the real depth lies on the plane (within ``plausible_px``), with the posed
+   objects' silhouettes and their modelled projector shadows, are closed with a disc one
+   matching block wide; a connected part of the rest in which the real frame sees an unmodelled
+   surface (the floor beyond the table's edge) is off the table, and its real-invalid pixels do
+   not count; a part without such evidence is a hole in the table (a dark patch, a far part the
+   device cannot reach) and counts;
 3. **not in an unmodelled shadow** -- a real-invalid pixel that lies in the projector shadow of
-   an unmodelled real surface (a valid real pixel that is not plausible: nearer than the
-   modelled geometry, or where nothing is modelled) does not count. With the projector at +b on
+   an unmodelled real surface (valid real pixels that are not plausible -- nearer than the
+   modelled geometry, or where nothing is modelled -- at least half a block wide, so that a
+   lone wrong match is no occluder) does not count. With the projector at +b on
    the camera's x axis (DESIGN.md), a point at column u with disparity d is lit by projector
    column u - d; it is shadowed when some nearer point to its right on the same row maps to a
    projector column <= u - d. The shadow is widened by half a matching block, since the real
@@ -33,10 +35,12 @@ import cv2
 import numpy as np
 
 RULE = ("compare region = pixels where modelled geometry is hit and the real depth is within plausible_px px of "
-        "disparity of the clean depth or invalid; a real-invalid pixel counts only if it is on a posed object or "
-        "inside the support plane's real footprint (real depth on the plane within plausible_px, plus the objects' "
-        "silhouettes and modelled shadows, closed by one matching block and hole-filled), and not in the projector shadow of an "
-        "unmodelled real surface (a valid, implausible real pixel whose shadow, widened by half a block, reaches it)")
+        "disparity of the clean depth or invalid; a real-invalid pixel counts only if it is on a posed object or on "
+        "the support plane's real footprint (the plane's plausible pixels with the objects and their modelled "
+        "shadows, closed by one matching block; of the rest, the connected parts where the real frame sees an "
+        "unmodelled surface are off the table, the others are holes in it), and not in the projector shadow of an "
+        "unmodelled real surface (valid, implausible real pixels at least half a block wide, whose shadow, widened "
+        "by half a block, reaches it)")
 
 
 def disparity(depth_m: np.ndarray, fb: float) -> np.ndarray:
@@ -45,13 +49,20 @@ def disparity(depth_m: np.ndarray, fb: float) -> np.ndarray:
         return np.where(depth_m > 0, fb / np.where(depth_m > 0, depth_m, 1.0), 0.0)
 
 
-def plane_footprint(on_plane: np.ndarray, modelled: np.ndarray, block_px: int, blind_left_px: int = 0) -> np.ndarray:
+def plane_footprint(on_plane: np.ndarray, modelled: np.ndarray, unmodelled: np.ndarray, block_px: int,
+                    blind_left_px: int = 0) -> np.ndarray:  # fmt: skip
     """(H, W) bool: the support plane's real extent, see rule 2 of the module docstring.
+
+    The plane's pixels (with the objects and their shadows) are closed with a disc one block
+    wide; each connected part of the rest is beyond the real table when the real frame sees an
+    unmodelled surface in it (the floor, a wall), and a hole in the table otherwise (a dark
+    patch, the far part of the table the device cannot reach: no evidence that the table ends).
 
     Args:
         on_plane: (H, W) bool, real depth on the fitted plane (within the plausibility threshold).
         modelled: (H, W) bool, the posed objects' silhouettes and modelled shadows (on the table
             even where the real depth is missing, also at the table's edge).
+        unmodelled: (H, W) bool, real surfaces the model does not explain (valid, implausible).
         block_px: the matching block (the closing disc's diameter).
         blind_left_px: leftmost columns where the device outputs no depth at all (its output
             window). They, and the next block's width where the real matcher's window still
@@ -64,11 +75,9 @@ def plane_footprint(on_plane: np.ndarray, modelled: np.ndarray, block_px: int, b
         seed[:, :edge] = seed[:, edge : edge + 1]
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (block_px, block_px))
     closed = cv2.morphologyEx(seed, cv2.MORPH_CLOSE, disc)
-    # Holes = components of the complement that do not touch the image border.
-    outside = (closed == 0).astype(np.uint8)
-    _, labels = cv2.connectedComponents(outside, connectivity=4)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    return ~(np.isin(labels, border) & (outside > 0))
+    _, labels = cv2.connectedComponents((closed == 0).astype(np.uint8), connectivity=8)
+    beyond = np.unique(labels[unmodelled & (closed == 0)])
+    return ~np.isin(labels, beyond[beyond > 0])
 
 
 def unmodelled_shadow(real_disparity: np.ndarray, clean_disparity: np.ndarray, occluder: np.ndarray,
@@ -111,9 +120,13 @@ def comparison_region(real_depth: np.ndarray, clean_depth: np.ndarray, hit: np.n
     d_real, d_clean = disparity(real_depth, fb), disparity(clean_depth, fb)
     agrees = hit & real_valid & (np.abs(d_real - d_clean) <= plausible_px)
     region = hit & (agrees | ~real_valid)
+    # Unmodelled surfaces at least half a block wide: a lone wrong match of the real matcher is no evidence.
+    half = block_px // 2 + 1
+    unmodelled = cv2.morphologyEx((real_valid & ~agrees).astype(np.uint8), cv2.MORPH_OPEN,
+                                  np.ones((half, half), np.uint8)) > 0  # fmt: skip
     explained = np.ones_like(region)
     if has_plane:
-        explained = objects | plane_footprint(agrees & ~objects, objects | (hit & shadow), block_px, blind_left_px)
-    occluder = real_valid & ~agrees
-    explained &= ~unmodelled_shadow(d_real, d_clean, occluder, block_px // 2)
+        explained = objects | plane_footprint(agrees & ~objects, objects | (hit & shadow), unmodelled, block_px,
+                                              blind_left_px)  # fmt: skip
+    explained &= ~unmodelled_shadow(d_real, d_clean, unmodelled, block_px // 2)
     return region & (real_valid | explained)
