@@ -391,3 +391,25 @@ def test_linemod_cat_region_leaves_the_floor_beyond_the_table_out(linemod):
     assert (region & (frame.instance.numpy() > 0)).sum() > 1500  # the cat
     assert real_valid[region].mean() > 0.93  # was 0.87 when the plane's invisible part counted
 
+
+def test_compare_draws_the_speckle_fixed_to_the_scene_as_render_does(small):
+    """With speckle_fixed_to_scene, compare's simulation of a frame carries the speckle render would draw for that
+    geometry: two noise seeds differ only by the detector noise (a few counts), not by the speckle (tens)."""
+    fixed = load_preset(small["stock"]).replace(speckle_fixed_to_scene=True, speckle_grain_px=1.0)
+    fresh = fixed.replace(speckle_fixed_to_scene=False)
+    frame = prepare_frames(fixed, read_scan_folder(small["real"]))[0]
+    lit = (frame.geometry.hit & ~frame.geometry.shadow).numpy()
+    spread = {}
+    for name, preset in (("fixed", fixed), ("fresh", fresh)):
+        sensor = DepthSensor(preset).eval()
+        with torch.no_grad():
+            a, b = simulate(sensor, frame, 0).ir.numpy(), simulate(sensor, frame, 1).ir.numpy()
+        spread[name] = float(np.std((a - b)[lit]))
+    print(spread)
+    assert spread["fixed"] < 0.5 * spread["fresh"]
+    assert spread["fixed"] == pytest.approx(np.sqrt(2) * 10.4, rel=0.3)  # two draws of the read noise, 10.4 counts
+    sensor = DepthSensor(fixed).eval()
+    with torch.no_grad():
+        render_noise = sensor.draw_noise([7, 0, 1], frame.geometry)  # any frame seed: the scene's speckle
+        compare_noise = sensor.draw_noise(frame.noise_seed(0), frame.geometry)
+    assert torch.equal(render_noise.speckle_unit, compare_noise.speckle_unit)

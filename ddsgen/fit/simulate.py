@@ -374,7 +374,9 @@ def simulate(sensor, frame: FrameData, seed: int = 0):
 
     The IR noise of frame ``i`` is drawn from ``rng([seed, i, SIM_STREAM])``: the same draws
     at every call (common random numbers across fitting steps), different draws for another seed.
+    With ``speckle_fixed_to_scene`` the speckle is seeded by the frame's geometry, as ``render``
+    draws it (a static scene shows the same speckle whatever the seed); the read noise follows the seed.
     """
     with frame_camera(sensor, frame.intrinsics):
-        noise = sensor.draw_noise(frame.noise_seed(seed))
+        noise = sensor.draw_noise(frame.noise_seed(seed), frame.geometry)
         return sensor(frame.geometry, noise=noise)
