@@ -276,8 +276,8 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     # Comparison region, on the whole frame (the support plane's real extent is a whole-frame notion).
     from ddsgen.fit.compare_region import comparison_region
 
-    region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px, preset.block_size_px,
-                               plane is not None, preset.output_left_border_px)  # fmt: skip
+    region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px,
+                               preset.block_size_px, plane is not None, preset.output_left_border_px)  # fmt: skip
 
     box = _crop_box(instance, crop_margin_px, min_size=max(4 * preset.block_size_px, 48)) if crop else (
         0, 0, intr.width, intr.height)  # fmt: skip
