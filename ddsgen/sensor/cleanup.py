@@ -49,29 +49,42 @@ def remove_valid_specks(disparity: np.ndarray, valid: np.ndarray, speckle_px: in
     return valid & (fixed != 0)
 
 
+_NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
+
 def _one_surface(labels: np.ndarray, candidates: np.ndarray, disparity: np.ndarray, valid: np.ndarray,
                  max_diff_px: float) -> np.ndarray:
     """(N,) bool per label: is each candidate hole's rim one surface?
 
     The rim of a hole is the valid pixels 8-adjacent to it (a rim pixel touching two holes counts
-    for the larger label). It is one surface when every two 8-adjacent rim pixels differ by at
-    most ``max_diff_px`` (``cv2.filterSpeckles``' rule for one region): the rim is a closed ring,
-    so a depth edge that crosses the hole crosses the ring between two adjacent rim pixels.
+    for one of them). It is one surface when every two 8-adjacent rim pixels differ by at most
+    ``max_diff_px`` (``cv2.filterSpeckles``' rule for one region): the rim is a closed ring, so a
+    depth edge that crosses the hole crosses the ring between two adjacent rim pixels. Works on
+    the holes' pixels and their neighbours only (a few thousand), not on whole images.
     """
-    hole_labels = np.where(candidates[labels], labels, 0).astype(np.float32)
-    around = cv2.dilate(hole_labels, np.ones((3, 3), np.uint8)).astype(np.int64)
-    rim_label = np.where(valid, around, 0)
-    d = disparity.astype(np.float64)
+    height, width = labels.shape
+    rows, cols = np.nonzero(candidates[labels])
+    hole_of = labels[rows, cols]
+    rim_label = np.zeros(height * width, np.int64)  # flat: the hole each rim pixel belongs to
+    for dy, dx in _NEIGHBOURS:
+        r, c = rows + dy, cols + dx
+        inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+        r, c, lab = r[inside], c[inside], hole_of[inside]
+        on_rim = valid[r, c]
+        rim_label[r[on_rim] * width + c[on_rim]] = lab[on_rim]
+    rim = np.flatnonzero(rim_label)
+    rim_rows, rim_cols = np.divmod(rim, width)
+    flat_disparity = disparity.reshape(-1)
     worst = np.zeros(len(candidates))
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each adjacent pair once
+        r, c = rim_rows + dy, rim_cols + dx
+        inside = (r < height) & (c >= 0) & (c < width)
+        here, there = rim[inside], r[inside] * width + c[inside]
+        same = rim_label[there] == rim_label[here]
+        here, there = here[same], there[same]
+        np.maximum.at(worst, rim_label[here], np.abs(flat_disparity[here] - flat_disparity[there]))
     seen = np.zeros(len(candidates), bool)
-    seen[rim_label[rim_label > 0]] = True
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        h, w = rim_label.shape
-        a = (slice(0, h - dy), slice(max(0, -dx), w - max(0, dx)))
-        b = (slice(dy, h), slice(max(0, dx), w - max(0, -dx) if dx < 0 else w))
-        la, lb = rim_label[a], rim_label[b]
-        pair = (la > 0) & (la == lb)
-        np.maximum.at(worst, la[pair], np.abs(d[a] - d[b])[pair])
+    seen[rim_label[rim]] = True
     return candidates & seen & (worst <= max_diff_px)
 
 
