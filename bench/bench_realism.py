@@ -2,6 +2,8 @@
 
 Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statistics``):
   real_cat_*        the real LineMOD cat frame (../shared/data/linemod_bop/test/000006) in the compare region
+                    (ddsgen.fit.compare_region: the pixels the modelled scene can explain; it depends on the
+                    preset through the block size and the device's blind left columns)
   sim_cat_*         the same frame simulated at its ground-truth pose (ddsgen compare's region and seed 0)
   real_icbin_*      the nine real IC-BIN PrimeSense frames, whole image (min and max over the frames)
   sim_render_*      frames of the built-in scene list (`ddsgen render PRESET -n 4`), whole image (min and max)

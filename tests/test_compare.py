@@ -223,6 +223,9 @@ def test_compare_save_sim_pictures_and_realism_statistics(small, tmp_path, capsy
     assert real_panel[inner & (real_depth > 0)].max(axis=-1).min() > 0.1  # coloured
     index = (report / "index.html").read_text()
     assert "frames/000000.png" in index and "comparison_bins.png" in index and "frames/000002.png" in index
+    # The compare region's rule is stated in comparison.json and in the report.
+    assert "support plane's real footprint" in data["region_rule"] and "unmodelled" in data["region_rule"]
+    assert "support plane&#x27;s real footprint" in index
 
     # Saved frame i is the simulation of real frame i at the compare's seed (exactly); an existing
     # non-empty target is refused before any work.
@@ -290,3 +293,123 @@ def test_crop_box_never_exceeds_the_image():
     assert (y0, h) == (0, 120) and 0 <= x0 and x0 + w <= 160 and w == 20 + 64
     instance[:] = 1
     assert _crop_box(instance, margin=32, min_size=64) == (0, 0, 160, 120)
+
+
+# ---------------------------------------------------------------- the compare region (issue 12)
+
+FB = 572.41 * 0.075  # f b of the Kinect V1 (px m)
+
+
+def test_unmodelled_shadow_has_the_projector_geometry():
+    """An unmodelled box 0.6 m away in front of a modelled wall at 1 m shadows f b (1/0.6 - 1/1) = 28.6 px to its
+    left (the projector is at +b); a surface behind the wall shadows nothing; widening moves only the far edge."""
+    from ddsgen.fit.compare_region import disparity, unmodelled_shadow
+
+    clean = np.full((3, 200), 1.0)
+    real = clean.copy()
+    real[:, 120:140] = 0.6  # unmodelled occluder
+    real[:, 170:180] = 2.0  # unmodelled surface behind the wall (a hole in it): casts no shadow on it
+    occluder = np.abs(disparity(real, FB) - disparity(clean, FB)) > 2.0
+    shadow = unmodelled_shadow(disparity(real, FB), disparity(clean, FB), occluder, widen_px=0)
+    first = int(np.ceil(120 - FB * (1 / 0.6 - 1.0)))  # 92: projector column u - d_wall reaches the box's 120 - d_box
+    assert first == 92
+    assert shadow[:, first:120].all() and not shadow[:, :first].any() and not shadow[:, 140:].any()
+    widened = unmodelled_shadow(disparity(real, FB), disparity(clean, FB), occluder, widen_px=4)
+    assert widened[:, first - 4 : 120].all() and not widened[:, : first - 4].any() and not widened[:, 140:].any()
+
+
+def test_plane_footprint_is_the_real_table_closed_and_filled():
+    """The table's real extent: its on-plane pixels with their holes (a dark patch) filled, gaps narrower than a
+    block closed, the posed objects with their modelled shadows (here at the table's edge) in; beyond the table's
+    edge, where the real frame sees the floor, out; an invalid far part with no sign of another surface, in."""
+    from ddsgen.fit.compare_region import plane_footprint
+
+    on_plane = np.zeros((100, 120), bool)
+    on_plane[10:60, :] = True  # the table spans the view's width
+    on_plane[20:30, 20:30] = False  # a dark patch on the table (no real depth)
+    on_plane[30:55, 60:63] = False  # a 3 px crack, narrower than the block
+    objects = np.zeros_like(on_plane)
+    objects[40:70, 80:90] = True  # an object standing at the table's front edge
+    on_plane[40:60, 70:80] = False  # its shadow on the table, to its left
+    modelled = objects.copy()
+    modelled[40:70, 70:80] = True  # the ray cast's shadow
+    floor = np.zeros_like(on_plane)
+    floor[80:95, 20:100] = True  # the floor seen beyond the front edge (rows 60-100 have no table depth)
+    foot = plane_footprint(on_plane, modelled, floor, block_px=9)
+    assert foot[10:60].all() and foot[objects].all()
+    assert not foot[75:].any() and not foot[65:, :60].any()
+    assert foot[:5].all()  # the far part (rows 0-10): invalid, no evidence that the table ends: a hole in it
+    # A band of blind columns on the left (no real depth there) is taken to continue the table.
+    blind = on_plane.copy()
+    blind[:, :8] = False
+    blind[:, 8:17] &= np.random.default_rng(0).random((100, 9)) < 0.3  # the real matcher's ramp beyond it
+    foot = plane_footprint(blind, modelled, floor, block_px=9, blind_left_px=8)
+    assert foot[10:60, :17].all() and not foot[75:, :17].any()
+
+
+def test_comparison_region_keeps_what_the_scene_explains():
+    """Real-valid plausible pixels always count; real-invalid pixels count on posed objects and the table's real
+    extent (its holes, the object's shadow), not beyond the table's edge nor in an unmodelled object's shadow."""
+    from ddsgen.fit.compare_region import comparison_region
+
+    clean = np.full((100, 200), 1.0)  # the fitted support plane (fronto-parallel at 1 m) covers the image
+    objects = np.zeros(clean.shape, bool)
+    objects[30:50, 100:120] = True
+    clean[objects] = 0.9
+    real = clean.copy()
+    real[70:, :] = 0.0  # beyond the table's front edge: nothing, or the floor, too dark to return depth ...
+    real[85:95, 40:160] = 1.6  # ... except a lit strip of it
+    real[30:50, 95:100] = 0.0  # the posed object's own shadow (modelled)
+    real[10:20, 150:160] = 0.6  # an unmodelled object on the table ...
+    real[10:20, 120:150] = 0.0  # ... and its shadow (28.6 px + half a block)
+    real[55:60, 30:40] = 0.0  # a dark patch on the table
+    real[40:45, 110:115] = 0.0  # a dark spot on the posed object
+    shadow = np.zeros_like(objects)
+    shadow[30:50, 93:100] = True  # its modelled shadow
+    region = comparison_region(real, clean, clean > 0, objects, shadow, FB, 2.0, 9, has_plane=True)
+    assert region[real > 0].sum() == (real > 0).sum() - 100 - 1200  # every valid pixel but the unmodelled ones
+    assert region[30:50, 95:100].all() and region[55:60, 30:40].all() and region[40:45, 110:115].all()
+    assert not region[75:].any() and not region[10:20, 125:150].any()
+    # Without a support plane every hit real-invalid pixel counts except the unmodelled shadow.
+    region = comparison_region(real, clean, clean > 0, objects, shadow, FB, 2.0, 9, has_plane=False)
+    assert region[75:85].all() and not region[10:20, 125:150].any()
+    # Without the floor's lit strip nothing says where the table ends: its invalid far part is a hole in it.
+    real[85:95, 40:160] = 0.0
+    region = comparison_region(real, clean, clean > 0, objects, shadow, FB, 2.0, 9, has_plane=True)
+    assert region[70:].all()
+
+
+def test_linemod_cat_region_leaves_the_floor_beyond_the_table_out(linemod):
+    """On the real cat frame the fitted table plane continues past the real table's front edge (lower left: floor,
+    the table's legs, a dark sleeve, no real depth): those pixels are not compared; the table and cat are."""
+    (scan,) = read_scan_folder(linemod)
+    (frame,) = prepare_frames(load_preset("kinect_v1"), [scan])
+    region, real_valid = frame.region.numpy(), frame.real_valid.numpy()
+    lower_left = region[400:, 20:160]
+    assert lower_left.mean() < 0.05  # ~4 % of it is the far floor's specks the closing joins
+    assert region[220:270, 220:540].mean() > 0.95  # the table in front of the objects
+    assert (region & (frame.instance.numpy() > 0)).sum() > 1500  # the cat
+    assert real_valid[region].mean() > 0.93  # was 0.87 when the plane's invisible part counted
+
+
+def test_compare_draws_the_speckle_fixed_to_the_scene_as_render_does(small):
+    """With speckle_fixed_to_scene, compare's simulation of a frame carries the speckle render would draw for that
+    geometry: two noise seeds differ only by the detector noise (a few counts), not by the speckle (tens)."""
+    fixed = load_preset(small["stock"]).replace(speckle_fixed_to_scene=True, speckle_grain_px=1.0)
+    fresh = fixed.replace(speckle_fixed_to_scene=False)
+    frame = prepare_frames(fixed, read_scan_folder(small["real"]))[0]
+    lit = (frame.geometry.hit & ~frame.geometry.shadow).numpy()
+    spread = {}
+    for name, preset in (("fixed", fixed), ("fresh", fresh)):
+        sensor = DepthSensor(preset).eval()
+        with torch.no_grad():
+            a, b = simulate(sensor, frame, 0).ir.numpy(), simulate(sensor, frame, 1).ir.numpy()
+        spread[name] = float(np.std((a - b)[lit]))
+    print(spread)
+    assert spread["fixed"] < 0.5 * spread["fresh"]
+    assert spread["fixed"] == pytest.approx(np.sqrt(2) * 10.4, rel=0.3)  # two draws of the read noise, 10.4 counts
+    sensor = DepthSensor(fixed).eval()
+    with torch.no_grad():
+        render_noise = sensor.draw_noise([7, 0, 1], frame.geometry)  # any frame seed: the scene's speckle
+        compare_noise = sensor.draw_noise(frame.noise_seed(0), frame.geometry)
+    assert torch.equal(render_noise.speckle_unit, compare_noise.speckle_unit)

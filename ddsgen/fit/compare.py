@@ -76,7 +76,8 @@ class GapReport:
 
     def to_dict(self) -> dict:
         return {"gap": _r(self.gap), "noise_floor": _r(self.noise_floor), "excess": _r(self.excess),
-                "units": "mm", "region": self.region, "definition": DEFINITION, "frames": self.frames,
+                "units": "mm", "region": self.region, "definition": DEFINITION, "region_rule": region_rule(self.region),
+                "frames": self.frames,
                 "parts": self.parts, **({"realism": self.realism} if self.realism else {})}  # fmt: skip
 
 
@@ -99,6 +100,13 @@ def _robust(values: np.ndarray) -> tuple[float, float]:
         return float("nan"), float("nan")
     med = float(np.median(values))
     return med, float(1.4826 * np.median(np.abs(values - med)))
+
+
+def region_rule(region: str) -> str:
+    """The compare region's rule in words (comparison.json and the report state it)."""
+    from ddsgen.fit.compare_region import RULE
+
+    return RULE + ("; --region objects: only the posed objects' pixels of it" if region == "objects" else "")
 
 
 def region_mask(frame: FrameData, region: str) -> torch.Tensor:

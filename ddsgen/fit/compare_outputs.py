@@ -63,10 +63,13 @@ class FrameOutputs:
 
     def finish(self, report, title: str) -> list[Path]:
         """Add the statistics to ``report``; write comparison.json, the plots and index.html. Returns the files."""
-        from ddsgen.fit.compare import table, write_report
+        import textwrap
+
+        from ddsgen.fit.compare import region_rule, table, write_report
 
         report.realism = realism.aggregate(self.statistics)
         written = write_report(report, self.report_dir)
         plots = [p.relative_to(self.report_dir).as_posix() for p in written[1:]]
-        index = write_index(self.report_dir, title, table(report, title), self.pictures, plots)
+        summary = table(report, title) + "\n\n" + textwrap.fill(region_rule(report.region), 110)
+        index = write_index(self.report_dir, title, summary, self.pictures, plots)
         return [*written, self.report_dir / FRAMES_FOLDER, index]

@@ -14,12 +14,13 @@ builds a :class:`FrameData`:
 4. optionally a **crop** to the objects' bounding box plus a margin (a sub-window of a
    pinhole image is a pinhole image with a shifted principal point, so the crop is
    simulated exactly; it only makes fitting cheaper);
-5. the **comparison region**: pixels where the modelled geometry is visible (clean depth
-   hit) and plausible: the real depth is invalid there (a validity disagreement to count)
-   or agrees with the clean depth within ``plausible_px`` px of disparity f*b/z (things that
-   are not modelled -- hands, other objects, a wall -- are far off and left out). A border
-   of ``block // 2 + 1`` px is left out of crops (the matcher cannot match there, the real
-   sensor could).
+5. the **comparison region** (:mod:`ddsgen.fit.compare_region`): pixels where the modelled
+   geometry is visible (clean depth hit) and plausible: the real depth agrees with the clean
+   depth within ``plausible_px`` px of disparity f*b/z (things that are not modelled -- hands,
+   other objects, a wall -- are far off and left out), or it is invalid where the modelled
+   scene can explain that (on a posed object or on the support plane's real extent, and not
+   in the projector shadow of something unmodelled). A border of ``block // 2 + 1`` px is left
+   out of crops (the matcher cannot match there, the real sensor could).
 
 The sensor's intrinsics are set per frame by :func:`simulate` (frames may have different
 cameras; the sensor's parameters are shared).
@@ -272,6 +273,12 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     if both.any():
         pose_error = float(np.median(np.abs(real[both] - hits.depth[both])) * 1000.0)
 
+    # Comparison region, on the whole frame (the support plane's real extent is a whole-frame notion).
+    from ddsgen.fit.compare_region import comparison_region
+
+    region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px,
+                               preset.block_size_px, plane is not None, preset.output_left_border_px)  # fmt: skip
+
     box = _crop_box(instance, crop_margin_px, min_size=max(4 * preset.block_size_px, 48)) if crop else (
         0, 0, intr.width, intr.height)  # fmt: skip
     x0, y0, w, h = box
@@ -280,14 +287,8 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         setattr(hits, name, np.ascontiguousarray(getattr(hits, name)[sl]))
     real = np.ascontiguousarray(real[sl])
     instance = instance[sl]
+    region = np.ascontiguousarray(region[sl])
     cintr = crop_intrinsics(intr, box) if crop else intr
-
-    # Comparison region: modelled, visible, plausible.
-    clean = hits.depth
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gap_px = np.abs(fb / np.where(real > 0, real, np.inf) - fb / np.where(clean > 0, clean, np.inf))
-    plausible = (real <= 0) | (gap_px <= plausible_px)
-    region = hits.hit & plausible
     if crop:
         border = preset.block_size_px // 2 + 1
         inner = np.zeros_like(region)
@@ -373,7 +374,9 @@ def simulate(sensor, frame: FrameData, seed: int = 0):
 
     The IR noise of frame ``i`` is drawn from ``rng([seed, i, SIM_STREAM])``: the same draws
     at every call (common random numbers across fitting steps), different draws for another seed.
+    With ``speckle_fixed_to_scene`` the speckle is seeded by the frame's geometry, as ``render``
+    draws it (a static scene shows the same speckle whatever the seed); the read noise follows the seed.
     """
     with frame_camera(sensor, frame.intrinsics):
-        noise = sensor.draw_noise(frame.noise_seed(seed))
+        noise = sensor.draw_noise(frame.noise_seed(seed), frame.geometry)
         return sensor(frame.geometry, noise=noise)
