@@ -11,9 +11,11 @@ The observed IR image I_o(u, v) is compared with the reference R(u - d, v) for d
    streaming, so it never holds a cost volume). Without a compiler, or on CUDA, a torch
    implementation over row bands does the same.
 2. **Sub-pixel refinement** (differentiable). Candidates d_t = K + t / S, t = -T..T with
-   S = 2^n_sub and T = S + S // 2 (K +- 1.5 px), scored by the same ZNCC against the sub-pixel shifted
+   S = 2^min(n_sub, REFINE_LEVEL) (1/4 px by default: the soft-argmax is continuous in the shift, so the
+   device's 1/8-px output needs no 1/8-px candidates, see REFINE_LEVEL) and T = S + S // 2 (K +- 1.5 px),
+   scored by the same ZNCC against the sub-pixel shifted
    reference phases (exact windows, gathered per pixel, not approximated), then
-   d = sum_t softmax(beta * zncc)_t * d_t. The forward value is quantised to 1/S px with a
+   d = sum_t softmax(beta * zncc)_t * d_t. The forward value is quantised to 2^-n_sub px with a
    straight-through gradient. Candidates outside [d_min, d_max] or touching unknown
    reference columns (NaN in ``reference_phases``) are excluded. The window reaches 1 px
    beyond the true peak on both sides (which lies within K +- 1/2): with K +- 1/2 only, the
