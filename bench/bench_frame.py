@@ -1,13 +1,25 @@
 """Whole-frame benchmark: per-stage time of a 640x480 kinect_v1 frame, and frames/s to disk.
 
 Prints `bench: NAME VALUE UNIT` lines:
-  frame_raycast_ms, frame_ir_ms, frame_matching_ms, frame_writing_ms   (one thread, as in a worker)
+  frame_raycast_ms, frame_ir_ms, frame_matching_ms, frame_sensor_ms, frame_writing_ms   (one thread, as in a
+                                    worker; frame_sensor_ms is the whole DepthSensor.forward, clean-up included)
+  frame_sensor_paper_ms             the same for kinect_v1_paper (1/4 px, no device effects), same run
   frame_matching_vs_stereobm        matching stage / OpenCV StereoBM on the same IR pair, same run
   frame_fps_1worker, frame_fps      frames written to disk per second, steady state (--workers 1, 2)
+  frame_fps_paper, frame_fps_vs_paper   the same (--workers 2) for kinect_v1_paper, and the ratio (same run)
+  frame_cpu_<stage>_ms              CPU time (process time, one thread) per frame of each stage of `render`'s worker
+                                    (scene, raycast, sensor, write; median over steady-state frames): far less
+                                    sensitive to the load than wall time
+  frame_cpu_fps_estimate            cores x 1000 / the summed CPU ms: frames/s on an idle machine if the workers
+                                    keep every core busy (and the stages do not slow each other down)
+  frame_cpu_fps_estimate_vs_paper   its ratio to the same estimate for kinect_v1_paper, same run
+  frame_load_average                the 1-minute load average before and after (the machine is shared:
+                                    every time above is pessimistic by roughly load / cores when load > cores)
 """
 
 from __future__ import annotations
 
+import os
 import statistics
 import sys
 import tempfile
@@ -80,6 +92,14 @@ def stage_times() -> None:
     matching()  # compile / load kernels
     matching_ms = _median_ms(matching)
 
+    def sensor_ms(name):
+        model = DepthSensor(load_preset(name)).eval()
+        with torch.no_grad():
+            model(g, noise=noise)  # caches: pattern field, reference phases
+            return _median_ms(lambda: model(g, noise=noise))
+
+    forward_ms, forward_paper_ms = sensor_ms("kinect_v1"), sensor_ms("kinect_v1_paper")
+
     # OpenCV StereoBM on the same pair: the IR image against the reference at infinity.
     left = np.clip(ir.numpy() / 4.0, 0, 255).astype(np.uint8)
     right_full = ref[0].numpy()
@@ -108,29 +128,78 @@ def stage_times() -> None:
     print(f"bench: frame_raycast_ms {raycast_ms:.1f} ms")
     print(f"bench: frame_ir_ms {ir_ms:.1f} ms")
     print(f"bench: frame_matching_ms {matching_ms:.1f} ms")
+    print(f"bench: frame_sensor_ms {forward_ms:.1f} ms")
+    print(f"bench: frame_sensor_paper_ms {forward_paper_ms:.1f} ms")
     print(f"bench: frame_writing_ms {writing_ms:.1f} ms")
     print(f"bench: frame_stereobm_ms {bm_ms:.1f} ms")
     print(f"bench: frame_matching_vs_stereobm {matching_ms / bm_ms:.2f} ratio")
-    total = raycast_ms + ir_ms + matching_ms + writing_ms
+    total = raycast_ms + forward_ms + writing_ms
     print(f"bench: frame_single_thread_fps {1000.0 / total:.2f} frames/s")
 
 
-def render_fps(workers: int, short: int = 6, long: int = 30) -> float:
+def render_fps(workers: int, short: int = 6, long: int = 30, preset: str = "kinect_v1") -> float:
     """Steady-state frames/s of `ddsgen render` (worker start-up and compile excluded by differencing)."""
     configure_torch_compile_cache()
     times = {}
     with tempfile.TemporaryDirectory() as tmp:
         for n in (short, long):
             start = time.perf_counter()
-            render_dataset("kinect_v1", None, n, str(Path(tmp) / f"run{n}"), workers=workers, seed=1, progress=False)
+            render_dataset(preset, None, n, str(Path(tmp) / f"run{n}"), workers=workers, seed=1, progress=False)
             times[n] = time.perf_counter() - start
     return (long - short) / max(times[long] - times[short], 1e-9)
 
 
+def cpu_profile(preset_name: str, warm: int = 4, frames: int = 16) -> dict[str, float]:
+    """Median CPU ms per stage of a render worker's frame (frames ``warm``..``frames - 1``, one thread)."""
+    from ddsgen.io.framefiles import write_frame_files
+    from ddsgen.raycast import object_labels
+    from ddsgen.runner import NOISE_STREAM, RenderJob, _worker_state, prepare_output
+
+    preset = load_preset(preset_name)
+    stages: dict[str, list[float]] = {"scene": [], "raycast": [], "sensor": [], "write": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        prepare_output(Path(tmp), preset, None, 1)
+        state = _worker_state(RenderJob(str(Path(preset.source).resolve()), None, tmp, 1))
+        sensor, intr = state["sensor"], preset.intrinsics
+        for frame in range(frames):
+            t0 = time.process_time()
+            scene = sample_frame(state["scenes"], frame, 1)
+            t1 = time.process_time()
+            hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
+            t2 = time.process_time()
+            with torch.no_grad():
+                out = sensor(SensorGeometry.from_hits(hits), seed=[1, frame, NOISE_STREAM])
+            t3 = time.process_time()
+            write_frame_files(tmp, frame, out.depth.numpy().astype(np.float32), hits.depth, out.ir.numpy(),
+                              2.0**preset.ir_bits - 1.0, hits.instance)  # fmt: skip
+            object_labels(scene, hits, intr)
+            t4 = time.process_time()
+            if frame >= warm:
+                for name, a, b in (("scene", t0, t1), ("raycast", t1, t2), ("sensor", t2, t3), ("write", t3, t4)):
+                    stages[name].append(1000 * (b - a))
+    return {name: statistics.median(values) for name, values in stages.items()}
+
+
 def main() -> None:
+    load_before = os.getloadavg()[0]
     stage_times()
+    cores = os.cpu_count() or 1
+    estimate = {}
+    for name in ("kinect_v1", "kinect_v1_paper"):
+        profile = cpu_profile(name)
+        suffix = "" if name == "kinect_v1" else "_paper"
+        for stage, ms in profile.items():
+            print(f"bench: frame_cpu_{stage}{suffix}_ms {ms:.1f} ms")
+        estimate[name] = cores * 1000.0 / sum(profile.values())
+        print(f"bench: frame_cpu_fps_estimate{suffix} {estimate[name]:.2f} frames/s ({cores} cores, {name})")
+    print(f"bench: frame_cpu_fps_estimate_vs_paper {estimate['kinect_v1'] / estimate['kinect_v1_paper']:.2f} ratio")
     print(f"bench: frame_fps_1worker {render_fps(1):.2f} frames/s")
-    print(f"bench: frame_fps {render_fps(2):.2f} frames/s (--workers 2)")
+    fps = render_fps(2)
+    print(f"bench: frame_fps {fps:.2f} frames/s (--workers 2)")
+    fps_paper = render_fps(2, preset="kinect_v1_paper")
+    print(f"bench: frame_fps_paper {fps_paper:.2f} frames/s (--workers 2, kinect_v1_paper)")
+    print(f"bench: frame_fps_vs_paper {fps / fps_paper:.2f} ratio")
+    print(f"bench: frame_load_average {load_before:.1f} {os.getloadavg()[0]:.1f} (1-min, before / after; {os.cpu_count()} cores)")
 
 
 if __name__ == "__main__":

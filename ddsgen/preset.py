@@ -82,6 +82,7 @@ FIELDS: dict[str, Field] = {
     "band_rows": Field(int, "rows per matching band (bounds matcher memory)", 1, 16384, default=64),
     "pattern": Field(str, "dot pattern: a file in pattern_assets/ or a path (relative to the preset)", default="kinect_like_640.png"),
     "pattern_psf_px": Field(float, "Gaussian point-spread sigma of a projected dot (px)", 0, 10, low_open=True, default=0.5),
+    "pattern_dot_jitter_px": Field(float, "projected dots sit this far (uniform, +-half, projector px) off the pattern's pixel lattice; 0 = on the lattice", 0, 2, default=0.0),
     "effects": Field(list, "extra physical effects: list of {name: EFFECT, PARAM: value}", default=()),
     "postprocess": Field(str, "optional post-processing CNN weights file (relative to the preset)", default=None),
 }
@@ -147,6 +148,7 @@ class SensorPreset:
     band_rows: int
     pattern: str
     pattern_psf_px: float
+    pattern_dot_jitter_px: float
     effects: tuple
     postprocess: str | None
     source: str = ""  # file the preset came from (for messages and relative paths)

@@ -2,6 +2,8 @@
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -155,3 +157,39 @@ def test_gradients_are_finite_everywhere_including_invalid_pixels():
     (out.depth.sum() + out.raw_depth.sum() + out.valid_soft.sum()).backward()
     for name, p in sensor.named_parameters():
         assert p.grad is None or torch.isfinite(p.grad).all(), name
+
+
+def test_dot_jitter_moves_dots_off_the_lattice_and_zero_is_the_lattice():
+    """``pattern_dot_jitter_px``: 0 (and a vanishing jitter) gives the lattice raster bit for bit; 1 px moves
+    each dot by a fixed offset (the same in every build: a property of the projector) without changing the
+    light it carries (touching dots overlap a little: within 0.5 %), and the dots' sub-pixel positions along
+    the rows then spread over the whole pixel instead of sitting at one phase."""
+    from ddsgen.sensor.pattern import PatternField, fit_pattern
+
+    pattern = np.zeros((40, 60), np.float32)
+    pattern[20, 2:-2:4] = 255.0  # one row of isolated dots on the lattice
+    geometry = fit_pattern(pattern.shape, 50, 30, pad_left=0, margin=2)
+    lattice = PatternField(pattern, geometry, psf_px=0.4)
+    assert torch.equal(PatternField(pattern, geometry, psf_px=0.4, dot_jitter_px=1e-9).raster, lattice.raster)
+    moved = PatternField(pattern, geometry, psf_px=0.4, dot_jitter_px=1.0)
+    assert torch.equal(PatternField(pattern, geometry, psf_px=0.4, dot_jitter_px=1.0).raster, moved.raster)
+    assert float(moved.raster.sum()) == pytest.approx(float(lattice.raster.sum()), rel=5e-3)
+
+    def column_phases(field):
+        """Sub-pixel phase (projector px) of each dot's intensity centroid along x."""
+        u = torch.arange(-1.0, 51.0, 1.0 / 16)
+        v = torch.arange(-5.0, 35.0, 0.5)
+        values = field.sample(u[None, :].expand(len(v), -1), v[:, None].expand(-1, len(u))).sum(0).numpy()
+        phases, start = [], None
+        for i, lit in enumerate(values > 0.05 * values.max()):
+            if lit and start is None:
+                start = i
+            elif not lit and start is not None:
+                seg = slice(start, i)
+                phases.append(float((u.numpy()[seg] * values[seg]).sum() / values[seg].sum()) % 1.0)
+                start = None
+        return np.array(phases)
+
+    assert np.ptp(column_phases(lattice)) < 0.05  # every dot column at one phase
+    jittered = column_phases(moved)
+    assert np.ptp(jittered) > 0.5, jittered  # spread over the pixel

@@ -214,3 +214,26 @@ def test_real_kinect_value_list_steps_grow_with_z_squared():
     real = real_quantisation(None, DISTREAL_MM)
     s1, s2 = real.step_at(1.0)["distreal"], real.step_at(2.0)["distreal"]
     assert s2 / s1 == pytest.approx(4.0, rel=0.15)
+
+
+# ------------------------------------------------------------------------------------------ the device preset
+
+
+def test_dots_off_the_pixel_lattice_turn_the_fronto_parallel_saw_tooth_into_noise():
+    """A fronto-parallel board at 2 m (where the 1/8-px levels fall so that the old kinect_v1 gave 0.44x Nguyen):
+    with every projected dot on the camera's pixel lattice all dots share one sub-pixel phase, so the matcher's
+    phase-dependent error is one bias and the output sits on one or two depth levels; with the dots at random
+    sub-pixel positions (kinect_v1's ``pattern_dot_jitter_px: 1``, as a real projector's) it is noise of
+    Nguyen's size, and a board tilted by 30 deg is unchanged (its phases vary anyway). Measured (96 rows,
+    2 frames): lattice 0.44x at 0 deg, 1.14x at 30 deg; off the lattice 1.10x and 0.99x."""
+    from ddsgen.study.noise import run_noise_study
+
+    device = load_preset("kinect_v1")
+    assert device.pattern_dot_jitter_px == 1.0
+    ratio = {}
+    for jitter in (0.0, 1.0):
+        points = run_noise_study(device.replace(pattern_dot_jitter_px=jitter), [2.0], [0.0, 30.0], frames=1, rows=32)
+        ratio[jitter] = {p.angle_deg: p.std_m / float(nguyen_sigma(2.0)) for p in points}
+    assert ratio[0.0][0.0] < 0.65, ratio  # the saw-tooth: the test can tell the lattice
+    assert 0.75 < ratio[1.0][0.0] < 1.3, ratio
+    assert 0.75 < ratio[1.0][30.0] < 1.3 and 0.75 < ratio[0.0][30.0] < 1.4, ratio

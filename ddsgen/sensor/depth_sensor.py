@@ -92,16 +92,18 @@ class SensorOutput:
 
 
 @functools.lru_cache(maxsize=8)
-def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int) -> PatternField:
+def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
+                   dot_jitter_px: float = 0.0) -> PatternField:
     """The pattern field for one sensor geometry, built once per process."""
     pattern = load_pattern(pattern_path)
     geometry = fit_pattern(pattern.shape, width, height, pad_left=pad, margin=margin)
-    return PatternField(pattern, geometry, psf_px=psf_px)
+    return PatternField(pattern, geometry, psf_px=psf_px, dot_jitter_px=dot_jitter_px)
 
 
 @functools.lru_cache(maxsize=8)
-def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int, n_sub: int):
-    field = _pattern_field(pattern_path, psf_px, width, height, pad, margin)
+def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
+                      dot_jitter_px: float, n_sub: int):
+    field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px)
     return field.reference_phases(width, height, pad, n_sub)
 
 
@@ -203,7 +205,8 @@ class DepthSensor(nn.Module):
     # ---- cached per-sensor data ---------------------------------------------------------
     def _pattern_key(self) -> tuple:
         p = self.preset
-        return (str(p.resolve_path(p.pattern)), p.pattern_psf_px, self.intr.width, self.intr.height, self.pad, self.margin)
+        return (str(p.resolve_path(p.pattern)), p.pattern_psf_px, self.intr.width, self.intr.height, self.pad, self.margin,
+                p.pattern_dot_jitter_px)  # fmt: skip
 
     def pattern_field(self) -> PatternField:
         return _pattern_field(*self._pattern_key()).to(self.device_)

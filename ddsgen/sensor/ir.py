@@ -96,6 +96,20 @@ def projector_coordinates(points: torch.Tensor, fx, fy, cx, cy, baseline) -> tup
     return fx * (x - baseline) / z + cx, fy * y / z + cy
 
 
+def _power(base: torch.Tensor, exponent: float) -> torch.Tensor:
+    """base ** exponent; whole exponents up to 8 by multiplication (a generic pow is exp(log) per element)."""
+    if float(exponent).is_integer() and 1 <= exponent <= 8:
+        out, square, n = None, base, int(exponent)
+        while n:
+            if n & 1:
+                out = square if out is None else out * square
+            n >>= 1
+            if n:
+                square = square * square
+        return out
+    return base**exponent
+
+
 def render_ir(
     points: torch.Tensor,
     normals: torch.Tensor,
@@ -153,17 +167,21 @@ def render_ir(
     """
     u_p, v_p = projector_coordinates(points, fx, fy, cx, cy, baseline)
     pattern = field.sample(u_p, v_p) * PATTERN_UNIT
-    to_projector = torch.stack([baseline - points[..., 0], -points[..., 1], -points[..., 2]], dim=-1)
-    distance_m = torch.linalg.vector_norm(to_projector, dim=-1).clamp_min(1e-6)
-    cos_incidence = ((normals * to_projector).sum(-1) / distance_m).clamp_min(0.0)
-    distance_mm = distance_m * 1000.0
-    signal = albedo * emitted_intensity * pattern * cos_incidence / distance_mm**2 * lit
-    z = points[..., 2].clamp_min(1e-6)
+    # The ray to the projector (b - x, -y, -z), by components: no (H, W, 3) temporaries.
+    x, y, z_raw = points.unbind(-1)
+    to_projector_x = baseline - x
+    yy_zz = y * y + z_raw * z_raw
+    distance_sq_m = (to_projector_x * to_projector_x + yy_zz).clamp_min(1e-12)
+    distance_m = distance_sq_m.sqrt()
+    nx, ny, nz = normals.unbind(-1)
+    cos_incidence = ((nx * to_projector_x - ny * y - nz * z_raw) / distance_m).clamp_min(0.0)
+    signal = albedo * emitted_intensity * pattern * cos_incidence / (distance_sq_m * 1e6) * lit
+    z = z_raw.clamp_min(1e-6)
     if projector_falloff_exponent:
-        signal = signal * (z / distance_m).clamp(0.0, 1.0) ** projector_falloff_exponent
+        signal = signal * _power((z / distance_m).clamp(0.0, 1.0), projector_falloff_exponent)
     if vignetting_exponent:
-        camera_distance = torch.linalg.vector_norm(points, dim=-1).clamp_min(1e-6)
-        signal = signal * (z / camera_distance).clamp(0.0, 1.0) ** vignetting_exponent
+        camera_distance = (x * x + yy_zz).sqrt().clamp_min(1e-6)
+        signal = signal * _power((z / camera_distance).clamp(0.0, 1.0), vignetting_exponent)
     if lens_aperture_m > 0:
         depth = torch.where(lit > 0, z, torch.zeros_like(z)).detach()
         signal = defocus_blur(signal, defocus_sigma_px(depth, float(fx), lens_aperture_m, focus_distance_m))

@@ -206,6 +206,9 @@ def _psf_peak(sigma_x: float, sigma_y: float, box_x: int, box_y: int) -> float:
     return float(cv2.GaussianBlur(dot, (0, 0), sigmaX=sigma_x, sigmaY=sigma_y).max())
 
 
+#: Seed of the dots' fixed offsets from the pattern lattice (PatternField ``dot_jitter_px``).
+DOT_JITTER_SEED = 20120917
+
 class PatternField:
     """The projected pattern as a continuous, differentiable intensity field.
 
@@ -220,9 +223,16 @@ class PatternField:
         geometry: placement of the pattern on the projector image plane.
         psf_px: point-spread sigma (projector px).
         supersample: super-sampling factor along x (rows are sampled at half that).
+        dot_jitter_px: each dot is moved off the pattern's pixel lattice by a fixed random offset,
+            uniform in [-j/2, j/2) projector px in x and y (on the raster: steps of 1/supersample px
+            in x, 2/supersample in y). A real projector's dots (a diffractive element's) do not sit on
+            the camera's pixel lattice; dots that all do see the same sub-pixel phase on a
+            fronto-parallel surface, so the matcher's phase-dependent error becomes one bias there
+            instead of noise. 0: the lattice (the paper's raster pattern).
     """
 
-    def __init__(self, pattern: np.ndarray, geometry: PatternGeometry, psf_px: float = 0.5, supersample: int = 4):
+    def __init__(self, pattern: np.ndarray, geometry: PatternGeometry, psf_px: float = 0.5, supersample: int = 4,
+                 dot_jitter_px: float = 0.0):
         self.geometry = geometry
         self.sx = int(supersample)
         self.sy = max(int(supersample) // 2, 1)
@@ -241,7 +251,10 @@ class PatternField:
         inside_c = (col >= 0) & (col < pw)
         inside_r = (row >= 0) & (row < ph)
         raster = np.zeros((out_h, out_w), np.float32)
-        raster[np.ix_(inside_r, inside_c)] = pattern[np.ix_(row[inside_r], col[inside_c])]
+        if dot_jitter_px > 0:
+            raster = self._jittered_raster(pattern, geometry, dot_jitter_px, out_h, out_w)
+        else:
+            raster[np.ix_(inside_r, inside_c)] = pattern[np.ix_(row[inside_r], col[inside_c])]
         blurred = cv2.GaussianBlur(raster, (0, 0), sigmaX=psf_px * self.sx, sigmaY=psf_px * self.sy)
         # The PSF spreads a dot without dimming it: a lone dot's peak keeps its pattern value
         # (the IR counts of a dot centred on a pixel, as in Landau et al.'s binary-dot model).
@@ -249,6 +262,28 @@ class PatternField:
         self.raster = torch.from_numpy(raster)  # (Hs, Ws), 8-bit units
         self.extent_u = (self.origin_u, self.origin_u + out_w / self.sx)
         self.extent_v = (self.origin_v, self.origin_v + out_h / self.sy)
+
+    def _jittered_raster(self, pattern: np.ndarray, geometry: PatternGeometry, jitter_px: float, out_h: int,
+                         out_w: int) -> np.ndarray:
+        """The box-dot raster with every lit dot moved by its fixed random offset (see ``dot_jitter_px``)."""
+        rng = np.random.default_rng(DOT_JITTER_SEED)  # a property of the projector: the same in every process
+        offset = (rng.random((2,) + pattern.shape) - 0.5) * jitter_px  # (2, Hp, Wp) projector px
+        rows, cols = np.nonzero(pattern > 0)
+        values = pattern[rows, cols].astype(np.float32)
+        scale = geometry.scale
+        # First raster column/row whose centre falls in the moved dot's box [centre - scale/2, centre + scale/2).
+        left = geometry.u0 + (cols + offset[0, rows, cols] - 0.5) * scale
+        top = geometry.v0 + (rows + offset[1, rows, cols] - 0.5) * scale
+        c0 = np.ceil((left - self.origin_u) * self.sx - 0.5).astype(np.int64)
+        r0 = np.ceil((top - self.origin_v) * self.sy - 0.5).astype(np.int64)
+        box_w, box_h = max(1, int(round(scale * self.sx))), max(1, int(round(scale * self.sy)))
+        raster = np.zeros((out_h, out_w), np.float32)
+        for dr in range(box_h):
+            for dc in range(box_w):
+                r, c = r0 + dr, c0 + dc
+                inside = (r >= 0) & (r < out_h) & (c >= 0) & (c < out_w)
+                np.maximum.at(raster, (r[inside], c[inside]), values[inside])  # touching dots do not add up
+        return raster
 
     def to(self, device) -> "PatternField":
         self.raster = self.raster.to(device)

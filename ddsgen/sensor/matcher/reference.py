@@ -129,11 +129,20 @@ _REF_CACHE: dict = {}
 _REF_LOCK = threading.Lock()
 
 
-def _prepare_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, extra: int) -> _Reference:
+def _prepare_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, extra: int,
+                       refine_level: int | None = None) -> _Reference:
+    """The prepared reference of ``phases`` (S = 2^n_sub phases), cached per phases tensor.
+
+    ``refine_level`` (<= n_sub, default n_sub): the refinement's candidates are 2^-refine_level px
+    apart, read from every 2^(n_sub - refine_level)-th phase (phase 2^(n_sub - r) s' of the fine set
+    is phase s' of the coarse one: R(j - pad - s' / 2^r))."""
+    refine_level = n_sub if refine_level is None else int(refine_level)
+    if not 0 <= refine_level <= n_sub:
+        raise ValueError(f"refine_level must be in 0..n_sub = {n_sub}, got {refine_level}")
     key = None
     if not phases.requires_grad:
         key = (phases.data_ptr(), phases._version, tuple(phases.shape), phases.dtype, str(phases.device),
-               pad, block, n_sub, extra)  # fmt: skip
+               pad, block, n_sub, extra, refine_level)  # fmt: skip
         with _REF_LOCK:
             hit = _REF_CACHE.get(key)
         if hit is not None and hit[0]() is phases:
@@ -141,7 +150,7 @@ def _prepare_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, e
     with _REF_LOCK:
         if key is not None:
             _REF_CACHE.clear()  # one sensor at a time is the common case: free the old one first
-    ref = _build_reference(phases, pad, block, n_sub, extra)
+    ref = _build_reference(phases[:: 2 ** (n_sub - refine_level)], pad, block, refine_level, extra)
     if key is not None:
         with _REF_LOCK:
             _REF_CACHE.clear()  # one sensor at a time is the common case; keep memory flat
