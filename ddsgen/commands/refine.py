@@ -15,21 +15,25 @@ from ddsgen.errors import InputError
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
               help="Output folder: the refined poses in the input's layout (BOP: <split>/<scene>/scene_gt.json; "
                    "ddsgen: manifest.jsonl) and report/.")
-@click.option("--steps", type=int, default=60, show_default=True, help="Adam steps per frame.")
+@click.option("--steps", type=int, default=80, show_default=True, help="Adam steps per frame.")
 @click.option("--recast-every", type=int, default=5, show_default=True,
               help="Ray-cast again every K steps (visibility, silhouettes and shadows follow the poses).")
 @click.option("--band-mm", type=float, default=25.0, show_default=True,
               help="Compare only where the real depth is within this of the rendered one (clutter, occluders).")
 @click.option("--gradient", type=click.Choice(["sensor", "geometry"]), default="sensor", show_default=True,
               help="Pose gradient through the IR image and matcher, or the clean depth's (straight-through, faster).")
+@click.option("--edge-weight", type=float, default=1.0, show_default=True,
+              help="Weight of the depth-edge term (the objects' outlines pulled onto the real depth discontinuities; "
+                   "pins in-plane slides and turns depth cannot see). 0: depth only (for simulated scans).")
 @click.option("--no-plane", is_flag=True, help="Do not fit and refine a support plane.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, no_plane, seed, quiet):
+def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, seed, quiet):
     """Refine every annotated object's pose (and the support plane) in REAL_DIR with the sensor PRESET.
 
     Each frame's objects are moved until the simulated depth matches the real one (Huber loss on the
-    pixels where the real depth is within --band-mm of the rendered scene). Writes OUT with the refined
+    pixels where the real depth is within --band-mm of the rendered scene) and their outlines lie on
+    the real depth's discontinuities (--edge-weight). Writes OUT with the refined
     poses in the input's layout, and OUT/report/ (refine_report.json: per-object pose change in deg/mm,
     gap before/after; one PNG per frame: real | before | after).
     """
@@ -49,6 +53,8 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, no
         raise click.BadParameter("must be >= 1", param_hint="--recast-every")
     if not band_mm > 0:
         raise click.BadParameter("must be > 0", param_hint="--band-mm")
+    if not edge_weight >= 0:
+        raise click.BadParameter("must be >= 0", param_hint="--edge-weight")
     base = load_preset(preset)
     frames = read_scan_folder(real_dir)
     if not frames:
@@ -57,7 +63,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, no
         if not frame.objects:
             raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists no objects (nothing to refine)")
     settings = RefineSettings(steps=steps, recast_every=recast_every, band_m=band_mm / 1000.0, seed=seed,
-                              gradient=gradient)  # fmt: skip
+                              gradient=gradient, edge_weight=edge_weight)  # fmt: skip
     refinements = []
     for index, frame in enumerate(tqdm(frames, desc="frames", unit="frame", disable=quiet)):
         try:

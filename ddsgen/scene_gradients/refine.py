@@ -1,8 +1,10 @@
 """Analysis-by-synthesis pose refinement: move the scene's parts until the simulated depth matches a real one.
 
-Each step: posed hits (torch) -> DepthSensor -> robust loss against the real depth -> Adam on the
+Each step: posed hits (torch) -> DepthSensor -> robust loss against the real depth (+ the depth-edge
+term of :mod:`.edges`: the objects' outlines onto the real depth discontinuities) -> Adam on the
 parts' pose corrections (and optionally albedos). Every ``recast_every`` steps the scene is ray-cast
-again at the current poses, so visibility, silhouettes and projector shadows follow.
+again at the current poses, so visibility, silhouettes and projector shadows follow. The result is the
+mean of the last ``average_last`` share of the iterates (the fresh noise of each step jitters them).
 
 Robustness to what the scene does not model (clutter, hands, occluders, a wall): a pixel counts only
 where the real depth lies within ``band_m`` of the rendered clean depth (a far-off surface is not the
@@ -18,6 +20,7 @@ import math
 import numpy as np
 import torch
 
+from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.scene import RefinableScene
 
@@ -29,7 +32,7 @@ REFINE_STREAM = 16016
 class RefineSettings:
     """Optimiser settings of :func:`refine_poses` (units: steps, rad, m)."""
 
-    steps: int = 60
+    steps: int = 80
     recast_every: int = 5
     lr_rotation: float = 1e-2  # rad per Adam step at the start (cosine decay to 2 % at the end)
     lr_translation: float = 1e-3  # m per Adam step at the start
@@ -37,6 +40,15 @@ class RefineSettings:
     band_m: float = 0.025  # compare where |real - rendered clean| < band
     huber_m: float = 0.003  # Huber width of the depth residual
     seed: int = 0
+    # Depth-edge term (:mod:`.edges`): weight of the outline-to-real-edge distance (m) against the depth
+    # loss (m); 0 leaves it out. An edge is a depth jump of more than edge_jump_m; edges farther than
+    # edge_max_px from the simulated outline do not pull.
+    edge_weight: float = 1.0
+    edge_jump_m: float = 0.015
+    edge_max_px: float = 6.0
+    # The result is the mean of the pose corrections over this last share of the steps (Polyak
+    # averaging: each step's fresh IR noise jitters the iterates; their mean is the steadier estimate).
+    average_last: float = 0.3
     # "sensor": d(simulated depth)/d(pose) through the IR image and the matcher (the dots move);
     # "geometry": the simulated depth's value, the clean depth's gradient (straight-through; ~4x faster)
     gradient: str = "sensor"
@@ -164,12 +176,27 @@ def _refine_loop(sensor, scene, real, s, noise, progress, callback) -> RefineRes
         gap = _gap_mm(out.depth, out.valid, geometry.clean_depth, real, tensors.instance, s.band_m)
         return out.depth.numpy().copy(), gap
 
+    edge_distance = torch.from_numpy(real_edge_distance(real.numpy(), s.edge_jump_m, s.edge_max_px))
+    meshes = [p.mesh for p in scene.parts]
+
+    def outline(tensors):
+        if s.edge_weight <= 0:
+            return None
+        with torch.no_grad():
+            R, t = poses()
+            clean = posed_geometry(tensors, R, t, poses.albedo).clean_depth.numpy()
+        return outline_points(tensors, meshes, clean, scene.n_objects, s.edge_jump_m)
+
     tensors = scene.cast()
+    outline_now = outline(tensors)
     depth_before, gap_before = evaluate(tensors)
     history = []
+    first_averaged = s.steps - int(round(s.average_last * s.steps)) if s.average_last > 0 else s.steps
+    averaged = []
     for step in tqdm(range(s.steps), desc="refine", unit="step", disable=not progress, leave=False):
         if step and step % max(int(s.recast_every), 1) == 0:
             tensors = scene.cast()
+            outline_now = outline(tensors)
         decay = 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * step / max(s.steps, 1)))
         for group, lr in zip(optimiser.param_groups, base_lrs):
             group["lr"] = lr * decay
@@ -180,12 +207,20 @@ def _refine_loop(sensor, scene, real, s, noise, progress, callback) -> RefineRes
         depth, valid, geometry = simulate_depth(sensor, tensors, R, t, poses.albedo,
                                                 sensor.draw_noise([int(s.seed), REFINE_STREAM, step]), s.gradient)
         loss, mask = robust_depth_loss(depth, valid, geometry.clean_depth, real, s.band_m, s.huber_m)
+        if outline_now is not None:
+            loss = loss + s.edge_weight * edge_loss(outline_now, R, t, edge_distance, scene.intrinsics).float()
         if loss.requires_grad:
             loss.backward()
             optimiser.step()
         history.append({"step": step, "loss_mm": float(loss.detach()) * 1000.0, "pixels": int(mask.sum())})
         if callback is not None:
             callback(step, scene, float(loss.detach()))
+        if step >= first_averaged:
+            averaged.append([p.detach().clone() for p in (poses.rotation, poses.translation)])
+    if averaged:
+        with torch.no_grad():
+            poses.rotation.copy_(torch.stack([a[0] for a in averaged]).mean(0))
+            poses.translation.copy_(torch.stack([a[1] for a in averaged]).mean(0))
     tensors = scene.cast()
     depth_after, gap_after = evaluate(tensors)
     return RefineResult(initial=initial, refined=poses.matrices(), albedo=poses.albedo.detach().numpy().copy(),
