@@ -16,11 +16,13 @@ from test_compare import SMALL_PRESET, render
 
 from ddsgen.errors import InputError
 from ddsgen.fit.compare import gap
+from ddsgen.fit.device_keys import search_grid, set_key
 from ddsgen.fit.fit_report import at_bound
 from ddsgen.fit.fitting import SENSOR_PARAMS, fit_sensor, resolve_params
 from ddsgen.fit.priors import Priors
 from ddsgen.fit.revert import revert_unhelpful, snapshot
-from ddsgen.fit.simulate import prepare_frames
+from ddsgen.fit.simulate import prepare_frames, simulate
+from ddsgen.fit.tiles import step_tiles
 from ddsgen.fit.split import scene_of, split_fit_held_out
 from ddsgen.fit.uncertainty import estimate_uncertainty, sandwich_sigma
 from ddsgen.io.scanfolder import read_scan_folder
@@ -182,3 +184,81 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
         assert math.isfinite(info["sigma"]) and info["sigma"] < 0.5 * info["value"], name
         assert abs(info["value"] - truth[info["key"]]) <= 2.0 * info["sigma"], name
     assert fitted_gap <= 0.8 * stock_gap
+
+
+# ------------------------------------------------------------------------------------------ device keys
+
+
+@pytest.fixture(scope="module")
+def steep_beam(tmp_path_factory):
+    """Two 160 x 120 frames of a device whose projector beam falls off as cos^6 off its axis (stock: flat),
+    prepared with the stock preset."""
+    torch.set_num_threads(2)
+    tmp_path = tmp_path_factory.mktemp("device_keys")
+    (tmp_path / "device.yaml").write_text(SMALL_PRESET + "projector_falloff_exponent: 6.0\nvignetting_exponent: 0.0\n")
+    (tmp_path / "stock.yaml").write_text(SMALL_PRESET)
+    (tmp_path / "a.yaml").write_text(SCENES_A)
+    render(tmp_path / "device.yaml", tmp_path / "a.yaml", tmp_path / "A", 2, seed=5)
+    stock = load_preset(tmp_path / "stock.yaml")
+    return stock, prepare_frames(stock, read_scan_folder(tmp_path / "A"))
+
+
+def test_device_keys_are_fitted_by_a_search_reported_and_reverted(steep_beam):
+    """A steep projector beam on a dim IR image loses the image corners; fitted from the flat stock preset,
+    the 1-D search over the fall-off exponent must find a steep beam from the validity alone, carry it into
+    the fitted preset, give it a finite uncertainty, and put the input's value back when reverted."""
+    stock, frames = steep_beam
+    sensor = DepthSensor(stock)
+    names = ["projector_falloff", "vignetting"]
+    resolved = resolve_params(sensor, names)
+    start = snapshot(resolved)
+    result = fit_sensor(sensor, frames, names, steps=0, progress=False)
+    search = result.searches["projector_falloff"]
+    print(f"\nfall-off profile {search['profile']}")
+    # The projector and the lens fall-off shape the same radial profile: only one is searched.
+    assert result.searches["vignetting"]["held"] and sensor.preset.vignetting_exponent == 0.0
+    assert 4.0 <= sensor.preset.projector_falloff_exponent <= 8.0
+    profile = dict(search["profile"])
+    assert profile[0.0] > profile[sensor.preset.projector_falloff_exponent]  # the flat beam fits worse
+    assert result.after["projector_falloff_exponent"] == sensor.preset.projector_falloff_exponent
+    assert sensor.to_preset().projector_falloff_exponent == sensor.preset.projector_falloff_exponent
+    hole_grid = search_grid(sensor, SENSOR_PARAMS["cleanup_hole"])  # a discrete key is searched over integers
+    assert np.array_equal(hole_grid, np.round(hole_grid)) and hole_grid.min() == 0 and hole_grid.max() == 32
+    set_key(sensor, "cleanup_hole_px", 7.0)
+    assert sensor.preset.cleanup_hole_px == 7 and isinstance(sensor.preset.cleanup_hole_px, int)
+    assert {b["param"] for b in result.bounds} >= set(names)
+    sigma = estimate_uncertainty(sensor, frames, result, SENSOR_PARAMS, names={"projector_falloff"})
+    assert 0.0 < sigma["projector_falloff"]["sigma"] < 4.0
+    outcome = revert_unhelpful(sensor, resolved, start, frames, SENSOR_PARAMS, seed=1)
+    assert outcome["groups"]["falloff"]["kept"] == (sensor.preset.projector_falloff_exponent != 0.0)
+    if not outcome["groups"]["falloff"]["kept"]:
+        assert sensor.preset.projector_falloff_exponent == 0.0
+
+
+def test_step_tiles_are_seeded_windows_simulated_like_crops(steep_beam):
+    """A tile is a window of the frame with a shifted principal point and no matching border in its region,
+    chosen by (seed, step, frame); simulated, it sees the same surfaces at the same depths as the frame."""
+    stock, frames = steep_beam
+    frame = frames[0]
+    tiles = step_tiles(frames, 64, step=3, seed=0, block_px=stock.block_size_px)
+    again = step_tiles(frames, 64, step=3, seed=0, block_px=stock.block_size_px)
+    other = step_tiles(frames, 64, step=4, seed=0, block_px=stock.block_size_px)
+    tile = tiles[0]
+    assert tile.shape == (64, 64) and again[0].crop == tile.crop and [t.crop for t in other] != [t.crop for t in tiles]
+    x0, y0, _, _ = tile.crop
+    assert tile.intrinsics.cx == pytest.approx(frame.intrinsics.cx - x0)
+    assert torch.equal(tile.real_depth, frame.real_depth[y0 : y0 + 64, x0 : x0 + 64])
+    border = stock.block_size_px // 2 + 1
+    assert not bool(tile.region[:border].any()) and not bool(tile.region[:, -border:].any())
+    assert bool(tile.region.any())
+    assert step_tiles(frames, None, 0, 0, 9) == frames and step_tiles(frames, 1000, 0, 0, 9)[0] is frame
+    sensor = DepthSensor(stock)
+    with torch.no_grad():
+        sim_tile = simulate(sensor, tile)
+        sim_full = simulate(sensor, frame)
+    both = tile.region & sim_tile.valid & tile.real_valid
+    full = sim_full.depth[y0 : y0 + 64, x0 : x0 + 64]
+    both &= full > 0
+    assert int(both.sum()) > 500
+    # Same surfaces, same depth law: the tile's and the frame's simulations agree to the depth noise.
+    assert float((sim_tile.depth - full)[both].abs().median()) < 0.01 * float(full[both].median())

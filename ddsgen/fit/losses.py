@@ -146,7 +146,8 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
         keep = both & (support >= 0.3)
         if bool(keep.any()):
             terms["depth"] = huber(local[keep]).mean()
-        terms["pixel"] = huber(err[both]).mean()
+        # Reported even at weight 0 (compare), but then without a graph to back-propagate through.
+        terms["pixel"] = huber((err if weights.pixel else err.detach())[both]).mean()
         r_sim, ok_sim = roughness(simd - clean, both)
         r_real, ok_real = roughness(real - clean, both)
         ok = ok_sim & ok_real

@@ -28,6 +28,7 @@ import math
 
 import torch
 
+from ddsgen.fit.device_keys import integer_key, is_device_key, set_key, stored
 from ddsgen.fit.losses import LossWeights, frame_loss, local_window
 from ddsgen.fit.simulate import simulate
 
@@ -108,6 +109,9 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
     for name in result.params:
         if name == "cnn" or (names is not None and name not in names):
             continue
+        if name in table and is_device_key(table[name]):
+            out[name] = _device_key_entry(sensor, frames, tiles, name, table[name], result, seed, weights, priors)
+            continue
         if name in table:
             spec = table[name]
             tensor, key, step, log = getattr(sensor, spec.attr), spec.key, spec.step, spec.log
@@ -156,6 +160,31 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
         method = "loss curvature, sandwich over tiles" + (" (search terms)" if searched else "")
         out[name] = _entry(key, value, sigma, method)
     return out
+
+
+def _device_key_entry(sensor, frames, tiles, name, spec, result, seed, weights, priors) -> dict:
+    """A device key (:mod:`ddsgen.fit.device_keys`): the same sandwich, the preset value stepped by ``spec.step``
+    (at least 1 for integer keys) in stored units; the search's prior adds its curvature."""
+    search = result.searches.get(name, {})
+    value = float(getattr(sensor.preset, spec.key))
+    if search.get("held"):
+        return _entry(spec.key, value, math.nan, search["method"])
+    if spec.log and value <= 0:
+        return _entry(spec.key, value, math.nan, "switched off in the input: not fitted")
+    step = max(1.0, round(spec.step)) if integer_key(sensor, spec.key) and not spec.log else spec.step
+    x0 = stored(spec, value)
+    lo, hi = spec.stored_bounds(stored(spec, float(search.get("start", value))))
+    if x0 - step < lo - 1e-9 or x0 + step > hi + 1e-9:  # one-sided at a bound: step inwards twice
+        x0 = min(max(x0, lo + step), hi - step)
+    sides = []
+    for x in (x0 - step, x0, x0 + step):
+        set_key(sensor, spec.key, math.exp(x) if spec.log else x)
+        sides.append(_tile_losses(sensor, frames, tiles, seed, weights))
+    set_key(sensor, spec.key, value)
+    curvature = 2.0 * priors.prior_mm / spec.width**2 if priors is not None else 0.0
+    sigma_stored = sandwich_sigma(*sides, step, curvature)
+    sigma = abs(value) * sigma_stored if spec.log else sigma_stored
+    return _entry(spec.key, value, sigma, "loss curvature, sandwich over tiles (1-D grid search)")
 
 
 def _physical(sensor, name: str, table: dict) -> float:
