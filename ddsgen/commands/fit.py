@@ -79,6 +79,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
 
     from ddsgen.fit.compare import gap, plot_residuals, write_report
     from ddsgen.fit.device_keys import device_key_values
+    from ddsgen.fit.losses import FIT_WEIGHTS
     from ddsgen.fit.plane_depth import plane_depth_for
     from ddsgen.fit.simulate import prepare_frames
     from ddsgen.fit.fit_report import parameter_rows, write_fit_report
@@ -153,7 +154,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     fit_on = counted(fit_frames)
     result = fit_sensor(sensor, fit_on, names, steps=steps, lr=lr, progress=progress, seed=seed,
                         search=not no_search, prior_mm=prior_mm, start_effects=not no_search,
-                        tile_px=tile_px or None)  # fmt: skip
+                        tile_px=tile_px or None, weights=FIT_WEIGHTS)  # fmt: skip
     if refine_poses:
         fit_frames, held = refine_all()
         fit_on = counted(fit_frames)
@@ -163,7 +164,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     searched = {result.searches.get("snr", {}).get("parameter"), "baseline" if "baseline" in result.searches else None}
     priors = Priors(sensor, {n: SENSOR_PARAMS[n] for n in result.params if n in SENSOR_PARAMS and n not in searched},
                     prior_mm)  # fmt: skip
-    uncertainty = estimate_uncertainty(sensor, fit_on, result, SENSOR_PARAMS, seed=seed, priors=priors)
+    uncertainty = estimate_uncertainty(sensor, fit_on, result, SENSOR_PARAMS, seed=seed, priors=priors,
+                                       weights=FIT_WEIGHTS)  # fmt: skip
     if keep_all or split_kind == "none":
         outcome = None
         revert_lines = ["--keep-all: every fitted change kept" if keep_all else
