@@ -18,8 +18,12 @@ from ddsgen.fit.simulate import simulate
 from ddsgen.sensor.effects.distortion import GRID_COLS, GRID_KEYS, GRID_ROWS, X_EXTENT, Y_EXTENT, fit_distortion_grid
 from ddsgen.sensor.effects.features import normalised_coordinates
 
-#: Share of pixels kept (those whose residual is nearest the median: drops flying pixels and mismatches).
-KEEP_QUANTILE = 0.8
+#: Pixels whose residual is farther than this from the median (px) are mismatches or flying pixels, not
+#: distortion (a real Kinect's field is a few tenths of a px, Herrera et al. 2012). A share-based trim
+#: (the nearest 80 %) dropped exactly the pixels where the field is strongest: on the hidden device of
+#: tests/test_fit_transfer.py the solved field had a quarter of the true amplitude (correlation 0.70 with
+#: the truth; 0.85 and twice the amplitude without the trim).
+TRIM_PX = 1.0
 #: At most this many pixels per frame enter the solve.
 MAX_PIXELS_PER_FRAME = 20000
 #: Ridge toward "no change": each control point also gets a pseudo-pixel of zero change at its own
@@ -64,7 +68,7 @@ def start_distortion_grid(sensor, frames, seed: int = 0) -> dict:
         return {}
     # Trim before the solve (flying pixels, mismatches): the ridge rows must not be trimmed themselves.
     residual = np.concatenate(targets)
-    keep = np.abs(residual - np.median(residual)) <= np.quantile(np.abs(residual - np.median(residual)), KEEP_QUANTILE)
+    keep = np.abs(residual - np.median(residual)) <= TRIM_PX
     # The support plane's pose is a nuisance (it was fitted to the real depth, ddsgen.fit.plane_depth):
     # per frame, a + b x + c y on its plane pixels is solved jointly and discarded.
     frame_of = np.concatenate([np.full(len(t), k) for k, t in enumerate(targets)])[keep]
