@@ -240,5 +240,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
                    + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})")
                    + (" -- at a bound: the data push beyond the physical range" if r["at_bound"] else ""))  # fmt: skip
     for name, info in result.searches.items():
+        if "method" not in info:  # e.g. a distortion start with no pixels to solve on
+            continue
         click.echo(f"  {name}: {info['method']}" + ("" if info.get("accepted", True) else " (not identifiable: kept)"))
     click.echo(f"wrote {out_path} and {report}/")
