@@ -20,8 +20,13 @@ from ddsgen.errors import InputError
 @click.option("--params", "params", multiple=True, metavar="NAMES",
               help="Parameters to fit (comma-separated or repeated). Default: the paper's four sensor parameters "
                    "emitted_intensity (eta_c), read_noise_std, beta, baseline. Also: focal, speckle_scale, ambient, "
-                   "read_noise_mean, effects, effect:NAME[.PARAM], cnn (2-layer post-processing CNN).")
+                   "read_noise_mean; the device keys projector_falloff, vignetting, speckle_grain, speckle_shape, "
+                   "shot_noise_gain, cleanup_speckle, cleanup_hole, cleanup_max_diff (1-D searches); effects, "
+                   "effect:NAME[.PARAM], cnn (2-layer post-processing CNN).")
 @click.option("--steps", type=int, default=100, show_default=True, help="Adam steps.")
+@click.option("--tile", "tile_px", type=int, default=192, show_default=True,
+              help="Each Adam step simulates a random TILE x TILE window of each fit frame (a stochastic gradient "
+                   "at a fraction of the price); 0: whole frames.")
 @click.option("--lr", type=float, default=1e-3, show_default=True,
               help="Adam learning rate (CNN weights; log-space sensor parameters use 30 x lr).")
 @click.option("--holdout", type=float, default=0.25, show_default=True,
@@ -49,7 +54,7 @@ from ddsgen.errors import InputError
 @click.option("--depth-scale", type=float, default=0.001, show_default=True,
               help="With --unpaired: metres per PNG unit of the real depth images.")
 @common_options
-def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
+def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
         pose_steps, unpaired, scenes, depth_scale, no_plane, crop, plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
@@ -73,6 +78,10 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
     import dataclasses
 
     from ddsgen.fit.compare import gap, plot_residuals, write_report
+    from ddsgen.fit.device_keys import device_key_values
+    from ddsgen.fit.losses import FIT_WEIGHTS
+    from ddsgen.fit.plane_depth import plane_depth_for
+    from ddsgen.fit.simulate import prepare_frames
     from ddsgen.fit.fit_report import parameter_rows, write_fit_report
     from ddsgen.fit.fitting import (DEFAULT_PARAMS, SENSOR_PARAMS, fit_sensor, physical_values, refine_frame_poses,
                                     resolve_params)
@@ -87,6 +96,8 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
 
     if steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--steps")
+    if tile_px < 0:
+        raise click.BadParameter("must be >= 0", param_hint="--tile")
     if not lr > 0:
         raise click.BadParameter("must be > 0", param_hint="--lr")
     if not prior_mm >= 0:
@@ -131,24 +142,39 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
         sets.update({"fit": fit_frames, "held-out": held})
         return fit_frames, held
 
+    def prepare_for(current):  # support planes where `current`'s disparity errors put them; the same split
+        if no_plane or not any(e.stage == "disparity" for e in current.effects):
+            return sets["fit"], sets["held-out"]
+        refreshed = prepare_frames(camera_preset, scans, crop=crop, plausible_px=plausible_px, seed=seed,
+                                   plane_depth=plane_depth_for(current))  # fmt: skip
+        return split_fit_held_out(refreshed, holdout, seed)[:2]
+
     if refine_poses:
         fit_frames, held = refine_all()
     fit_on = counted(fit_frames)
     result = fit_sensor(sensor, fit_on, names, steps=steps, lr=lr, progress=progress, seed=seed,
-                        search=not no_search, prior_mm=prior_mm, start_effects=not no_search)  # fmt: skip
+                        search=not no_search, prior_mm=prior_mm, start_effects=not no_search,
+                        tile_px=tile_px or None, weights=FIT_WEIGHTS)  # fmt: skip
     if refine_poses:
         fit_frames, held = refine_all()
         fit_on = counted(fit_frames)
+    fit_frames, held = prepare_for(sensor)
+    sets.update({"fit": fit_frames, "held-out": held})
+    fit_on = counted(fit_frames)
     searched = {result.searches.get("snr", {}).get("parameter"), "baseline" if "baseline" in result.searches else None}
     priors = Priors(sensor, {n: SENSOR_PARAMS[n] for n in result.params if n in SENSOR_PARAMS and n not in searched},
                     prior_mm)  # fmt: skip
-    uncertainty = estimate_uncertainty(sensor, fit_on, result, SENSOR_PARAMS, seed=seed, priors=priors)
+    uncertainty = estimate_uncertainty(sensor, fit_on, result, SENSOR_PARAMS, seed=seed, priors=priors,
+                                       weights=FIT_WEIGHTS)  # fmt: skip
     if keep_all or split_kind == "none":
         outcome = None
         revert_lines = ["--keep-all: every fitted change kept" if keep_all else
                         "no held-out frames: every fitted change kept (nothing to judge transfer by)"]  # fmt: skip
     else:
-        outcome = revert_unhelpful(sensor, resolved, start, held, SENSOR_PARAMS, region=region, seed=seed + 1)
+        outcome = revert_unhelpful(sensor, resolved, start, lambda current: prepare_for(current)[1], SENSOR_PARAMS,
+                                   region=region, seed=seed + 1)  # fmt: skip
+        fit_frames, held = prepare_for(sensor)
+        sets.update({"fit": fit_frames, "held-out": held})
         revert_lines = revert_summary(outcome)
     kept = {n: True if outcome is None else outcome["groups"][param_group(n, SENSOR_PARAMS)]["kept"]
             for n in result.params}  # fmt: skip
@@ -157,6 +183,7 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
 
     # The fitted preset: the user's preset (its camera) with the fitted physical values.
     values = sensor.physical_parameters()
+    values.update(device_key_values(sensor, SENSOR_PARAMS))
     scale = float(sensor.focal_scale.detach())
     values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
     changes = {k: v for k, v in values.items()}
@@ -213,5 +240,7 @@ def fit(preset, real_dir, out, params, steps, lr, holdout, report_dir, no_search
                    + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})")
                    + (" -- at a bound: the data push beyond the physical range" if r["at_bound"] else ""))  # fmt: skip
     for name, info in result.searches.items():
+        if "method" not in info:  # e.g. a distortion start with no pixels to solve on
+            continue
         click.echo(f"  {name}: {info['method']}" + ("" if info.get("accepted", True) else " (not identifiable: kept)"))
     click.echo(f"wrote {out_path} and {report}/")

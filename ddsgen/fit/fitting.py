@@ -48,9 +48,11 @@ import numpy as np
 import torch
 
 from ddsgen.errors import InputError
+from ddsgen.fit.device_keys import device_key_values, is_device_key, mirror, search_device_keys
 from ddsgen.fit.losses import LossWeights, frame_loss
 from ddsgen.fit.priors import DEFAULT_PRIOR_MM, Priors, SensorParam
 from ddsgen.fit.simulate import FrameData, simulate
+from ddsgen.fit.tiles import step_tiles
 
 DEFAULT_PARAMS = ("emitted_intensity", "read_noise_std", "beta", "baseline")
 #: Fittable sensor parameters by CLI name: the DepthSensor tensor, bounds, prior and group
@@ -68,6 +70,16 @@ SENSOR_PARAMS = {
     "ambient": SensorParam("log_ambient", "ambient_counts", True, ("range", 1e-6, 255.0), 3.0, "ambient", 0.1),
     "read_noise_mean": SensorParam("read_noise_mean", "read_noise_mean_counts", False, ("range", -64.0, 64.0), 16.0,
                                    "ir_offset", 1.0),
+    # Device keys of the preset (attr None): 1-D grid searches, ddsgen.fit.device_keys; docs/fit_transfer.md.
+    "projector_falloff": SensorParam(None, "projector_falloff_exponent", False, ("range", 0.0, 8.0), 2.0, "falloff",
+                                     0.5),
+    "vignetting": SensorParam(None, "vignetting_exponent", False, ("range", 0.0, 8.0), 1.0, "falloff", 0.5),
+    "speckle_grain": SensorParam(None, "speckle_grain_px", False, ("range", 0.0, 3.0), 0.5, "speckle", 0.25),
+    "speckle_shape": SensorParam(None, "speckle_shape", True, ("factor", 0.25, 4.0), 0.7, "speckle", 0.2),
+    "shot_noise_gain": SensorParam(None, "electrons_per_count", True, ("factor", 0.25, 4.0), 0.7, "snr", 0.25),
+    "cleanup_speckle": SensorParam(None, "cleanup_speckle_px", False, ("range", 0.0, 400.0), 100.0, "cleanup", 25.0),
+    "cleanup_hole": SensorParam(None, "cleanup_hole_px", False, ("range", 0.0, 32.0), 8.0, "cleanup", 2.0),
+    "cleanup_max_diff": SensorParam(None, "cleanup_max_diff_px", False, ("range", 0.25, 4.0), 1.0, "cleanup", 0.25),
 }  # fmt: skip
 LOG_LR_SCALE = 30.0
 LATTICE_MIN_COHERENCE = 0.3
@@ -118,7 +130,8 @@ def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
     effects = {e.name: e for e in sensor.effects}
     for name in names:
         if name in SENSOR_PARAMS:
-            out[name] = [getattr(sensor, SENSOR_PARAMS[name].attr)]
+            spec = SENSOR_PARAMS[name]
+            out[name] = [mirror(sensor, spec.key) if is_device_key(spec) else getattr(sensor, spec.attr)]
         elif name == "effects":
             for effect in sensor.effects:
                 for key, p in effect.raw.items():
@@ -149,6 +162,7 @@ def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
 def physical_values(sensor) -> dict:
     """Physical parameter values plus effect values (plain floats), for reports."""
     values = {k: round(v, 9) for k, v in sensor.physical_parameters().items()}
+    values.update(device_key_values(sensor, SENSOR_PARAMS))
     for effect in sensor.effects:
         for key, value in effect.values().items():
             values[f"effect:{effect.name}.{key}"] = round(value, 9)
@@ -270,7 +284,8 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
 def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: int = 100, lr: float = 1e-3,
                progress: bool = True, *, seed: int = 0, weights: LossWeights = LossWeights(), search: bool = True,
                batch_frames: int | None = None, callback: Callable[[int, dict], None] | None = None,
-               prior_mm: float = DEFAULT_PRIOR_MM, start_effects: bool = False) -> FitResult:  # fmt: skip
+               prior_mm: float = DEFAULT_PRIOR_MM, start_effects: bool = False,
+               tile_px: int | None = None) -> FitResult:  # fmt: skip
     """Fit ``params`` of ``sensor`` (in place) to the real scans of ``frames``.
 
     Args:
@@ -289,6 +304,8 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         prior_mm: weight of the regulariser toward the start values (:mod:`ddsgen.fit.priors`);
             every table parameter is also kept within its bounds (searches included).
         start_effects: start a fitted ``disparity_distortion`` grid from least squares (:mod:`ddsgen.fit.starts`).
+        tile_px: each Adam step simulates a random ``tile_px``-px window of each chosen frame
+            (:mod:`ddsgen.fit.tiles`; a stochastic gradient at a fraction of the price); None: whole frames.
 
     Returns:
         :class:`FitResult`.
@@ -315,6 +332,11 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     if search and snr:
         searches["snr"] = search_snr(sensor, frames, snr[0], seed)
         searched.update(snr)  # the other one is not identifiable separately: held
+    device_keys = [n for n in resolved if n in SENSOR_PARAMS and is_device_key(SENSOR_PARAMS[n])]
+    if device_keys:  # always searched: they have no usable gradient (ddsgen.fit.device_keys)
+        searches.update(search_device_keys(sensor, device_keys, SENSOR_PARAMS,
+                                           lambda: _mean_terms(sensor, frames, seed, weights)["total"], prior_mm))
+        searched.update(device_keys)
     groups = []
     for name, tensors in resolved.items():
         if name in searched:
@@ -331,6 +353,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         bar = tqdm(range(steps), desc="fit", unit="step", disable=not progress, dynamic_ncols=True)
         for step in bar:
             chosen = [frames[(step * batch + i) % len(frames)] for i in range(batch)]
+            chosen = step_tiles(chosen, tile_px, step, seed, sensor.preset.block_size_px)
             optimiser.zero_grad(set_to_none=True)
             totals: dict[str, float] = {}
             for f in chosen:
@@ -358,9 +381,12 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         p.requires_grad_(False)
     trainable = sum(t.numel() for tensors in resolved.values() for t in tensors)
     bounded = Priors(sensor, {n: SENSOR_PARAMS[n] for n in resolved if n in SENSOR_PARAMS}, 0.0)
+    bounds = bounded.table() + [{"param": n, "key": SENSOR_PARAMS[n].key, "bound": list(SENSOR_PARAMS[n].bound),
+                                 "prior_width": SENSOR_PARAMS[n].width, "log": SENSOR_PARAMS[n].log,
+                                 "group": SENSOR_PARAMS[n].group} for n in device_keys]  # fmt: skip
     return FitResult(params=list(resolved), before=before, after=physical_values(sensor), history=history,
                      searches=searches, seconds=time.perf_counter() - start_time, trainable=int(trainable),
-                     bounds=bounded.table(), at_bound=[n for n in priors.at_bound()])  # fmt: skip
+                     bounds=bounds, at_bound=[n for n in priors.at_bound()])  # fmt: skip
 
 
 def split_frames(frames: list, holdout: float, seed: int = 0) -> tuple[list, list]:

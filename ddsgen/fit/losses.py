@@ -66,6 +66,13 @@ class LossWeights:
     gradient: float = 1.0
     validity: float = 1.0
     pixel: float = 0.0
+    #: Fitting: on the support plane, the depth error's part that a plane shift or tilt explains is not
+    #: evidence about the sensor (:func:`without_plane_pose`). ``compare`` keeps it (False).
+    plane_nuisance: bool = False
+
+
+#: The weights ``fit`` uses: the support plane's pose is a nuisance (see :func:`without_plane_pose`).
+FIT_WEIGHTS = LossWeights(plane_nuisance=True)
 
 
 def huber(x: torch.Tensor, delta: float = HUBER_DELTA_MM) -> torch.Tensor:
@@ -120,6 +127,32 @@ def roughness(depth_error_mm: torch.Tensor, mask: torch.Tensor) -> tuple[torch.T
     return gx.abs() + gy.abs(), erode(mask)
 
 
+def without_plane_pose(err_mm: torch.Tensor, frame, both: torch.Tensor) -> torch.Tensor:
+    """The depth error (H, W, mm) with, on the support plane's pixels, its part affine in disparity removed.
+
+    The table plane is not known: it was fitted to the real depth (:mod:`ddsgen.fit.simulate`), and a
+    plane stays a plane in (u, v, disparity) space, so any disparity error affine in (u, v) -- an
+    offset, a tilt -- is explained as well by moving the plane as by the sensor (the plane's pose is a
+    nuisance). On the plane's pixels (``both`` & instance 0) the error in disparity units, ``err / z^2``
+    (f b cancels), minus its least-squares fit ``a + b u + c v`` is what the sensor must explain;
+    the objects, placed by their ground-truth poses, keep their whole error. Differentiable (a 3 x 3 solve).
+    """
+    plane = both & (frame.instance == 0)
+    count = int(plane.sum())
+    if count < 50:
+        return err_mm
+    height, width = err_mm.shape
+    v, u = torch.meshgrid(torch.arange(height, dtype=err_mm.dtype), torch.arange(width, dtype=err_mm.dtype),
+                          indexing="ij")  # fmt: skip
+    z2 = (frame.real_depth.to(err_mm.dtype) ** 2)[plane]
+    r = err_mm.clamp(-CLIP_MM, CLIP_MM)[plane] / z2
+    basis = torch.stack([torch.ones(count, dtype=err_mm.dtype), u[plane] / width, v[plane] / height], dim=1)
+    coef = torch.linalg.solve(basis.T @ basis, basis.T @ r)
+    explained = torch.zeros_like(err_mm)
+    explained = explained.index_put((plane.nonzero(as_tuple=True)), (basis @ coef) * z2)
+    return err_mm - explained
+
+
 def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, torch.Tensor]:
     """Loss terms of one simulated frame against its real scan.
 
@@ -142,11 +175,14 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
     terms = {"depth": zero, "gradient": zero, "validity": zero, "pixel": zero}
     if bool(both.any()):
         err = torch.where(both, simd - real, torch.zeros_like(simd))
+        if weights.plane_nuisance and frame.plane is not None:
+            err = torch.where(both, without_plane_pose(err, frame, both), err)
         local, support = masked_local_mean(err.clamp(-CLIP_MM, CLIP_MM), both, k)
         keep = both & (support >= 0.3)
         if bool(keep.any()):
             terms["depth"] = huber(local[keep]).mean()
-        terms["pixel"] = huber(err[both]).mean()
+        # Reported even at weight 0 (compare), but then without a graph to back-propagate through.
+        terms["pixel"] = huber((err if weights.pixel else err.detach())[both]).mean()
         r_sim, ok_sim = roughness(simd - clean, both)
         r_real, ok_real = roughness(real - clean, both)
         ok = ok_sim & ok_real

@@ -3,7 +3,8 @@
 Every sensor parameter ``fit`` can move is one :class:`SensorParam` entry of
 :data:`ddsgen.fit.fitting.SENSOR_PARAMS` (adding a parameter to the fit is adding one entry):
 
-* ``attr`` -- the :class:`~ddsgen.sensor.depth_sensor.DepthSensor` tensor that stores it,
+* ``attr`` -- the :class:`~ddsgen.sensor.depth_sensor.DepthSensor` tensor that stores it
+  (``None``: a device key of the preset, fitted by a 1-D search, :mod:`ddsgen.fit.device_keys`),
   ``log`` -- whether that tensor is the logarithm of the physical value;
 * ``bound`` -- where the fitted value must stay: ``("factor", lo, hi)`` = within [lo, hi] x the
   start (input preset's) value, ``("range", lo, hi)`` = within [lo, hi] in the preset key's units;
@@ -36,7 +37,7 @@ DEFAULT_PRIOR_MM = 0.1
 class SensorParam:
     """One fittable sensor parameter (see the module docstring)."""
 
-    attr: str
+    attr: str | None
     key: str
     log: bool
     bound: tuple[str, float, float]
@@ -77,6 +78,8 @@ class Priors:
     def __init__(self, sensor, table: dict[str, SensorParam], prior_mm: float = DEFAULT_PRIOR_MM):
         self.entries = []
         for name, spec in table.items():
+            if spec.attr is None:  # device keys: bounded by their search grid (ddsgen.fit.device_keys)
+                continue
             tensor = getattr(sensor, spec.attr)
             start = float(tensor.detach())
             self.entries.append((name, spec, tensor, start, spec.stored_bounds(start)))

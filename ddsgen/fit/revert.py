@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 
 from ddsgen.fit.compare import gap
+from ddsgen.fit.device_keys import apply_mirrors
 
 
 def param_group(name: str, table: dict) -> str:
@@ -33,11 +34,12 @@ def snapshot(resolved: dict[str, list[torch.Tensor]]) -> dict[str, list[torch.Te
     return {name: [t.detach().clone() for t in tensors] for name, tensors in resolved.items()}
 
 
-def _assign(resolved, values, names) -> None:
+def _assign(sensor, resolved, values, names) -> None:
     with torch.no_grad():
         for name in names:
             for tensor, value in zip(resolved[name], values[name]):
                 tensor.copy_(value)
+    apply_mirrors(sensor)  # device keys live in the preset (ddsgen.fit.device_keys)
 
 
 def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dict, *, region: str = "all",
@@ -47,7 +49,9 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
     Args:
         resolved: name -> tensors (``fitting.resolve_params`` of the fitted names).
         start: :func:`snapshot` of the same names taken before the fit.
-        held: held-out FrameData; region/seed: as ``compare.gap``.
+        held: held-out FrameData, or a callable sensor -> FrameData preparing them for the sensor as it is
+            (support planes where its disparity errors put them, :mod:`ddsgen.fit.plane_depth`);
+            region/seed: as ``compare.gap``.
 
     Returns:
         {"gap_input", "gap_fitted", "gap_kept" (mm), "better" (bool: the kept preset beats the input),
@@ -56,12 +60,13 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
     fitted = snapshot(resolved)
 
     def held_gap() -> float:
-        return gap(sensor, held, region=region, seed=seed, noise_floor=False).gap
+        frames = held(sensor) if callable(held) else held
+        return gap(sensor, frames, region=region, seed=seed, noise_floor=False).gap
 
     gap_fitted = held_gap()
-    _assign(resolved, start, list(resolved))
+    _assign(sensor, resolved, start, list(resolved))
     gap_input = held_gap()
-    _assign(resolved, fitted, list(resolved))
+    _assign(sensor, resolved, fitted, list(resolved))
     groups: dict[str, list[str]] = {}
     for name in resolved:
         groups.setdefault(param_group(name, table), []).append(name)
@@ -72,13 +77,13 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
         if not changed:
             report[group] = {"params": names, "kept": False, "gap_without_change": current, "note": "unchanged"}
             continue
-        _assign(resolved, start, names)
+        _assign(sensor, resolved, start, names)
         without = held_gap()
         if without <= current:  # the change did not help on the held-out frames: keep the input's values
             current = without
             report[group] = {"params": names, "kept": False, "gap_without_change": without}
         else:
-            _assign(resolved, fitted, names)
+            _assign(sensor, resolved, fitted, names)
             report[group] = {"params": names, "kept": True, "gap_without_change": without}
     return {"gap_input": gap_input, "gap_fitted": gap_fitted, "gap_kept": current, "better": current < gap_input,
             "groups": report}  # fmt: skip

@@ -245,7 +245,7 @@ def crop_intrinsics(intrinsics: Intrinsics, box: tuple[int, int, int, int]) -> I
 
 def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: bool = True,
                   albedo: float = DEFAULT_ALBEDO, plausible_px: float = DEFAULT_PLAUSIBLE_PX,
-                  crop: bool = False, crop_margin_px: int = 24, seed: int = 0) -> FrameData:  # fmt: skip
+                  crop: bool = False, crop_margin_px: int = 24, seed: int = 0, plane_depth=None) -> FrameData:  # fmt: skip
     """One :class:`FrameData` (see :func:`prepare_frames`)."""
     from ddsgen.raycast import cast
     from ddsgen.sensor.depth_sensor import SensorGeometry
@@ -262,7 +262,8 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         import cv2
 
         exclude = cv2.dilate((hits.instance > 0).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
-        plane = fit_support_plane(real, intr, exclude, fb, np.random.default_rng([seed, index, 5]))
+        plane_input = real if plane_depth is None else plane_depth(real, intr)
+        plane = fit_support_plane(plane_input, intr, exclude, fb, np.random.default_rng([seed, index, 5]))
         if plane is not None:
             hits = cast(frame_scene(frame, albedo, plane), intr, preset.baseline_m, preset.shadow_bias_m)
 
@@ -317,7 +318,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
 def prepare_frames(preset: SensorPreset, scan_frames, *, support_plane: bool = True,
                    albedo: float = DEFAULT_ALBEDO, plausible_px: float = DEFAULT_PLAUSIBLE_PX,
                    crop: bool = False, crop_margin_px: int = 24, seed: int = 0, progress: bool = False,
-                   ) -> list[FrameData]:  # fmt: skip
+                   plane_depth=None) -> list[FrameData]:  # fmt: skip
     """Ray-cast every scan frame once: the constant inputs of simulation, comparison and fitting.
 
     Args:
@@ -329,6 +330,8 @@ def prepare_frames(preset: SensorPreset, scan_frames, *, support_plane: bool = T
         plausible_px: plausibility threshold (px of disparity) of the comparison region.
         crop: crop each frame to its objects' bounding box plus ``crop_margin_px``.
         seed: seeds RANSAC (and, via :meth:`FrameData.noise_seed`, the simulated IR noise).
+        plane_depth: optional ``(real depth (H, W) m, intrinsics) -> depth`` the support plane is fitted
+            to instead of the raw real depth (:mod:`ddsgen.fit.plane_depth`: the sensor's errors undone).
         progress: show a progress bar.
 
     Returns:
@@ -346,7 +349,7 @@ def prepare_frames(preset: SensorPreset, scan_frames, *, support_plane: bool = T
         if not frame.objects:
             raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists no objects (nothing to simulate)")
         data = prepare_frame(preset, frame, i, support_plane=support_plane, albedo=albedo, plausible_px=plausible_px,
-                             crop=crop, crop_margin_px=crop_margin_px, seed=seed)  # fmt: skip
+                             crop=crop, crop_margin_px=crop_margin_px, seed=seed, plane_depth=plane_depth)  # fmt: skip
         if not bool(data.region.any()):
             raise InputError(f"{frame.source_depth_path}: frame {frame.name}: no modelled object is visible and "
                              f"plausible (check the poses, mesh units and intrinsics)")  # fmt: skip

@@ -4,7 +4,9 @@ Adam on the depth loss moves a smooth per-pixel field slowly and noisily (each c
 sees only the pixels near it, through a Huber of local means). ``disparity_distortion`` is
 linear in its control values for given alpha0/alpha1 (:func:`~ddsgen.sensor.effects.distortion.fit_distortion_grid`),
 so the residual disparity d_real - d_sim of the current simulation gives the correction in one
-trimmed least-squares solve; Adam then refines it jointly with the rest.
+trimmed least-squares solve; Adam then refines it jointly with the rest. On the support plane's pixels
+an affine term per frame (the plane's pose, fitted to the real depth: a nuisance) is solved jointly and
+discarded, so the plane does not pull the field's offset and tilt toward zero.
 """
 
 from __future__ import annotations
@@ -16,8 +18,12 @@ from ddsgen.fit.simulate import simulate
 from ddsgen.sensor.effects.distortion import GRID_COLS, GRID_KEYS, GRID_ROWS, X_EXTENT, Y_EXTENT, fit_distortion_grid
 from ddsgen.sensor.effects.features import normalised_coordinates
 
-#: Share of pixels kept (those whose residual is nearest the median: drops flying pixels and mismatches).
-KEEP_QUANTILE = 0.8
+#: Pixels whose residual is farther than this from the median (px) are mismatches or flying pixels, not
+#: distortion (a real Kinect's field is a few tenths of a px, Herrera et al. 2012). A share-based trim
+#: (the nearest 80 %) dropped exactly the pixels where the field is strongest: on the hidden device of
+#: tests/test_fit_transfer.py the solved field had a quarter of the true amplitude (correlation 0.70 with
+#: the truth; 0.85 and twice the amplitude without the trim).
+TRIM_PX = 1.0
 #: At most this many pixels per frame enter the solve.
 MAX_PIXELS_PER_FRAME = 20000
 #: Ridge toward "no change": each control point also gets a pseudo-pixel of zero change at its own
@@ -37,7 +43,7 @@ def start_distortion_grid(sensor, frames, seed: int = 0) -> dict:
         return {}
     alpha0, alpha1 = float(effect.value("alpha0").detach()), float(effect.value("alpha1").detach())
     rng = np.random.default_rng(seed)
-    xs, ys, ds, targets = [], [], [], []
+    xs, ys, ds, targets, on_plane = [], [], [], [], []
     with torch.no_grad():
         fb = float(sensor.baseline) * float(sensor.focal_scale)
         for f in frames:
@@ -56,11 +62,23 @@ def start_distortion_grid(sensor, frames, seed: int = 0) -> dict:
             ys.append(y[both].double().numpy()[pick])
             ds.append(d_sim.numpy()[pick])
             targets.append((d_real - d_sim).numpy()[pick])
+            plane = (f.instance[both] == 0).numpy()[pick] if f.plane is not None else np.zeros(pick.size, bool)
+            on_plane.append(plane)
     if not targets:
         return {}
     # Trim before the solve (flying pixels, mismatches): the ridge rows must not be trimmed themselves.
     residual = np.concatenate(targets)
-    keep = np.abs(residual - np.median(residual)) <= np.quantile(np.abs(residual - np.median(residual)), KEEP_QUANTILE)
+    keep = np.abs(residual - np.median(residual)) <= TRIM_PX
+    # The support plane's pose is a nuisance (it was fitted to the real depth, ddsgen.fit.plane_depth):
+    # per frame, a + b x + c y on its plane pixels is solved jointly and discarded.
+    frame_of = np.concatenate([np.full(len(t), k) for k, t in enumerate(targets)])[keep]
+    plane_px = np.concatenate(on_plane)[keep]
+    x_all, y_all = np.concatenate(xs)[keep], np.concatenate(ys)[keep]
+    columns = []
+    for k in range(len(targets)):
+        sel = (frame_of == k) & plane_px
+        if sel.sum() >= 50:
+            columns += [sel * 1.0, sel * x_all, sel * y_all]
     xs, ys, ds, targets = ([np.concatenate(v)[keep]] for v in (xs, ys, ds, targets))
     n = int(keep.sum())
     rows, cols = np.meshgrid(np.linspace(-Y_EXTENT, Y_EXTENT, GRID_ROWS), np.linspace(-X_EXTENT, X_EXTENT, GRID_COLS),
@@ -70,8 +88,9 @@ def start_distortion_grid(sensor, frames, seed: int = 0) -> dict:
     ds.append(np.zeros(len(GRID_KEYS)))
     targets.append(np.zeros(len(GRID_KEYS)))
     weights = np.concatenate([np.ones(n), np.full(len(GRID_KEYS), RIDGE_SHARE * n)])
+    nuisance = np.vstack([np.stack(columns, axis=1), np.zeros((len(GRID_KEYS), len(columns)))]) if columns else None
     change = fit_distortion_grid(np.concatenate(xs), np.concatenate(ys), np.concatenate(ds), np.concatenate(targets),
-                                 alpha0, alpha1, weights=weights)  # fmt: skip
+                                 alpha0, alpha1, weights=weights, nuisance=nuisance)  # fmt: skip
     current = [float(effect.value(k).detach()) for k in GRID_KEYS]
     bound = effect.params[GRID_KEYS[0]].high * 0.999  # stay inside the sigmoid's open range
     effect.set_values(**{k: float(np.clip(c + d, -bound, bound)) for k, c, d in zip(GRID_KEYS, current, change)})

@@ -28,8 +28,10 @@ import math
 
 import torch
 
+from ddsgen.fit.device_keys import integer_key, is_device_key, set_key, stored
 from ddsgen.fit.losses import LossWeights, frame_loss, local_window
 from ddsgen.fit.simulate import simulate
+from ddsgen.fit.tiles import crop_frame
 
 #: Tile side in loss windows (15 px at 640 x 480 -> 90 px tiles).
 TILE_WINDOWS = 6
@@ -59,13 +61,29 @@ def tile_masks(frame) -> list[tuple[torch.Tensor, float]]:
     return out
 
 
-def _tile_losses(sensor, frames, tiles, seed, weights) -> list[float]:
+#: Margin (px) around a tile when its loss is computed on a crop: the loss's filters reach 1 px (Sobel) and
+#: its local means only average masked pixels, so 2 px give the loss of the tile on the whole frame.
+TILE_CROP_MARGIN = 2
+
+
+def _tile_losses(sensor, frames, tiles, seed, weights, crop: bool = True) -> list[float]:
+    """Loss of every tile (weighted), one simulation per frame. ``crop``: each tile's loss on its own
+    window (+ :data:`TILE_CROP_MARGIN`) instead of the whole frame masked to it (same value, ~tiles x cheaper)."""
     values = []
     with torch.no_grad():
         for frame, frame_tiles in zip(frames, tiles):
             sim = simulate(sensor, frame, seed)
             for mask, w in frame_tiles:
-                loss = frame_loss(sim, dataclasses.replace(frame, region=mask), weights)["total"]
+                piece_sim, piece = sim, dataclasses.replace(frame, region=mask)
+                if crop:
+                    rows, cols = torch.nonzero(mask, as_tuple=True)
+                    y0, x0 = max(int(rows.min()) - TILE_CROP_MARGIN, 0), max(int(cols.min()) - TILE_CROP_MARGIN, 0)
+                    y1, x1 = int(rows.max()) + 1 + TILE_CROP_MARGIN, int(cols.max()) + 1 + TILE_CROP_MARGIN
+                    piece = crop_frame(frame, (x0, y0, min(x1, frame.shape[1]) - x0, min(y1, frame.shape[0]) - y0), 0)
+                    sl = (slice(y0, y0 + piece.shape[0]), slice(x0, x0 + piece.shape[1]))
+                    piece = dataclasses.replace(piece, region=mask[sl])
+                    piece_sim = dataclasses.replace(sim, **{k: getattr(sim, k)[sl] for k in ("depth", "valid", "valid_soft")})
+                loss = frame_loss(piece_sim, piece, weights)["total"]
                 values.append(w * float(loss) / len(frames))
     return values
 
@@ -107,6 +125,9 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
     out: dict[str, dict] = {}
     for name in result.params:
         if name == "cnn" or (names is not None and name not in names):
+            continue
+        if name in table and is_device_key(table[name]):
+            out[name] = _device_key_entry(sensor, frames, tiles, name, table[name], result, seed, weights, priors)
             continue
         if name in table:
             spec = table[name]
@@ -156,6 +177,31 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
         method = "loss curvature, sandwich over tiles" + (" (search terms)" if searched else "")
         out[name] = _entry(key, value, sigma, method)
     return out
+
+
+def _device_key_entry(sensor, frames, tiles, name, spec, result, seed, weights, priors) -> dict:
+    """A device key (:mod:`ddsgen.fit.device_keys`): the same sandwich, the preset value stepped by ``spec.step``
+    (at least 1 for integer keys) in stored units; the search's prior adds its curvature."""
+    search = result.searches.get(name, {})
+    value = float(getattr(sensor.preset, spec.key))
+    if search.get("held"):
+        return _entry(spec.key, value, math.nan, search["method"])
+    if spec.log and value <= 0:
+        return _entry(spec.key, value, math.nan, "switched off in the input: not fitted")
+    step = max(1.0, round(spec.step)) if integer_key(sensor, spec.key) and not spec.log else spec.step
+    x0 = stored(spec, value)
+    lo, hi = spec.stored_bounds(stored(spec, float(search.get("start", value))))
+    if x0 - step < lo - 1e-9 or x0 + step > hi + 1e-9:  # one-sided at a bound: step inwards twice
+        x0 = min(max(x0, lo + step), hi - step)
+    sides = []
+    for x in (x0 - step, x0, x0 + step):
+        set_key(sensor, spec.key, math.exp(x) if spec.log else x)
+        sides.append(_tile_losses(sensor, frames, tiles, seed, weights))
+    set_key(sensor, spec.key, value)
+    curvature = 2.0 * priors.prior_mm / spec.width**2 if priors is not None else 0.0
+    sigma_stored = sandwich_sigma(*sides, step, curvature)
+    sigma = abs(value) * sigma_stored if spec.log else sigma_stored
+    return _entry(spec.key, value, sigma, "loss curvature, sandwich over tiles (1-D grid search)")
 
 
 def _physical(sensor, name: str, table: dict) -> float:

@@ -1,0 +1,77 @@
+"""Random tiles of the fit frames: one Adam step on a window of each frame instead of the whole image.
+
+An Adam step on whole 640 x 480 frames costs a forward, the loss and a backward over every
+pixel, most of which carry the same evidence as their neighbours. A step on a random
+``tile x tile`` window of each frame is a stochastic gradient of the same loss at a fraction
+of the price (a 192-px tile is 12 % of a 640 x 480 frame); over the steps the windows cover the
+frames. A sub-window of a pinhole image is a pinhole image with a shifted principal point
+(:func:`ddsgen.fit.simulate.crop_intrinsics`), so a tile is simulated like ``compare --crop``
+simulates a crop: the same geometry, parameters and noise law; only the placement of the dot
+pattern on the window differs (the pattern is centred on each window), which no sensor
+parameter depends on.
+
+Tiles are centred on a random pixel of the frame's comparison region (so that they hold
+evidence) and chosen from ``rng([seed, step, frame.index])``: the same seed gives the same tiles.
+A border of ``block // 2 + 1`` px is left out of a tile's region (the matcher cannot match there,
+the real sensor could), as in cropped frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from ddsgen.fit.simulate import FrameData, crop_intrinsics
+
+#: The noise stream of tile positions (distinct from the IR noise streams).
+TILE_STREAM = 4099
+
+
+def tile_box(frame: FrameData, size: int, rng: np.random.Generator) -> tuple[int, int, int, int]:
+    """(x0, y0, width, height) of a ``size`` x ``size`` window (clipped to the frame) around a random region pixel."""
+    height, width = frame.shape
+    tw, th = min(size, width), min(size, height)
+    rows, cols = torch.nonzero(frame.region, as_tuple=True)
+    if len(rows):
+        k = int(rng.integers(len(rows)))
+        cy, cx = int(rows[k]), int(cols[k])
+    else:
+        cy, cx = height // 2, width // 2
+    x0 = min(max(cx - tw // 2, 0), width - tw)
+    y0 = min(max(cy - th // 2, 0), height - th)
+    return x0, y0, tw, th
+
+
+def crop_frame(frame: FrameData, box: tuple[int, int, int, int], border: int) -> FrameData:
+    """The sub-window ``box`` = (x0, y0, width, height) of a prepared frame, its region without ``border`` px."""
+    x0, y0, w, h = box
+    if (w, h) == (frame.shape[1], frame.shape[0]):
+        return frame
+    sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+    geometry = dataclasses.replace(
+        frame.geometry, **{k: getattr(frame.geometry, k)[sl].contiguous()
+                           for k in ("points", "normals", "albedo", "hit", "shadow", "clean_depth")})  # fmt: skip
+    inner = torch.zeros(h, w, dtype=torch.bool)
+    inner[border : h - border, border : w - border] = True
+    region = frame.region[sl] & inner
+    instance = frame.instance[sl]
+    fx0, fy0 = frame.crop[0], frame.crop[1]
+    return dataclasses.replace(
+        frame, intrinsics=crop_intrinsics(frame.intrinsics, box), crop=(fx0 + x0, fy0 + y0, w, h), geometry=geometry,
+        instance=instance, real_depth=frame.real_depth[sl], real_valid=frame.real_valid[sl], region=region,
+        object_region=region & (instance > 0), incidence_deg=frame.incidence_deg[sl], radius=frame.radius[sl],
+    )  # fmt: skip
+
+
+def step_tiles(frames: list[FrameData], size: int | None, step: int, seed: int, block_px: int) -> list[FrameData]:
+    """The frames of one Adam step: each cut to a random ``size``-px tile (``None``/0: the whole frames)."""
+    if not size:
+        return list(frames)
+    out = []
+    for frame in frames:
+        rng = np.random.default_rng([int(seed), int(step), int(frame.index), TILE_STREAM])
+        tile = crop_frame(frame, tile_box(frame, size, rng), block_px // 2 + 1)
+        out.append(tile if bool(tile.region.any()) else frame)
+    return out
