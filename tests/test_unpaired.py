@@ -208,7 +208,8 @@ def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys, 
     from ddsgen.io.png import write_depth_png
     from ddsgen.preset import load_preset, save_preset
 
-    monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS", {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]})
+    lattice_only = {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]}
+    monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS", lattice_only)
     stock, real = hidden_device
     for frame in real[:4]:
         write_depth_png(tmp_path / "real" / "depth" / frame.name, frame.depth)

@@ -76,7 +76,8 @@ def print_summary(content: dict) -> None:
 
     before, after = content["distance_before"]["total"], content["distance_after"]["total"]
     click.echo(f"feature distance: {before:.4f} (stock) -> {after:.4f} (fitted) over {len(content['real_frames'])} "
-               f"real frame(s), {content['evaluations']} value sets, {content['frames_rendered']} frames rendered")  # fmt: skip
+               f"real frame(s), {content['evaluations']} value sets, "
+               f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
         bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
         note = "  (flat profile: weakly identified)" if bound else ""

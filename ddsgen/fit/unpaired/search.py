@@ -9,7 +9,8 @@
    (:mod:`.features`) and measure the distance to the real frames' features.
 3. Coordinate search over the table's parameters (:mod:`.parameters`), each on the distance
    terms that identify it (fall-off: validity by radius; clean-up sizes: hole sizes; the others:
-   the total): a coarse grid over each parameter's bounds on half the frames; a second, local pass (+-1 coarse step: the parameters interact, e.g. a
+   the total): a coarse grid over each parameter's bounds on half the frames; a local walk on
+   all frames (+-1 coarse step, moving while it improves: the parameters interact, e.g. a
    lower SNR and a higher confidence threshold both make holes); then a profile of 5 points
    (+-1/2 coarse step) around the best value, whose parabola vertex is the fitted value.
 4. Uncertainty: a bootstrap over real *and* simulated frames re-sums the cached per-frame
@@ -43,8 +44,9 @@ class UnpairedResult:
 
     before/after: fitted keys' values; uncertainty: bootstrap std per key (search units: the
     value's own unit); distance_before/after: distance terms; evaluations: number of value sets
-    rendered; frames_rendered: frames rendered in all; history: one dict per evaluation (values, total); profiles: per key the
-    profile points and distances; seconds: wall time.
+    rendered; frames_rendered: frames rendered in all; history: one dict per evaluation
+    (values, frames, terms); profiles: per key the profile points, their objective and its
+    terms; seconds: wall time.
     """
 
     before: dict
