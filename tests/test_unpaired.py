@@ -168,7 +168,8 @@ def hidden_device():
 def _fit(stock, real, scene_list):
     from ddsgen.fit.unpaired.search import cast_scenes, fit_unpaired
 
-    return fit_unpaired(stock, real, cast_scenes(stock, scene_list, 6, seed=3), seed=0, bootstrap=40, progress=False)
+    return fit_unpaired(stock, real, cast_scenes(stock, scene_list, 6, seed=3), seed=0, bootstrap=40, keys=tuple(HIDDEN),
+                        progress=False)  # fmt: skip
 
 
 def _assert_near_hidden(after: dict):
@@ -199,12 +200,16 @@ def test_unpaired_fit_does_not_follow_scene_content(hidden_device):
     _assert_near_hidden(result.after)
 
 
-@pytest.mark.slow
-def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys):
+def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys, monkeypatch):
+    """The command end to end (the fit itself is tested above: only the lattice is fitted here,
+    to keep it fast)."""
     from ddsgen.cli import main
+    from ddsgen.fit.unpaired import parameters
     from ddsgen.io.png import write_depth_png
     from ddsgen.preset import load_preset, save_preset
 
+    lattice_only = {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]}
+    monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS", lattice_only)
     stock, real = hidden_device
     for frame in real[:4]:
         write_depth_png(tmp_path / "real" / "depth" / frame.name, frame.depth)
@@ -215,5 +220,31 @@ def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys):
     fitted = load_preset(out)
     assert fitted.subpixel_level == HIDDEN["subpixel_level"] and fitted.width_px == W
     assert "+-" in capsys.readouterr().out
-    for name in ("distributions.png", "patches.png", "unpaired_report.json"):
+    for name in ("distributions.png", "patches.png", "frames.png", "unpaired_report.json"):
         assert (tmp_path / "report" / name).stat().st_size > 1000
+
+
+def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
+    """The device keys: a hidden kinect_v1 with a steeper beam fall-off (cos^12, stock cos^4) and
+    no hole filling (stock fills holes below 8 px), targets on scene list A, fit on the built-in
+    list. The fall-off is found from validity by image radius alone, the hole filling from the
+    hole-size histogram (1-px holes exist only without it)."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+    from ddsgen.preset import load_preset
+    from ddsgen.scene.scenelist import load_scene_list
+
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    stock = camera_for(load_preset("kinect_v1"), W, H)
+    hidden = {"projector_falloff_exponent": 12.0, "cleanup_hole_px": 0}
+    device = stock.replace(**hidden)
+    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
+    depths = render_depths(device, cast_scenes(device, scenes_a, 8, seed=11), seed=11)
+    real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    result = fit_unpaired(stock, real, cast_scenes(stock, load_scene_list(None), 6, seed=3), seed=0, bootstrap=40,
+                          keys=tuple(hidden), progress=False)  # fmt: skip
+    assert result.after["cleanup_hole_px"] == 0
+    falloff, sigma = result.after["projector_falloff_exponent"], result.uncertainty["projector_falloff_exponent"]
+    assert abs(falloff - 12.0) < max(2.5 * sigma, 2.0) and sigma < 3.0  # stock: 4
+    assert result.distance_after["radius"] < 0.5 * result.distance_before["radius"]

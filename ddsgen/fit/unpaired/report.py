@@ -7,6 +7,8 @@ Files written into the report folder (each atomically):
   share by image radius.
 * ``patches.png``: depth patches of real frames next to patches of the stock and fitted
   renders (not the same scenes: unpaired), each in its own colour range, invalid black.
+* ``frames.png``: whole frames, real next to stock and fitted renders (the same fit scene in
+  both sim columns), invalid black: hole structure, corners and left border at a glance.
 * ``unpaired_report.json``: fitted values with bootstrap uncertainties, distances before and
   after, feature summaries, the hole/validity/quantisation statistics of
   :mod:`ddsgen.depth_statistics` (median over frames) for real, stock and fitted renders.
@@ -116,6 +118,29 @@ def plot_patches(columns: dict[str, list[np.ndarray]], path: Path, rows: int = 4
     _save(fig, path)
 
 
+def plot_frames(columns: dict[str, list[np.ndarray]], path: Path, rows: int = 3) -> None:
+    """``columns``: label -> depth frames; the first ``rows`` frames of each, whole, invalid black,
+    each frame in its own 2-98 % depth range."""
+    plt = _plt()
+    cmap = plt.get_cmap("viridis").with_extremes(bad="black")
+    fig, axes = plt.subplots(rows, len(columns), figsize=(3.6 * len(columns), 2.8 * rows), squeeze=False)
+    for c, (label, frames) in enumerate(columns.items()):
+        for r in range(rows):
+            ax = axes[r, c]
+            ax.set_xticks([]), ax.set_yticks([])
+            if r >= len(frames):
+                ax.axis("off")
+                continue
+            depth = frames[r].astype(float)
+            valid = depth > 0
+            lo, hi = np.percentile(depth[valid], [2, 98]) if valid.any() else (0.0, 1.0)
+            ax.imshow(np.ma.masked_where(~valid, depth), cmap=cmap, vmin=lo, vmax=max(hi, lo + 1e-3),
+                      interpolation="nearest")  # fmt: skip
+            ax.set_title(f"{label}: {valid.mean():.0%} valid", fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def write_report(folder: str | Path, content: dict, pooled: dict[str, dict], depths: dict[str, list[np.ndarray]],
                  resolution_m: float, seed: int = 0) -> dict:  # fmt: skip
     """Write the report files; returns the JSON content (with the statistics added)."""
@@ -126,5 +151,6 @@ def write_report(folder: str | Path, content: dict, pooled: dict[str, dict], dep
     content["realism_statistics"] = {label: median_statistics(d, resolution_m) for label, d in depths.items()}
     plot_distributions(pooled, folder / "distributions.png")
     plot_patches(depths, folder / "patches.png", seed=seed)
+    plot_frames(depths, folder / "frames.png")
     atomic_write_text(folder / "unpaired_report.json", json.dumps(content, indent=1, default=float) + "\n")
     return content

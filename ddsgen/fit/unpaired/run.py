@@ -20,10 +20,11 @@ DEFAULT_SIM_FRAMES = 8
 
 def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Path | None = None,
                      depth_scale: float = 0.001, out: str | Path = "fitted.yaml", report_dir: str | Path | None = None,
-                     seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200,
+                     seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200, keys=None,
                      progress: bool = True) -> dict:  # fmt: skip
     """Fit the preset to the real depth frames below ``real_dir``; write OUT and the report.
 
+    ``keys``: fit only these keys of the table (default: all; see :mod:`.parameters`).
     Returns the report's JSON content.
     """
     from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
@@ -42,7 +43,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     height, width = real[0].depth.shape
     camera = camera_for(original, width, height)
     geometries = cast_scenes(camera, scene_list, sim_frames, seed, progress)
-    result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, progress=progress)
+    result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, keys=keys, progress=progress)
 
     resolution = max(f.resolution_m for f in real)
     fb = camera.focal_px * camera.baseline_m
@@ -75,7 +76,8 @@ def print_summary(content: dict) -> None:
 
     before, after = content["distance_before"]["total"], content["distance_after"]["total"]
     click.echo(f"feature distance: {before:.4f} (stock) -> {after:.4f} (fitted) over {len(content['real_frames'])} "
-               f"real frame(s), {content['evaluations']} renders of {content['sim_frames']} frames")  # fmt: skip
+               f"real frame(s), {content['evaluations']} value sets, "
+               f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
         bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
         note = "  (flat profile: weakly identified)" if bound else ""

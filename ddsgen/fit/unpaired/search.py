@@ -7,8 +7,10 @@
    the same noise seeds (common random numbers: the distance is a smooth-ish function of the
    values, not re-drawn noise), round depth like the real files, pool the patch features
    (:mod:`.features`) and measure the distance to the real frames' features.
-3. Coordinate search over the table's parameters (:mod:`.parameters`): a coarse grid over each
-   parameter's bounds; a second, local pass (+-1 coarse step: the parameters interact, e.g. a
+3. Coordinate search over the table's parameters (:mod:`.parameters`), each on the distance
+   terms that identify it (fall-off: validity by radius; clean-up sizes: hole sizes; the others:
+   the total): a coarse grid over each parameter's bounds on half the frames; a local walk on
+   all frames (+-1 coarse step, moving while it improves: the parameters interact, e.g. a
    lower SNR and a higher confidence threshold both make holes); then a profile of 5 points
    (+-1/2 coarse step) around the best value, whose parabola vertex is the fitted value.
 4. Uncertainty: a bootstrap over real *and* simulated frames re-sums the cached per-frame
@@ -41,9 +43,10 @@ class UnpairedResult:
     """Outcome of :func:`fit_unpaired`.
 
     before/after: fitted keys' values; uncertainty: bootstrap std per key (search units: the
-    value's own unit); distance_before/after: distance terms; evaluations: number of renders of
-    the fit scenes; history: one dict per evaluation (values, total); profiles: per key the
-    profile points and distances; seconds: wall time.
+    value's own unit); distance_before/after: distance terms; evaluations: number of value sets
+    rendered; frames_rendered: frames rendered in all; history: one dict per evaluation
+    (values, frames, terms); profiles: per key the profile points, their objective and its
+    terms; seconds: wall time.
     """
 
     before: dict
@@ -53,6 +56,7 @@ class UnpairedResult:
     distance_before: dict
     distance_after: dict
     evaluations: int
+    frames_rendered: int
     history: list
     profiles: dict
     seconds: float
@@ -87,17 +91,26 @@ def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = F
     return out
 
 
-def render_depths(preset, geometries: list, seed: int) -> list[np.ndarray]:
-    """Depth (H, W) m of every geometry rendered by the preset's sensor (no gradients)."""
+def render_depths(preset, geometries: list, seed: int, first_index: int = 0) -> list[np.ndarray]:
+    """Depth (H, W) m of every geometry rendered by the preset's sensor (no gradients).
+
+    Frame ``k`` of the list is drawn with noise seed ``[seed, first_index + k, UNPAIRED_STREAM]``,
+    so rendering frames one slice at a time gives the same bytes as all at once."""
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     sensor = DepthSensor(preset).eval()
     with torch.no_grad():
-        return [sensor(g, seed=[seed, i, UNPAIRED_STREAM]).depth.numpy() for i, g in enumerate(geometries)]
+        return [sensor(g, seed=[seed, first_index + i, UNPAIRED_STREAM]).depth.numpy()
+                for i, g in enumerate(geometries)]  # fmt: skip
 
 
 class _Evaluator:
-    """Renders the fit scenes for a set of values (cached) and measures the distance."""
+    """Renders the fit scenes for a set of values and measures the distance.
+
+    Per-frame features are cached per set of values and rendered lazily: an evaluation on the
+    first ``n`` frames renders only those, and a later one on all frames renders only the rest
+    (the coarse pass looks at fewer frames than the profiles; see :func:`fit_unpaired`).
+    """
 
     def __init__(self, preset, geometries, real_features, resolution_m, seed, progress_bar):
         self.preset, self.geometries, self.real = preset, geometries, real_features
@@ -105,21 +118,25 @@ class _Evaluator:
         self.fb = preset.focal_px * preset.baseline_m
         self.cache: dict[tuple, list] = {}
         self.history: list[dict] = []
+        self.frames_rendered = 0
 
-    def features(self, values: dict) -> list[dict]:
-        key = tuple(sorted(values.items()))
-        if key not in self.cache:
-            preset = self.preset.replace(**values)
-            depths = render_depths(preset, self.geometries, self.seed)
-            self.cache[key] = [frame_features(round_like(d, self.resolution_m), self.fb) for d in depths]
+    def features(self, values: dict, n_frames: int | None = None) -> list[dict]:
+        n_frames = len(self.geometries) if n_frames is None else n_frames
+        cached = self.cache.setdefault(tuple(sorted(values.items())), [])
+        if len(cached) < n_frames:
+            todo = range(len(cached), n_frames)
+            depths = render_depths(self.preset.replace(**values), [self.geometries[i] for i in todo], self.seed,
+                                   first_index=todo.start)  # fmt: skip
+            cached.extend(frame_features(round_like(d, self.resolution_m), self.fb) for d in depths)
+            self.frames_rendered += len(todo)
             if self.bar is not None:
-                self.bar.update(1)
-        return self.cache[key]
+                self.bar.update(len(todo))
+        return cached[:n_frames]
 
-    def distance(self, values: dict, real_idx=None, sim_idx=None) -> dict:
-        terms = distance_terms(pool(self.features(values), sim_idx), pool(self.real, real_idx))
+    def distance(self, values: dict, real_idx=None, sim_idx=None, n_frames: int | None = None) -> dict:
+        terms = distance_terms(pool(self.features(values, n_frames), sim_idx), pool(self.real, real_idx))
         if real_idx is None and sim_idx is None:
-            self.history.append({"values": dict(values), **terms})
+            self.history.append({"values": dict(values), "frames": n_frames or len(self.geometries), **terms})
         return terms
 
 
@@ -135,6 +152,8 @@ def _vertex(xs: np.ndarray, ys: np.ndarray) -> float:
 
 
 def _profile_points(param: UnpairedParameter, value: float, width: float) -> list:
+    if param.choices:
+        return param.neighbours(value)
     if param.integer:
         return sorted({param.from_unit(value + d) for d in (-1, 0, 1)})
     centre = param.to_unit(value)
@@ -142,8 +161,23 @@ def _profile_points(param: UnpairedParameter, value: float, width: float) -> lis
     return sorted({param.from_unit(centre + o * width) for o in PROFILE_OFFSETS})
 
 
+def _walk(param: UnpairedParameter, values: dict, objective, max_moves: int = 4):
+    """Local pass of one key: compare the value with its neighbours one coarse step away and move
+    to the best, again while it improves (at most ``max_moves``): the coarse pass looked at fewer
+    frames and other values of the other keys, so its cell may be a few steps off."""
+    current = values[param.key]
+    best = objective({**values, param.key: current})
+    for _ in range(max_moves):
+        points = [v for v in _profile_points(param, current, param.step()) if v != current]
+        scores = [objective({**values, param.key: v}) for v in points]
+        if not scores or min(scores) >= best:
+            break
+        current, best = points[int(np.argmin(scores))], min(scores)
+    return current
+
+
 def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: int = 0, bootstrap: int = 200,
-                 progress: bool = True) -> UnpairedResult:  # fmt: skip
+                 keys=None, coarse_frames: int | None = None, progress: bool = True) -> UnpairedResult:  # fmt: skip
     """Fit the table's parameters of ``preset`` to the real frames' feature distribution.
 
     Args:
@@ -151,6 +185,10 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
         real: the real frames (:func:`~.realfolder.read_depth_folder`).
         geometries: the fit scenes (:func:`cast_scenes`), resembling the real scenes.
         seed: noise seed of the renders; bootstrap: resamples for the uncertainties.
+        keys: fit only these table keys (default: every table key the preset has).
+        coarse_frames: frames rendered per candidate of the coarse pass (default half of the
+            geometries, at least 2): it only has to find the right grid cell; the local pass and
+            the profiles (whose values are reported) use every frame.
 
     Returns:
         :class:`UnpairedResult` (``after``: the fitted values as preset keys).
@@ -158,14 +196,16 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     from tqdm import tqdm
 
     start = time.time()
-    params = parameters_for(preset)
+    params = parameters_for(preset, keys)
     sim_frames = len(geometries)
+    coarse_frames = min(max(2, sim_frames // 2) if coarse_frames is None else coarse_frames, sim_frames)
     fb = preset.focal_px * preset.baseline_m
     real_features = [frame_features(f.depth, fb) for f in real]
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
     profile = sum(3 if p.integer else len(PROFILE_OFFSETS) for p in params)  # at most: near bounds, fewer
-    bar = tqdm(total=1 + coarse + 2 * profile, desc="unpaired fit", unit="render", disable=not progress)
+    bar = tqdm(total=coarse * coarse_frames + (1 + 2 * profile) * sim_frames, desc="unpaired fit", unit="frame",
+               disable=not progress)  # fmt: skip
     ev = _Evaluator(preset, geometries, real_features, resolution, seed, bar)
     values = {p.key: getattr(preset, p.key) for p in params}
     before = dict(values)
@@ -173,12 +213,10 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
 
     for p in params:  # coarse: each parameter over its whole range, the others held
         grid = p.coarse_grid()
-        totals = [ev.distance({**values, p.key: v})["total"] for v in grid]
+        totals = [p.objective(ev.distance({**values, p.key: v}, n_frames=coarse_frames)) for v in grid]
         values[p.key] = grid[int(np.argmin(totals))]
     for p in params:  # local: the parameters interact (SNR and threshold both make holes)
-        points = _profile_points(p, values[p.key], p.step())
-        totals = [ev.distance({**values, p.key: v})["total"] for v in points]
-        values[p.key] = points[int(np.argmin(totals))]
+        values[p.key] = _walk(p, values, lambda v: p.objective(ev.distance(v)))
 
     profiles, uncertainty, boots = {}, {}, {}
     rng = np.random.default_rng(seed)
@@ -187,14 +225,14 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     for p in params:  # fine: a profile around the coarse best; the parabola vertex is the value
         points = _profile_points(p, values[p.key], 0.5 * p.step())
         xs = np.array([p.to_unit(v) for v in points])
-        totals = np.array([ev.distance({**values, p.key: v})["total"] for v in points])
+        totals = np.array([p.objective(ev.distance({**values, p.key: v})) for v in points])
         best = p.from_unit(_vertex(xs, totals)) if not p.integer else points[int(np.argmin(totals))]
         draws = []
         for real_idx, sim_idx in resamples:
-            ys = np.array([ev.distance({**values, p.key: v}, real_idx, sim_idx)["total"] for v in points])
+            ys = np.array([p.objective(ev.distance({**values, p.key: v}, real_idx, sim_idx)) for v in points])
             draws.append(p.from_unit(_vertex(xs, ys)) if not p.integer else points[int(np.argmin(ys))])
         values[p.key] = best
-        profiles[p.key] = {"points": [float(v) for v in points], "distance": totals.tolist()}
+        profiles[p.key] = {"points": [float(v) for v in points], "distance": totals.tolist(), "terms": list(p.terms)}
         draws = np.array(draws, float)
         uncertainty[p.key] = float(draws.std())
         # Vertices on the profile's ends: the distance is flat or still falling there, so the
@@ -207,5 +245,6 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     return UnpairedResult(
         before=before, after=dict(values), uncertainty=uncertainty, bootstrap=boots,
         distance_before=distance_before, distance_after=distance_after, evaluations=len(ev.cache),
+        frames_rendered=ev.frames_rendered,
         history=ev.history, profiles=profiles, seconds=time.time() - start,
     )  # fmt: skip
