@@ -20,7 +20,6 @@ Prints ``bench: NAME VALUE`` lines. Usage: python bench/unpaired_hidden_device.p
 
 from __future__ import annotations
 
-import math
 import shutil
 import sys
 import tempfile
