@@ -5,7 +5,6 @@ against the BOP format documentation (bop_toolkit's docs/bop_datasets_format.md)
 from __future__ import annotations
 
 import json
-import os
 import struct
 from pathlib import Path
 
@@ -18,26 +17,19 @@ from ddsgen.io.bop_writer import SPLIT, ply_bytes, scans_folder
 from ddsgen.io.scanfolder import read_scan_folder
 from ddsgen.runner import render_dataset
 
-from test_runner import TINY_PRESET, TINY_SCENES, tree_hashes
+from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, tree_hashes, written_inputs
 
 N = 5
 
 
 @pytest.fixture(scope="module")
 def bop(tmp_path_factory):
-    old = os.environ.get("DDSGEN_NO_COMPILE")
-    os.environ["DDSGEN_NO_COMPILE"] = "1"
     folder = tmp_path_factory.mktemp("bop")
-    (folder / "tiny.yaml").write_text(TINY_PRESET)
-    (folder / "tiny_scenes.yaml").write_text(TINY_SCENES)
-    root = folder / "dataset"
-    args = (str(folder / "tiny.yaml"), str(folder / "tiny_scenes.yaml"), N, str(root))
-    render_dataset(*args, seed=3, progress=False, output_format="bop")
-    yield root, args
-    if old is None:
-        os.environ.pop("DDSGEN_NO_COMPILE", None)
-    else:
-        os.environ["DDSGEN_NO_COMPILE"] = old
+    with written_inputs(folder, tiny_preset_yaml(96, 72), tiny_scenes_yaml(frames=3, clutter=(2, 3))) as paths:
+        root = folder / "dataset"
+        args = (*paths, N, str(root))
+        render_dataset(*args, seed=3, progress=False, output_format="bop")
+        yield root, args
 
 
 def load_ply_like_bop(path: Path) -> tuple[np.ndarray, np.ndarray]:

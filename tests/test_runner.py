@@ -10,7 +10,6 @@ couple of seconds.
 from __future__ import annotations
 
 import errno
-import hashlib
 import os
 import signal
 import subprocess
@@ -26,7 +25,7 @@ from ddsgen.cli import main
 from ddsgen.errors import InputError
 from ddsgen.io.manifest import read_manifest
 from ddsgen.runner import MANIFEST, render_dataset
-from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, written_inputs
+from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, tree_hashes, written_inputs
 
 N_FRAMES = 24
 SEED = 7
@@ -37,15 +36,6 @@ def inputs(tmp_path_factory):
     with written_inputs(tmp_path_factory.mktemp("inputs"), tiny_preset_yaml(96, 72),
                         tiny_scenes_yaml(frames=3, clutter=(2, 3))) as paths:  # fmt: skip
         yield paths
-
-
-def tree_hashes(folder: Path) -> dict[str, str]:
-    """sha256 of every file under ``folder`` by relative path (temporaries included: there must be none)."""
-    return {
-        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(folder.rglob("*"))
-        if p.is_file()
-    }
 
 
 def assert_complete_and_valid(folder: Path, n: int) -> None:

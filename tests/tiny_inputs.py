@@ -6,6 +6,7 @@ block size, so a few frames render in a second or two. The scene list has uprigh
 
 from __future__ import annotations
 
+import hashlib
 import os
 from contextlib import contextmanager
 from pathlib import Path
@@ -67,3 +68,12 @@ def written_inputs(folder: Path, preset_yaml: str, scenes_yaml: str):
             os.environ.pop("DDSGEN_NO_COMPILE", None)
         else:
             os.environ["DDSGEN_NO_COMPILE"] = old
+
+
+def tree_hashes(folder: Path) -> dict[str, str]:
+    """sha256 of every file under ``folder`` by relative path (temporaries included: there must be none)."""
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
