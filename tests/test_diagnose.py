@@ -149,6 +149,8 @@ class _Frame:
     intrinsics: object
     incidence_deg: torch.Tensor
     plane: object
+    name: str = "scan/000000"
+    object_region: torch.Tensor | None = None
 
     @property
     def shape(self):
@@ -183,6 +185,91 @@ def test_replane_recovers_the_plane_a_disparity_offset_was_added_to():
     assert torch.allclose(new.geometry.clean_depth, truth, rtol=1e-4)
     assert np.allclose(new.plane.normal, n, atol=1e-4) and new.plane.offset == pytest.approx(d, rel=1e-4)
     assert torch.allclose(new.geometry.normals[60, 80], torch.tensor(n, dtype=torch.float32), atol=1e-4)
+
+
+def test_one_frame_is_split_into_disjoint_pieces_that_each_cover_the_whole_image():
+    from ddsgen.diagnose.split import block_labels, split_single_frame
+
+    labels = block_labels(480, 640, 8, seed=3)
+    counts = np.bincount(labels.ravel(), minlength=8)
+    assert counts.min() >= 0.8 * counts.max(), counts  # blocks dealt evenly
+    for k in range(8):  # every piece reaches every quadrant of the image (centre and corners alike)
+        rows, cols = np.nonzero(labels == k)
+        assert rows.min() < 120 and rows.max() > 360 and cols.min() < 160 and cols.max() > 480
+    frame = _plane_frame()
+    frame.region[:, :10] = False  # a part outside the comparison stays outside every piece
+    fit, held = split_single_frame(frame, 1.0 / 3.0, seed=3)
+    assert len(fit) == 1 and len(held) == 3
+    masks = [f.region for f in fit + held]
+    assert int(sum(m.int() for m in masks).max()) == 1, "pieces are disjoint"
+    assert torch.equal(torch.stack(masks).any(0), frame.region), "together they are the frame's region"
+    assert all(f.real_depth is frame.real_depth for f in held), "same scan, same geometry: only the region differs"
+    assert len({f.name for f in fit + held}) == 4
+
+
+def _plane_frame(width: int = 160, height: int = 120):
+    """A tilted support plane seen by the small Kinect preset, real depth = clean depth (a _Frame)."""
+    from ddsgen.fit.simulate import Plane
+    from effects_geometry import plane_geometry, tilted_normal
+
+    intr = small_preset(width, height).intrinsics
+    geometry = plane_geometry(intr, normal=tilted_normal(20), distance=1.4)
+    z = geometry.clean_depth.clone()
+    everywhere = torch.ones_like(z, dtype=torch.bool)
+    return _Frame(geometry, torch.zeros_like(z, dtype=torch.int32), everywhere.clone(), z, everywhere.clone(), intr,
+                  torch.full_like(z, 20.0), Plane(normal=np.array(tilted_normal(20)), offset=1.4, inliers=0,
+                                                    candidates=0), object_region=~everywhere)  # fmt: skip
+
+
+def test_axis_term_shapes_are_read_off_the_residual():
+    """The real scan carries a disparity bias that is a known Legendre series along the image column, and drops
+    pixels with a keep-probability that falls towards the right of the image: the generic terms' starting shapes
+    recover both (the depth-free support plane part is absorbed by its nuisance terms)."""
+    from types import SimpleNamespace
+
+    from ddsgen.diagnose.axis_candidates import disparity_guess, validity_guess
+    from ddsgen.sensor.depth_sensor import DepthSensor
+    from ddsgen.sensor.effects.axis_terms import axis_coordinate, keep_probability, legendre_basis
+
+    sensor = DepthSensor(small_preset())
+    frame = _plane_frame()
+    intr = frame.intrinsics
+    fb = intr.fx * float(sensor.baseline.detach())
+    xn = ((torch.arange(intr.width, dtype=torch.float64) - intr.cx) / intr.fx)[None, :].expand(intr.height, -1)
+    basis = legendre_basis(axis_coordinate("column", xn))
+    truth = np.array([0.0, 0.0, 0.3, 0.0, -0.2])  # even, no affine part: the plane's nuisance cannot absorb it
+    bias = torch.tensordot(torch.as_tensor(truth), basis, dims=1)
+    sim_depth = frame.geometry.clean_depth
+    frame.real_depth = (fb / (fb / sim_depth.double() + bias)).float()
+    frame.instance[:, : intr.width // 2] = 1  # half of it an object: no nuisance term there
+    sim = SimpleNamespace(depth=sim_depth, valid=torch.ones_like(frame.region), ir=torch.ones_like(sim_depth))
+    coef = np.array(disparity_guess("column", sensor, [frame], [sim]))
+    assert np.allclose(coef[2:], truth[2:], atol=0.01), coef
+    frame.real_depth = sim_depth
+    keep_truth = keep_probability(torch.tensordot(torch.tensor([-1.0, -2.0, 0.0, 0.0, 0.0], dtype=torch.float64),
+                                                  basis, dims=1))  # fmt: skip
+    frame.real_valid = torch.rand(keep_truth.shape, generator=torch.Generator().manual_seed(0)) < keep_truth
+    s = torch.tensordot(torch.tensor(validity_guess("column", [frame], [sim]), dtype=torch.float64), basis, dims=1)
+    assert torch.allclose(keep_probability(s), keep_truth, atol=0.08)
+
+
+def test_validity_likelihood_prefers_holes_where_the_real_ones_are():
+    """Two models with the same valid rate: the one that puts its holes where the real scan has them makes the
+    real valid map more likely; the rate difference of compare cannot tell them apart."""
+    from types import SimpleNamespace
+
+    from ddsgen.diagnose.evaluation import validity_log_likelihood
+
+    frame = _plane_frame()
+    frame.real_valid[:, :40] = False  # the real scan lost the left quarter
+    right_place = torch.ones_like(frame.region, dtype=torch.float32)
+    right_place[:, :40] = 0.0
+    wrong_place = torch.ones_like(right_place)
+    wrong_place[:, -40:] = 0.0
+    ll = {name: validity_log_likelihood(SimpleNamespace(valid_soft=soft), frame)
+          for name, soft in (("right", right_place), ("wrong", wrong_place), ("none", torch.ones_like(right_place)))}
+    assert ll["right"] > ll["none"] > ll["wrong"], ll
+    assert ll["right"] > -0.05  # only the window at the boundary is uncertain
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -307,3 +394,81 @@ def test_diagnose_command_rejects_bad_input_with_one_line(tmp_path, capsys):
     assert len(err) == 1 and "edge_dropuot" in err[0]
     assert main(["diagnose", "kinect_v1", str(scans), "--apply", str(tmp_path / "x.txt"), "--quiet"]) == 2
     assert not (tmp_path / "x.txt").exists()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Blind cases: scans from an independent measurement model (tests/independent_sensor.py), not from ddsgen's sensor
+
+#: 320 x 240 (half the Kinect's resolution, same field of view), 9 frames: 6 fit, 3 held out.
+BLIND_SIZE, BLIND_FRAMES = (320, 240), 9
+#: The hidden effect of each blind case, written in the independent model's own terms (see independent_sensor).
+BLIND_CASES = {
+    "lens_distortion": {"name": "lens_distortion", "k1": -0.02},  # barrel: ~1.5 px at the corners
+    "disparity_offset": {"name": "disparity_offset", "offset_px": 0.25},
+    "grazing_dropout": {"name": "grazing_dropout", "angle_deg": 65.0},
+    "edge_dropout": {"name": "edge_dropout", "width_px": 3.0},
+    "null": None,
+    "row_bias": {"name": "row_bias", "amplitude_px": 0.4},  # out of the library: vertical misalignment
+}
+
+
+def blind_stock():
+    return small_preset(*BLIND_SIZE, subpixel_level=3)
+
+
+@pytest.fixture(scope="module")
+def blind_geometry(tmp_path_factory):
+    """Scenes rendered once (only their ray-cast geometry is used): ``(folder, prepared frames)``."""
+    from ddsgen.runner import render_dataset
+
+    root = tmp_path_factory.mktemp("blind")
+    preset_path = root / "stock.yaml"
+    save_preset(blind_stock(), preset_path)
+    render_dataset(str(preset_path), str(SCENES), BLIND_FRAMES, str(root / "scenes"), workers=1, seed=41, progress=False)
+    torch.set_num_threads(1)
+    return root / "scenes", prepared_blind(root / "scenes")
+
+
+def prepared_blind(folder):
+    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.io.scanfolder import read_scan_folder
+
+    return prepare_frames(blind_stock(), read_scan_folder(folder), progress=False)
+
+
+def blind_scans(tmp_path, blind_geometry, effect):
+    import shutil
+
+    from independent_sensor import remeasure_folder
+
+    source, frames = blind_geometry
+    folder = tmp_path / "scans"
+    shutil.copytree(source, folder)
+    remeasure_folder(folder, frames, blind_stock().baseline_m, effect, seed=5)
+    return folder
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(BLIND_CASES))
+def test_blind_case_from_an_independent_measurement_model(tmp_path, blind_geometry, case):
+    """Library effects are named first and remove at least half of the gap; nothing is named in the null case;
+    the out-of-library row bias gets a generic disparity term along the row, and no confident library name."""
+    effect = BLIND_CASES[case]
+    log: list[str] = []
+    result = diagnose(blind_stock(), prepared_blind(blind_scans(tmp_path, blind_geometry, effect)), CONFIG,
+                      echo=log.append)  # fmt: skip
+    record(f"blind {case}", result)
+    text = "\n".join(log)
+    if case == "null":
+        assert result.steps == [], text
+        return
+    assert result.steps, text
+    if case == "row_bias":
+        for step in result.steps:
+            if ":" not in step.effect:  # a library name may only claim a small part
+                assert step.gap_after > 0.8 * step.gap_before, text
+        assert "axis_disparity_term:row" in [s.effect for s in result.steps], text
+        assert result.final_gap <= 0.7 * result.baseline_gap, text
+        return
+    assert result.steps[0].effect == case, text
+    assert result.final_gap <= 0.5 * result.baseline_gap, text
