@@ -15,10 +15,21 @@ The loop (:func:`diagnose`):
    extra simulation), validity effects from a coarse grid; a local search refines either.
    Then the held-out gap and noise floor it leaves are measured.
 4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base
-   parameters refitted with it, and the loop repeats with the remaining effects; otherwise it stops.
+   parameters refitted with it, and the loop repeats with the remaining effects. A validity effect
+   must also raise the held-out likelihood of the real hole map
+   (:func:`~ddsgen.diagnose.evaluation.validity_log_likelihood`).
+4b. **Beyond the library** (:mod:`~ddsgen.diagnose.axis_candidates`). When no named effect is accepted,
+   a generic smooth term (disparity bias or dropout, degree-4 Legendre) is fitted along each axis with
+   residual structure beyond noise and judged by the same rule; one accepted is reported as an *unnamed
+   effect along that axis*, with its shape and the physical effects that produce such a shape. Named
+   effects keep precedence: the generic terms are tried only when none of them clears the rule.
+   Otherwise the loop stops.
 5. **What remains**: axes whose residual structure is still beyond noise (and at least
    :data:`~ddsgen.diagnose.acceptance.UNEXPLAINED_MIN_MM`) are reported as unexplained, strongest first, rather than
    naming a wrong effect.
+
+**One frame** is enough: it is split spatially (:mod:`~ddsgen.diagnose.split`) into blocks dealt into
+pieces, some held out, the others fitted together; the report says so.
 
 Two things make the comparison fair to every candidate:
 
