@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ddsgen.diagnose.acceptance import relative_fall
+from ddsgen.diagnose.acceptance import UNEXPLAINED_MIN_MM, relative_fall
 from ddsgen.diagnose.candidates import with_effect
 from ddsgen.diagnose.evaluation import evaluate
 from ddsgen.diagnose.plane import replaned
@@ -143,8 +143,12 @@ def fit_axis_candidate(sensor, name: str, axis: str, frames, config, base, sims)
 
 
 def axes_to_try(analysis: dict) -> dict[str, list[str]]:
-    """Per term, the axes whose bias (disparity term) or validity (validity term) structure is beyond noise."""
-    significant = [(axis, s) for axis, (_, s) in analysis.items() if s.significant]
+    """Per term, the axes whose bias (disparity term) or validity (validity term) structure is beyond noise.
+
+    Only axes that would be reported as unexplained (significant and at least UNEXPLAINED_MIN_MM beyond noise)
+    are tried: on data the model already explains, no generic term gets a chance to fit noise.
+    """
+    significant = [(axis, s) for axis, (_, s) in analysis.items() if s.significant and s.excess_mm >= UNEXPLAINED_MIN_MM]
     by_bias = sorted((x for x in significant if x[1].bias_mm >= x[1].noise_mm), key=lambda x: -x[1].bias_mm)
     by_valid = sorted((x for x in significant if x[1].validity_mm >= x[1].noise_mm), key=lambda x: -x[1].validity_mm)
     return {DISPARITY_TERM: [a for a, _ in by_bias[:MAX_AXES]], VALIDITY_TERM: [a for a, _ in by_valid[:MAX_AXES]]}
