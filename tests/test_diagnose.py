@@ -477,3 +477,49 @@ def test_blind_case_from_an_independent_measurement_model(tmp_path, blind_geomet
         return
     assert result.steps[0].effect == case, text
     assert result.final_gap <= 0.5 * result.baseline_gap, text
+
+
+def test_independent_measurement_model_writes_each_effect_by_its_formula():
+    """The blind cases' measurement model (tests/independent_sensor.py) against the formulas it claims: the
+    offset moves every disparity by delta, Brown's barrel distortion leaves the centre and moves the corners
+    by f x k1 r^2, grazing and edge dropout remove exactly the pixels beyond their limits, quantisation is 1/8 px."""
+    from independent_sensor import SUBPIXEL, measure
+    from effects_geometry import plane_geometry, tilted_normal
+
+    intr = small_preset(320, 240).intrinsics
+    cam = {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}
+    b = 0.075
+    fb = intr.fx * b
+    geometry = plane_geometry(intr, normal=tilted_normal(50), distance=1.2,
+                              rect={"z": 0.9, "x0": -0.1, "x1": 0.1, "y0": -0.1, "y1": 0.1})  # fmt: skip
+    clean = geometry.clean_depth.numpy().astype(np.float64)
+    lit = (geometry.hit & ~geometry.shadow).numpy()
+    front = np.isclose(clean, 0.9)
+    incidence = np.where(front, 0.0, 50.0)
+
+    def disparity(effect, seed=0):
+        z = measure(clean, lit, incidence, cam, b, effect, np.random.default_rng(seed))
+        return np.where(z > 0, fb / np.maximum(z, 1e-9), 0.0)
+
+    base = disparity(None)
+    ok = base > 0
+    assert np.allclose(base[ok] * SUBPIXEL, np.round(base[ok] * SUBPIXEL), atol=1e-3), "1/8 px levels"
+    shifted = disparity({"name": "disparity_offset", "offset_px": 0.25})
+    both = ok & (shifted > 0)
+    assert np.mean(shifted[both] - base[both]) == pytest.approx(0.25, abs=0.01)
+    barrel = disparity({"name": "lens_distortion", "k1": -0.02})
+    v, u = int(round(intr.cy)), int(round(intr.cx))
+    assert abs(barrel[v, u] - base[v, u]) <= 0.25, "no displacement at the principal point"
+    x, y = (np.arange(320) - intr.cx) / intr.fx, (v - intr.cy) / intr.fy
+    right = slice(300, 316)  # near the right border, on the plane: x_d - x_u = x k1 r^2 < 0 for barrel
+    expected = intr.fx * x[right] * -0.02 * (x[right] ** 2 + y**2)
+    shift = barrel[v, right] - base[v, right]
+    assert np.mean(shift) == pytest.approx(np.mean(expected), abs=0.2) and np.mean(expected) < -0.3
+    grazing = disparity({"name": "grazing_dropout", "angle_deg": 45.0})
+    assert not (grazing[~front] > 0).any() and (grazing[front & ok] > 0).mean() > 0.95
+    edges = disparity({"name": "edge_dropout", "width_px": 3.0})
+    rows = np.nonzero(front.any(1))[0]
+    mid = rows[len(rows) // 2]
+    left = np.nonzero(front[mid])[0][0]  # first column of the rectangle on that row
+    assert not (edges[mid, left - 3 : left + 3] > 0).any(), "within 3 px of the edge: no depth"
+    assert (edges[mid, left + 5 : left + 15] > 0).all(), "beyond it: depth"
