@@ -8,6 +8,10 @@ switched on at a realistic strength and the base parameters perturbed a little (
 that effect is named first and the held-out gap falls by at least half.
 
 The cases are marked slow (about 2-3 minutes each on one core); the rendered scans are shared by the module.
+
+The blind cases (end of the module) diagnose scans that ddsgen's sensor did not make: an independent numpy
+measurement model (``independent_sensor.py``) turns the ray-cast clean depth into depth with its own noise,
+quantisation and the hidden effect written from its textbook formula.
 """
 
 from __future__ import annotations
@@ -276,11 +280,12 @@ def test_validity_likelihood_prefers_holes_where_the_real_ones_are():
 # The cases (rendered scans, full diagnosis)
 
 
-#: Known limit, a strict xfail so that a change shows: low-signal dropout is named first, but its threshold comes
-#: out at ~3.5 counts (true 10) and the gap beyond the floor falls ~22 %. The base fit lowers the SNR to mimic the
-#: dropout (a lower SNR also loses the low-signal pixels first), and one round of re-searching the SNR with the
-#: effect in does not undo that.
-SNR_CONFOUND = pytest.mark.xfail(strict=True, reason="low-signal dropout is confounded with the SNR of the base fit")
+#: Known limit (last measured: low-signal dropout named first, but its threshold came out at ~3.5 counts (true 10)
+#: and the gap beyond the floor fell ~22 %: the base fit lowers the SNR to mimic the dropout). The candidate now
+#: searches SNR and threshold jointly (candidates.SNR_FACTORS); that has not been measured on this case yet (the
+#: run timed out on a loaded machine), so the mark is not strict until it is: make it strict, or drop it.
+SNR_CONFOUND = pytest.mark.xfail(strict=False, reason="low-signal dropout is confounded with the SNR of the base fit; "
+                                  "the joint SNR x threshold search is not yet measured here")
 
 
 @pytest.mark.slow
