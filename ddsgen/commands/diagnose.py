@@ -90,8 +90,6 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
 
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane,
                                                      plausible_px=plausible_px, seed=seed, progress=progress, echo=echo_stderr)  # fmt: skip
-    if len(frames) < 2:
-        raise InputError(f"{real_dir}: diagnose needs at least 2 frames (fit and held-out), found {len(frames)}")
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
                             seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames)  # fmt: skip
     result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)

@@ -28,7 +28,11 @@ RULE = (
     f"for every model -- is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
     f"and (b) it is not carried by a few frames: over {BOOTSTRAP_RESAMPLES} bootstrap resamples of the held-out "
     f"frames (with replacement), the {100 * BOOTSTRAP_QUANTILE:.0f}th percentile of that relative fall stays above "
-    f"zero. Residual structure along an axis counts as unexplained when it exceeds twice its bootstrap noise and "
+    f"zero; a validity effect (one that only removes pixels) must moreover not lower the held-out likelihood of the "
+    f"real valid/invalid map, each pixel a Bernoulli draw with the simulation's local valid rate. Named library "
+    f"effects are tried first; only when none is accepted are generic smooth terms (disparity or dropout along "
+    f"one axis with residual structure beyond noise) tried, and one accepted is reported as an unnamed effect "
+    f"along that axis. Residual structure along an axis counts as unexplained when it exceeds twice its bootstrap noise and "
     f"is at least {UNEXPLAINED_MIN_MM:.1f} mm beyond it."
 )
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import math
+
 import numpy as np
 import torch
 
@@ -34,7 +36,10 @@ GRIDS: dict[str, list[dict]] = {
 }
 
 
+#: Validity effects that a lower SNR mimics: their search runs at each of SNR_FACTORS times the fitted emitted
+#: intensity (besides 1) and keeps the best pair (see fit_candidate).
 CONFOUNDED_WITH_SNR = ("low_signal_dropout",)
+SNR_FACTORS = (1.15, 1.3, 1.5, 1.75, 2.0)
 
 #: Values tried for the other parameters of an effect, one at a time, after its first parameter is set.
 SECONDARY_GRIDS: dict[str, dict[str, tuple]] = {
@@ -245,13 +250,20 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evalu
 
     best = search()
     if name in CONFOUNDED_WITH_SNR:
-        # The base fit has lowered the SNR to mimic this dropout: search the SNR again with the effect
-        # in (the fit machinery's 1-D search), then the effect again at that SNR.
-        from ddsgen.fit.fitting import search_snr
-
-        effect.set_values(**best)
-        search_snr(candidate, frames[: config.grid_frames or None], "emitted_intensity", config.seed)
+        # The base fit has lowered the SNR to mimic this dropout (a lower SNR also loses the low-signal pixels
+        # first): search SNR and threshold jointly, the threshold's whole search at each SNR factor.
+        log_eta = candidate.log_emitted_intensity
+        start = float(log_eta.detach())
+        scored = [(objective(best), 0.0, best)]
+        for factor in SNR_FACTORS:
+            with torch.no_grad():
+                log_eta.fill_(start + math.log(factor))
+            tried.clear()
+            point = search()
+            scored.append((objective(point), math.log(factor), point))
+        score, shift, best = min(scored, key=lambda t: t[0])
+        with torch.no_grad():
+            log_eta.fill_(start + shift)
         tried.clear()
-        best = search()
     effect.set_values(**best)
     return candidate, effect.values(), objective(best)

@@ -1,4 +1,11 @@
-"""Gap and noise floor of one sensor model on prepared frames, measured exactly as ``compare`` does."""
+"""Gap and noise floor of one sensor model on prepared frames, measured exactly as ``compare`` does, and the
+likelihood of the real valid/invalid map under the model.
+
+The ``compare`` gap judges validity by a difference of local valid rates. A rate difference does not say
+whether the model puts its holes *where* the real ones are; a likelihood does: every real pixel's
+valid/invalid state is a Bernoulli draw with the simulation's local valid rate
+(:func:`validity_log_likelihood`), and a model that predicts the real hole map better scores higher.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +16,7 @@ import torch
 
 from ddsgen.diagnose.plane import replaned
 from ddsgen.fit.compare import frame_gap
+from ddsgen.fit.losses import local_window, masked_local_mean
 from ddsgen.fit.simulate import simulate
 
 
@@ -18,6 +26,12 @@ class Evaluation:
 
     frame_gaps: list[float]
     frame_floors: list[float]
+    frame_validity_ll: list[float] = dataclasses.field(default_factory=list)  # nats per region pixel
+
+    @property
+    def validity_ll(self) -> float:
+        """Mean over frames of the real valid map's log-likelihood per pixel (nats; higher is better)."""
+        return float(np.mean(self.frame_validity_ll)) if self.frame_validity_ll else float("nan")
 
     @property
     def frame_excess(self) -> np.ndarray:
@@ -36,25 +50,50 @@ class Evaluation:
         return self.gap - self.floor
 
 
-def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float]:
-    """(gap, noise floor) of one frame, exactly as ``compare`` measures them: the gap between the
-    simulation (noise draw ``seed``) and the real scan, and between that simulation and a second
-    draw (``seed + 1000``) of the same sensor."""
+#: The simulation's local valid rate is clipped to [RATE_FLOOR, 1 - RATE_FLOOR]: one pixel against a certain
+#: prediction costs at most -ln(RATE_FLOOR) ~ 4.6 nats instead of infinity.
+RATE_FLOOR = 0.01
+
+
+def validity_log_likelihood(sim, frame) -> float:
+    """Mean Bernoulli log-likelihood (nats per region pixel) of the real valid map under the simulation.
+
+    The probability that a pixel is valid is the simulation's local valid rate: the mean of its
+    keep-probability ``valid_soft`` (H, W) over the comparison region in the ``compare`` window (15 px at
+    the Kinect's focal length), clipped to [RATE_FLOOR, 1 - RATE_FLOOR]. Real valid pixels add ln p, real
+    holes ln(1 - p). Noise-free models score 0; a model whose holes fall where the real ones are scores
+    higher than one with the same hole rate elsewhere.
+    """
+    region = frame.region
+    if not bool(region.any()):
+        return 0.0
+    rate, _ = masked_local_mean(sim.valid_soft.detach().double(), region, local_window(frame.intrinsics.fx))
+    p = rate.clamp(RATE_FLOOR, 1.0 - RATE_FLOOR)
+    real = frame.real_valid
+    ll = torch.where(real, torch.log(p), torch.log1p(-p))
+    return float(ll[region].mean())
+
+
+def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float, float]:
+    """(gap, noise floor, validity log-likelihood) of one frame: the gap between the simulation (noise draw
+    ``seed``) and the real scan and between that simulation and a second draw (``seed + 1000``) of the same
+    sensor, exactly as ``compare`` measures them, and :func:`validity_log_likelihood` of the real scan."""
     sim = simulate(sensor, frame, seed)
     other = simulate(sensor, frame, seed + 1000)
     g = frame_gap(sim, frame)
     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
-    return float(g["gap"] or 0.0), float(frame_gap(sim, twin)["gap"] or 0.0)
+    return float(g["gap"] or 0.0), float(frame_gap(sim, twin)["gap"] or 0.0), validity_log_likelihood(sim, frame)
 
 
 def evaluate(sensor, frames, seed: int, replane_steps: int = 0) -> Evaluation:
     """Per-frame gap and noise floor (:func:`frame_evaluation`) of ``sensor``, planes re-estimated first if asked."""
     if replane_steps:
         frames = replaned(sensor, frames, seed, replane_steps)
-    gaps, floors = [], []
+    gaps, floors, lls = [], [], []
     with torch.no_grad():
         for f in frames:
-            g, fl = frame_evaluation(sensor, f, seed)
+            g, fl, ll = frame_evaluation(sensor, f, seed)
             gaps.append(g)
             floors.append(fl)
-    return Evaluation(gaps, floors)
+            lls.append(ll)
+    return Evaluation(gaps, floors, lls)

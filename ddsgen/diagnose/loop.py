@@ -15,10 +15,21 @@ The loop (:func:`diagnose`):
    extra simulation), validity effects from a coarse grid; a local search refines either.
    Then the held-out gap and noise floor it leaves are measured.
 4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base
-   parameters refitted with it, and the loop repeats with the remaining effects; otherwise it stops.
+   parameters refitted with it, and the loop repeats with the remaining effects. A validity effect
+   must also raise the held-out likelihood of the real hole map
+   (:func:`~ddsgen.diagnose.evaluation.validity_log_likelihood`).
+4b. **Beyond the library** (:mod:`~ddsgen.diagnose.axis_candidates`). When no named effect is accepted,
+   a generic smooth term (disparity bias or dropout, degree-4 Legendre) is fitted along each axis with
+   residual structure beyond noise and judged by the same rule; one accepted is reported as an *unnamed
+   effect along that axis*, with its shape and the physical effects that produce such a shape. Named
+   effects keep precedence: the generic terms are tried only when none of them clears the rule.
+   Otherwise the loop stops.
 5. **What remains**: axes whose residual structure is still beyond noise (and at least
    :data:`~ddsgen.diagnose.acceptance.UNEXPLAINED_MIN_MM`) are reported as unexplained, strongest first, rather than
    naming a wrong effect.
+
+**One frame** is enough: it is split spatially (:mod:`~ddsgen.diagnose.split`) into blocks dealt into
+pieces, some held out, the others fitted together; the report says so.
 
 Two things make the comparison fair to every candidate:
 
@@ -57,16 +68,19 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.acceptance import MIN_RELATIVE_GAIN, bootstrap_fall, relative_fall, unexplained_axes
+from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axis_candidate, label, split_label
 from ddsgen.diagnose.candidates import changes_depth, fit_candidate, with_effect
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_matches
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
+from ddsgen.diagnose.split import split_note, split_single_frame
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.simulate import simulate
 from ddsgen.sensor.effects import REGISTRY, library_names
+from ddsgen.sensor.effects.axis_terms import PHYSICAL_CAUSES
 
 #: Base parameters fitted first. Not the baseline: fit_sensor estimates it from the disparity quantisation
 #: lattice of the real depth, which a depth scale error rescales just like a baseline error would, so a
@@ -90,6 +104,19 @@ class DiagnoseConfig:
     seed: int = 0
     grid_frames: int = 4  # fit frames used by the candidates' searches
     min_relative_gain: float = MIN_RELATIVE_GAIN
+    axis_terms: bool = True  # try generic axis terms when no named effect clears the rule
+
+
+def passes(candidate: Candidate, config: DiagnoseConfig) -> bool:
+    """The acceptance rule (:data:`~ddsgen.diagnose.acceptance.RULE`); a validity effect must also make the
+    real valid/invalid map more likely (:func:`~ddsgen.diagnose.evaluation.validity_log_likelihood`)."""
+    ok = candidate.gain >= config.min_relative_gain and candidate.gain_low > 0.0
+    return ok and (not is_validity(candidate.effect) or candidate.validity_ll_gain >= 0.0)
+
+
+def is_validity(label: str) -> bool:
+    """Whether the candidate ``label`` (a named effect or ``TERM:AXIS``) only removes pixels."""
+    return REGISTRY[split_label(label)[0]].stage == "validity"
 
 
 
@@ -107,9 +134,20 @@ def structure_summary(analysis: dict, top: int = 3) -> str:
     return ", ".join(f"{axis} {s.excess_mm:.1f} mm (noise {s.noise_mm:.1f})" for axis, (_, s) in items)
 
 
-def step_sentence(name: str, params: dict, before: Evaluation, after: Evaluation) -> str:
+def step_sentence(label: str, params: dict, before: Evaluation, after: Evaluation) -> str:
+    name, options = split_label(label)
     cls = REGISTRY[name]
     pct = 100.0 * (1.0 - after.excess / before.excess) if before.excess > 0 else 0.0
+    if cls.generic:
+        axis = options["axis"]
+        what = "disparity bias" if name == DISPARITY_TERM else "dropout"
+        return (
+            f"Unnamed effect along {axis.replace('_', ' ')}: no library effect explains the disagreement, but a "
+            f"smooth {what} that varies {AXIS_WORDS.get(axis, axis)} (a degree-{len(params) - 1} Legendre profile, "
+            f"plotted below) lowers the held-out gap beyond the noise floor from {before.excess:.2f} mm to "
+            f"{after.excess:.2f} mm ({pct:.0f} % less; compare gap {before.gap:.2f} -> {after.gap:.2f} mm, noise "
+            f"floor {after.floor:.2f} mm). Physical effects that produce such a shape: {'; '.join(PHYSICAL_CAUSES[axis])}."
+        )  # fmt: skip
     values = ", ".join(f"{k} = {v:.3g} {cls.params[k].unit}".rstrip() for k, v in params.items())
     return (
         f"Missing effect: {name}. {cls.description} With it ({values}) the held-out gap beyond the noise floor "
@@ -123,9 +161,10 @@ def refit(sensor, frames, config: DiagnoseConfig, progress: bool) -> None:
     """Refit the base parameters (and, by Adam, the parameters of accepted effects that change depth) in place.
 
     Dropout thresholds are left where their search put them: the fit loss, unlike the credited
-    fall, rewards dropping noisy pixels.
+    fall, rewards dropping noisy pixels; so are the shapes of generic axis terms (read off the residual).
     """
-    names = list(config.base_params) + [f"effect:{e.name}" for e in sensor.effects if changes_depth(e.name)]
+    names = list(config.base_params) + [f"effect:{e.name}" for e in sensor.effects
+                                        if changes_depth(e.name) and not e.generic]  # fmt: skip
     fit_sensor(sensor, frames, names, steps=config.refit_steps, lr=config.lr, progress=progress, seed=config.seed,
                batch_frames=config.batch_frames)  # fmt: skip
 
@@ -163,7 +202,13 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     unknown = [n for n in names if n not in REGISTRY]
     if unknown:
         raise ValueError(f"unknown candidate effect(s) {unknown}")
-    fit_frames, held = split_frames(frames, config.holdout, config.seed)
+    notes = []
+    if len(frames) == 1:  # one scan: pieces of it are the units of the fit / held-out split
+        fit_frames, held = split_single_frame(frames[0], config.holdout, config.seed)
+        notes.append(split_note(frames[0], fit_frames, held))
+        echo("      " + notes[-1])
+    else:
+        fit_frames, held = split_frames(frames, config.holdout, config.seed)
     held_seed = config.seed + 1  # held-out gaps use other noise draws than the fit
     rng = np.random.default_rng([config.seed, 77])
 
@@ -191,7 +236,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     with reuse_matches():
         while len(steps) < config.max_steps:
             todo = [n for n in names if n not in in_model]
-            if not todo:
+            if not todo and not config.axis_terms:
                 break
             echo(f"[3/5] round {len(rounds) + 1}: fitting {len(todo)} candidate effect(s) on the fit frames")
             # Depth-changing effects are searched on grid_frames (each trial re-planes and re-matches);
@@ -208,39 +253,62 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 False: (all_fit, all_base, all_sims),
             }  # fmt: skip
             results = []
-            for name in todo:
-                search_frames, search_base, search_sims = search_sets[changes_depth(name)]
-                cand_sensor, values, fit_score = fit_candidate(sensor, name, search_frames, config, search_base,
-                                                               search_sims)  # fmt: skip
+
+            def judge(name, fitted):
+                cand_sensor, values, fit_score = fitted
                 held_eval = evaluate(cand_sensor, held, held_seed, replane_steps=2)
                 c = Candidate(name, values, fit_score, held_eval, sensor=cand_sensor)
                 c.gain = relative_fall(current, held_eval)
                 c.gain_low = bootstrap_fall(current, held_eval, rng)
+                c.validity_ll_gain = held_eval.validity_ll - current.validity_ll
                 results.append(c)
                 echo(f"      {name:20s} held-out gap {held_eval.gap:6.2f} mm (floor {held_eval.floor:5.2f}, beyond it "
                      f"{held_eval.excess:5.2f})  "
-                     f"credited fall {100 * c.gain:+6.1f} % (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)"
-                     f"  {_fmt(values)}")  # fmt: skip
+                     f"credited fall {100 * c.gain:+6.1f} % (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)  "
+                     f"validity log-lik. {1000 * c.validity_ll_gain:+.1f} mnat/px  {_fmt(values)}")  # fmt: skip
+                return c
+
+            for name in todo:
+                search_frames, search_base, search_sims = search_sets[changes_depth(name)]
+                judge(name, fit_candidate(sensor, name, search_frames, config, search_base, search_sims))
+            best = max(results, key=lambda c: c.gain) if results else None
+            if config.axis_terms and not (best is not None and passes(best, config)):
+                # No named effect explains it: a generic smooth term along an axis with structure beyond noise.
+                tried = []
+                for term, axes in axes_to_try(analysis).items():
+                    if any(e.name == term for e in sensor.effects):  # a preset holds one term of each kind
+                        continue
+                    for axis in axes:
+                        search_frames, search_base, search_sims = search_sets[term == DISPARITY_TERM]
+                        fitted = fit_axis_candidate(sensor, term, axis, search_frames, config, search_base,
+                                                    search_sims)  # fmt: skip
+                        if fitted is not None:
+                            tried.append(judge(label(term, axis), fitted))
+                if tried:
+                    echo("      (generic axis terms: tried because no named effect clears the rule)")
+                    best = max(tried, key=lambda c: c.gain)
             rounds.append(results)
-            best = max(results, key=lambda c: c.gain)
-            if not (best.gain >= config.min_relative_gain and best.gain_low > 0.0):
-                echo(f"[4/5] no candidate clears the rule (best: {best.effect}, {100 * best.gain:.1f} %, "
-                     f"bootstrap 5 % {100 * best.gain_low:.1f} %): stop")  # fmt: skip
+            if best is None or not passes(best, config):
+                if best is not None:
+                    echo(f"[4/5] no candidate clears the rule (best: {best.effect}, {100 * best.gain:.1f} %, "
+                         f"bootstrap 5 % {100 * best.gain_low:.1f} %): stop")  # fmt: skip
                 break
             echo(f"[4/5] accepted {best.effect}; refitting the base parameters with it")
             new = best.sensor
             fit_before = evaluate(new, grid_frames, config.seed, replane_steps=1)
             refit(new, replaned(new, fit_frames, config.seed), config, progress)
+            name, options = split_label(best.effect)
             if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
-                new = with_effect(sensor, best.effect, best.params)  # the refit did not help: undo it
+                new = with_effect(sensor, name, {**options, **best.params})  # the refit did not help: undo it
                 after = best.held
             else:
                 after = evaluate(new, held, held_seed, replane_steps=2)
-            params = next(e for e in new.effects if e.name == best.effect).values()
+            params = new.effects[-1].values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
-            steps.append(Step(best.effect, params, current, after,
-                              REGISTRY[best.effect].axis, step_sentence(best.effect, params, current, after),
-                              analysis, after_analysis))  # fmt: skip
+            name, options = split_label(best.effect)
+            axis = options.get("axis", REGISTRY[name].axis)
+            steps.append(Step(best.effect, params, current, after, axis,
+                              step_sentence(best.effect, params, current, after), analysis, after_analysis))  # fmt: skip
             echo(f"      {best.effect}: held-out gap beyond the noise floor {current.excess:.2f} -> {after.excess:.2f} mm "
                  f"(compare gap {current.gap:.2f} -> {after.gap:.2f} mm; {_fmt(params)})")  # fmt: skip
             sensor, current, analysis = new, after, after_analysis
@@ -251,10 +319,12 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
         echo("[5/5] unexplained structure: " + ", ".join(f"{u['axis']} {u['strength']:.1f} mm" for u in unexplained))
     else:
         echo("[5/5] no residual structure beyond noise remains")
-    maps_baseline = residual_maps(base_sensor, held[:MAP_FRAMES], held_seed)
-    maps_final = residual_maps(sensor, held[:MAP_FRAMES], held_seed) if steps else maps_baseline
+    # A split frame is mapped whole (fit and held-out blocks): its pieces alone would show a checkerboard.
+    map_frames = frames[:1] if notes else held[:MAP_FRAMES]
+    maps_baseline = residual_maps(base_sensor, map_frames, held_seed)
+    maps_final = residual_maps(sensor, map_frames, held_seed) if steps else maps_baseline
     return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
-                     rounds, maps_baseline, maps_final)  # fmt: skip
+                     rounds, maps_baseline, maps_final, notes)  # fmt: skip
 
 
 def _fmt(values: dict) -> str:

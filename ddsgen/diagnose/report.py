@@ -60,6 +60,26 @@ def profile_figure(curves: list[tuple[str, AxisStats]], axis: str, path: Path, t
     _save(fig, path)
 
 
+def shape_figure(effect, path: Path) -> None:
+    """The fitted shape of a generic axis term along its axis -> PNG ``path`` (700 x 400 px)."""
+    from ddsgen.sensor.effects.axis_terms import axis_shape
+    from ddsgen.sensor.effects.features import PIXEL_AXES
+
+    x, y = axis_shape(effect)
+    fig = _figure(700, 400)
+    ax = fig.subplots()
+    ax.plot(x, y, "-", lw=2)
+    if effect.axis == "signal":
+        ax.set_xscale("log")
+    ax.axhline(1.0 if effect.stage == "validity" else 0.0, color="k", lw=0.5)
+    ax.set_xlabel(PIXEL_AXES[effect.axis], fontsize=8)
+    ax.set_ylabel("keep probability" if effect.stage == "validity" else "disparity bias added (px)")
+    ax.set_title(f"fitted {effect.name} along {effect.axis}", fontsize=11)
+    ax.grid(alpha=0.3)
+    fig.set_layout_engine("constrained")
+    _save(fig, path)
+
+
 def strengths_figure(before: dict, after: dict, path: Path) -> None:
     """Bar chart of the excess structure per axis, baseline vs final -> PNG ``path`` (1000 x 400 px)."""
     fig = _figure(1000, 400)
@@ -161,7 +181,8 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
     parts += [f"<p>{e(line)}</p>" for line in summary]
     parts.append("<h2>Steps</h2>")
     if not steps:
-        parts.append("<p>No effect of the library explains the disagreement clearly beyond noise: nothing was added.</p>")
+        parts.append("<p>No effect of the library, and no generic term along an axis, explains the disagreement "
+                     "clearly beyond noise: nothing was added.</p>")
     for i, step in enumerate(steps, 1):
         parts.append(f"<h3>Step {i}: {e(step['effect'])}</h3>")
         parts.append(f"<p>{e(step['sentence'])}</p>")
@@ -170,6 +191,8 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
             f"{step['gap_before']:.2f} mm &rarr; {step['gap_after']:.2f} mm</p>"
         )
         parts.append(_img(step["figure"], f"residual along {step['axis']}"))
+        if step.get("shape"):
+            parts.append(_img(step["shape"], f"fitted shape along {step['axis']}"))
     if rejected:
         parts.append("<h2>Candidates tried in the last round</h2><table><tr><th>effect</th><th>fitted parameters</th>"
                      "<th>held-out gap beyond the floor (mm)</th><th>credited fall / gap</th><th>bootstrap 5 %</th></tr>")  # fmt: skip
@@ -197,13 +220,21 @@ def axis_sentence(axis: str, strength: float) -> str:
             f"{strength:.1f} mm beyond noise, and no effect of the library removes it.")  # fmt: skip
 
 
+def generic_term(sensor, label: str):
+    """The generic axis term of ``sensor`` that a step label ``NAME:AXIS`` names, or None."""
+    name, _, axis = label.partition(":")
+    if not axis:
+        return None
+    return next((e for e in sensor.effects if e.name == name and getattr(e, "axis", None) == axis), None)
+
+
 def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] | None = None) -> list[Path]:
     """Write ``diagnosis.json`` and ``report.html`` of a :class:`~ddsgen.diagnose.Diagnosis` into ``folder``."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     plots = folder / PLOTS
     d = diagnosis
-    summary = list(notes or [])
+    summary = list(notes or []) + list(getattr(d, "notes", []))
     summary.append(
         f"{len(d.fit_frames)} frame(s) fitted, {len(d.held_frames)} held out. Held-out gap of the fitted base sensor: "
         f"{d.baseline.gap:.2f} mm, of which {d.baseline.floor:.2f} mm is its noise floor (two noise draws of the same "
@@ -217,17 +248,24 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
                        f"{d.final_gap:.2f} mm ({pct:.0f} % less; compare gap {d.final.gap:.2f} mm, noise floor "
                        f"{d.final.floor:.2f} mm).")  # fmt: skip
     else:
-        summary.append("No effect was added: the base sensor explains the scans as well as any library effect would.")
+        summary.append("No effect was added: the base sensor explains the scans as well as any library effect or "
+                       "generic axis term would.")
     steps = []
     for i, step in enumerate(d.steps, 1):
         before = step.analysis_before[step.axis][0]
         after = step.analysis_after[step.axis][0]
-        name = f"step{i}_{step.effect}_{step.axis}.png"
+        name = f"step{i}_{step.effect.replace(':', '_')}_{step.axis}.png"
         profile_figure([("before", before), (f"with {step.effect}", after)], step.axis, plots / name,
                        f"{step.effect}: residual along {step.axis}")  # fmt: skip
-        steps.append({"effect": step.effect, "sentence": step.sentence, "params": step.params,
-                      "gap_before": step.gap_before, "gap_after": step.gap_after, "axis": step.axis,
-                      "figure": f"{PLOTS}/{name}"})  # fmt: skip
+        entry = {"effect": step.effect, "sentence": step.sentence, "params": step.params,
+                 "gap_before": step.gap_before, "gap_after": step.gap_after, "axis": step.axis,
+                 "figure": f"{PLOTS}/{name}"}  # fmt: skip
+        term = generic_term(d.sensor, step.effect)
+        if term is not None:
+            shape = f"step{i}_{step.effect.replace(':', '_')}_shape.png"
+            shape_figure(term, plots / shape)
+            entry["shape"] = f"{PLOTS}/{shape}"
+        steps.append(entry)
     rejected = []
     if d.rounds:
         for c in d.rounds[-1]:

@@ -8,8 +8,9 @@ For every pixel of a frame's comparison region (:mod:`ddsgen.fit.simulate`) two 
   depth that the real sensor did not).
 
 They are binned along seven axes: ``depth`` (clean depth, m), ``incidence`` (angle between the
-surface normal and the viewing ray, deg), ``radius`` (distance from the principal point over
-the half-diagonal), ``row`` and ``column`` (px of the full image), ``edge_distance`` (px to the
+surface normal and the viewing ray, deg), ``radius``, ``row`` and ``column`` (normalised image
+coordinates r, y, x as the effects use them, :data:`~ddsgen.sensor.effects.features.PIXEL_AXES`;
+a crop sees the values of the full frame), ``edge_distance`` (px to the
 nearest depth discontinuity of the clean depth) and ``signal`` (local mean of the simulated IR
 image, counts). Statistics are kept per frame (sums per bin), so profiles pool frames and a
 bootstrap over frames gives their sampling noise.
@@ -32,7 +33,7 @@ import numpy as np
 import torch
 
 from ddsgen.fit.losses import VALIDITY_MM
-from ddsgen.sensor.effects.features import edge_distance, local_signal
+from ddsgen.sensor.effects.features import edge_distance, local_signal, normalised_coordinates
 
 #: Depth errors are clipped to +- this (mm) before averaging.
 CLIP_MM = 60.0
@@ -41,9 +42,9 @@ CLIP_MM = 60.0
 AXES: dict[str, str] = {
     "depth": "depth (m)",
     "incidence": "incidence angle (deg)",
-    "radius": "image radius (fraction of the half-diagonal)",
-    "row": "image row (px)",
-    "column": "image column (px)",
+    "radius": "image radius sqrt(x^2 + y^2) (normalised: x = (u - cx) / fx, y = (v - cy) / fy)",
+    "row": "image row y = (v - cy) / fy (normalised)",
+    "column": "image column x = (u - cx) / fx (normalised)",
     "edge_distance": "distance to the nearest depth edge (px)",
     "signal": "local IR level of the simulation (counts)",
 }
@@ -63,11 +64,15 @@ _EDGE_BINS = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 9.0, 14.0, 20.0, 30.0, np.i
 
 
 def frame_axes(frame, sim) -> dict[str, torch.Tensor]:
-    """Per-pixel axis values (H, W) of a prepared frame and its simulation."""
+    """Per-pixel axis values (H, W) of a prepared frame and its simulation.
+
+    Image position is in the effects' units (:data:`~ddsgen.sensor.effects.features.PIXEL_AXES`):
+    normalised coordinates x = (u - cx) / fx, y = (v - cy) / fy and r = sqrt(x^2 + y^2), so a profile
+    read here is the profile an axis term along that axis fits.
+    """
     h, w = frame.shape
-    x0, y0 = frame.crop[0], frame.crop[1]
-    rows = torch.arange(y0, y0 + h, dtype=torch.float32)[:, None].expand(h, w)
-    cols = torch.arange(x0, x0 + w, dtype=torch.float32)[None, :].expand(h, w)
+    intr = frame.intrinsics
+    xn, yn = normalised_coordinates(h, w, intr.fx, intr.fy, intr.cx, intr.cy)
     cache = getattr(frame, "_diagnose_edge_distance", None)
     if cache is None:
         cache = edge_distance(frame.geometry.clean_depth)
@@ -78,9 +83,9 @@ def frame_axes(frame, sim) -> dict[str, torch.Tensor]:
     return {
         "depth": frame.geometry.clean_depth,
         "incidence": frame.incidence_deg,
-        "radius": frame.radius,
-        "row": rows,
-        "column": cols,
+        "radius": torch.sqrt(xn * xn + yn * yn),
+        "row": yn,
+        "column": xn,
         "edge_distance": cache,
         "signal": local_signal(sim.ir.detach().float()),
     }

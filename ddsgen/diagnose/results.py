@@ -16,6 +16,7 @@ class Candidate:
     held: Evaluation
     gain: float = 0.0
     gain_low: float = 0.0
+    validity_ll_gain: float = 0.0  # change of the held-out validity log-likelihood (nats per pixel)
     sensor: object = None
 
 
@@ -60,6 +61,7 @@ class Diagnosis:
     rounds: list[list[Candidate]]
     maps_baseline: list = dataclasses.field(default_factory=list)
     maps_final: list = dataclasses.field(default_factory=list)
+    notes: list = dataclasses.field(default_factory=list)  # sentences for the report (e.g. a spatial split)
 
     @property
     def baseline_gap(self) -> float:
