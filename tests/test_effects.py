@@ -16,7 +16,7 @@ from ddsgen.errors import InputError
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.effects import REGISTRY, build_effects, validate_effects
 from ddsgen.sensor.effects.features import edge_distance, image_radius, incidence_angle_deg, local_signal
-from ddsgen.sensor.effects.library import LensDistortion, bilinear_sample
+from ddsgen.sensor.effects.library import LensDistortion
 from effects_geometry import plane_geometry, small_preset, tilted_normal
 
 REQUIRED = {"lens_distortion", "disparity_offset", "grazing_dropout", "edge_dropout"}
