@@ -280,12 +280,11 @@ def test_validity_likelihood_prefers_holes_where_the_real_ones_are():
 # The cases (rendered scans, full diagnosis)
 
 
-#: Known limit (last measured: low-signal dropout named first, but its threshold came out at ~3.5 counts (true 10)
-#: and the gap beyond the floor fell ~22 %: the base fit lowers the SNR to mimic the dropout). The candidate now
-#: searches SNR and threshold jointly (candidates.SNR_FACTORS); that has not been measured on this case yet (the
-#: run timed out on a loaded machine), so the mark is not strict until it is: make it strict, or drop it.
-SNR_CONFOUND = pytest.mark.xfail(strict=False, reason="low-signal dropout is confounded with the SNR of the base fit; "
-                                  "the joint SNR x threshold search is not yet measured here")
+#: low_signal_dropout is not run here. Last measured: named first, but its threshold came out at ~3.5 counts (true
+#: 10) and the gap beyond the floor fell ~22 %: the base fit lowers the SNR to mimic the dropout. The candidate now
+#: searches SNR and threshold jointly (candidates.SNR_FACTORS), which makes this case cost more than 15 min on one
+#: core; a non-strict xfail asserted nothing, so the case is left to a measurement (issue notes), not to CI.
+NOT_IN_CI = ("low_signal_dropout",)
 
 
 #: Rendered cases whose blind counterpart (below) passes are not rendered again (CI time).
@@ -293,8 +292,7 @@ BLIND_COVERS = ("lens_distortion",)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [pytest.param(n, marks=SNR_CONFOUND) if n == "low_signal_dropout" else n
-                                  for n in CASES if n not in BLIND_COVERS])  # fmt: skip
+@pytest.mark.parametrize("name", [n for n in CASES if n not in BLIND_COVERS + NOT_IN_CI])
 def test_diagnose_names_the_hidden_effect_first_and_halves_the_gap(scans, name):
     entry = CASES[name]
     log: list[str] = []
