@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.plane import replaned
-from ddsgen.fit.compare import frame_gap
+from ddsgen.fit.compare import frame_gap_mm
 from ddsgen.fit.losses import local_window, masked_local_mean
 from ddsgen.fit.simulate import simulate
 
@@ -80,9 +80,8 @@ def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float, float]:
     sensor, exactly as ``compare`` measures them, and :func:`validity_log_likelihood` of the real scan."""
     sim = simulate(sensor, frame, seed)
     other = simulate(sensor, frame, seed + 1000)
-    g = frame_gap(sim, frame)
     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
-    return float(g["gap"] or 0.0), float(frame_gap(sim, twin)["gap"] or 0.0), validity_log_likelihood(sim, frame)
+    return frame_gap_mm(sim, frame), frame_gap_mm(sim, twin), validity_log_likelihood(sim, frame)
 
 
 def evaluate(sensor, frames, seed: int, replane_steps: int = 0) -> Evaluation:

@@ -131,11 +131,21 @@ def _confusion(sim_valid, real_valid, region) -> dict:
     }
 
 
+#: The gap's terms: depth, gradient and validity at weight 1 (the per-pixel term is reported, not summed).
+GAP_WEIGHTS = LossWeights(depth=1.0, gradient=1.0, validity=1.0, pixel=0.0)
+
+
+def frame_gap_mm(sim, frame: FrameData) -> float:
+    """The headline gap (mm) of one simulated frame, as :func:`frame_gap` reports it, without its parts."""
+    with torch.no_grad():
+        return _r(frame_loss(sim, frame, GAP_WEIGHTS)["total"]) or 0.0
+
+
 def frame_gap(sim, frame: FrameData, region: str = "all") -> dict:
     """Gap terms and parts of one simulated frame (see the module docstring)."""
     f = _with_region(frame, region)
     with torch.no_grad():
-        terms = frame_loss(sim, f, LossWeights(depth=1.0, gradient=1.0, validity=1.0, pixel=0.0))
+        terms = frame_loss(sim, f, GAP_WEIGHTS)
     mask = f.region
     both = mask & sim.valid & f.real_valid
     err = ((sim.depth - f.real_depth)[both] * 1000.0).numpy()

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+
+from ddsgen.sensor.box_filter import box_mean
 
 # A depth step larger than this fraction of the local depth is a discontinuity (5 %: 10 cm at 2 m).
 EDGE_RELATIVE_STEP = 0.05
@@ -90,9 +91,7 @@ def edge_distance(clean_depth: torch.Tensor, relative_step: float = EDGE_RELATIV
 
 def local_signal(signal: torch.Tensor, window: int = SIGNAL_WINDOW_PX) -> torch.Tensor:
     """Mean of the projected IR signal (counts) over a ``window`` x ``window`` box, same size as the input."""
-    pad = window // 2
-    x = F.pad(signal[None, None], (pad, pad, pad, pad), mode="replicate")
-    return F.avg_pool2d(x, window, stride=1)[0, 0]
+    return box_mean(signal[None, None], window, padding="replicate")[0, 0]
 
 
 def cached(ctx: dict, key: str, compute):
