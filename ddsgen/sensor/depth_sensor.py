@@ -91,6 +91,24 @@ class SensorOutput:
     raw_depth: torch.Tensor
 
 
+@dataclass
+class FrontEnd:
+    """The sensor's state before its validity stage (:meth:`DepthSensor.front_end`). All (H, W).
+
+    ir: IR image (counts, after ir effects); disparity: px (after disparity effects); raw_depth: m (after depth
+    effects, 0 where the disparity is not positive); confidence: matcher's [0, 1]; matched: matcher's bool
+    validity; keep: keep-probability from the confidence and the lit mask; ctx: per-frame values effects read.
+    """
+
+    ir: torch.Tensor
+    disparity: torch.Tensor
+    raw_depth: torch.Tensor
+    confidence: torch.Tensor
+    matched: torch.Tensor
+    keep: torch.Tensor
+    ctx: dict
+
+
 @functools.lru_cache(maxsize=8)
 def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
                    dot_jitter_px: float = 0.0) -> PatternField:
@@ -243,11 +261,18 @@ class DepthSensor(nn.Module):
             quantise: quantise IR counts and disparity like the device (straight-through
                 gradients). False gives the smooth function, for finite-difference checks.
         """
-        p, intr = self.preset, self.intr
+        intr = self.intr
         if geometry.shape != (intr.height, intr.width):
             raise ValueError(f"geometry is {geometry.shape}, sensor expects {(intr.height, intr.width)}")
         if noise is None:
             noise = self.draw_noise(seed, geometry)
+        return self.validity_stage(self.front_end(geometry, noise, quantise), geometry)
+
+    def front_end(self, geometry: SensorGeometry, noise: IRNoise, quantise: bool = True) -> "FrontEnd":
+        """Everything before the validity stage: IR image, ir effects, block matching, disparity and depth
+        effects, and the matcher's keep-probability. Depends on the geometry, the noise and every parameter
+        except those of validity-stage effects (what :func:`validity_parameters` lists)."""
+        p, intr = self.preset, self.intr
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
         baseline = self.baseline
@@ -289,11 +314,19 @@ class DepthSensor(nn.Module):
                 raw_depth = effect(raw_depth, ctx)
 
         keep = torch.sigmoid((result.confidence - p.min_confidence) / _SOFT_VALIDITY_WIDTH) * lit
+        return FrontEnd(ir=ir, disparity=disparity, raw_depth=raw_depth, confidence=result.confidence,
+                        matched=result.valid, keep=keep, ctx=ctx)  # fmt: skip
+
+    def validity_stage(self, front: "FrontEnd", geometry: SensorGeometry) -> SensorOutput:
+        """Validity effects, range, the device's clean-up, output window and post-processing -> SensorOutput."""
+        p, intr = self.preset, self.intr
+        ctx, raw_depth, disparity = front.ctx, front.raw_depth, front.disparity
+        keep = front.keep
         for effect in self.effects:
             if effect.stage == "validity":
                 keep = keep * effect(raw_depth, ctx)
         in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
-        valid = result.valid & geometry.hit & ~geometry.shadow & in_range & (keep > 0.5)
+        valid = front.matched & geometry.hit & ~geometry.shadow & in_range & (keep > 0.5)
         valid_soft = keep * in_range.float()
         if p.cleanup_speckle_px or p.cleanup_hole_px:
             # A selection: each pixel keeps its own value or copies its nearest valid neighbour's.
@@ -320,8 +353,8 @@ class DepthSensor(nn.Module):
             depth=depth,
             valid=valid,
             valid_soft=valid_soft,
-            ir=ir,
+            ir=front.ir,
             disparity=torch.where(valid, disparity, torch.zeros_like(disparity)),
-            confidence=result.confidence,
+            confidence=front.confidence,
             raw_depth=raw_depth,
         )
