@@ -72,7 +72,7 @@ from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axi
 from ddsgen.diagnose.candidates import changes_depth, fit_candidate, with_effect
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
-from ddsgen.diagnose.match_cache import reuse_matches
+from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
 from ddsgen.diagnose.split import split_note, split_single_frame
@@ -233,7 +233,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     steps: list[Step] = []
     rounds: list[list[Candidate]] = []
     in_model = {e.name for e in sensor.effects}
-    with reuse_matches():
+    with reuse_matches(), reuse_front_ends():
         while len(steps) < config.max_steps:
             todo = [n for n in names if n not in in_model]
             if not todo and not config.axis_terms:

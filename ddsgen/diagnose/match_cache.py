@@ -1,15 +1,52 @@
-"""Block matching served from a cache while the matcher's input does not change (diagnosis speed)."""
+"""Simulation stages served from caches while their inputs do not change (diagnosis speed).
+
+A diagnosis simulates the same frames hundreds of times, and most trials change only a late stage of
+the sensor: a validity effect's threshold leaves the IR image, the matching and the depth as they
+were; a disparity effect leaves the IR image. Two caches, both bounded (least recently used entries go):
+
+* :func:`reuse_matches` -- the block matcher's result for an identical IR image;
+* :func:`reuse_front_ends` -- the noise draws for a seed, and everything before the validity stage
+  (:meth:`~ddsgen.sensor.depth_sensor.DepthSensor.front_end`) for identical geometry, noise and
+  parameters other than the validity effects'.
+
+Both serve only calls without gradients (the diagnosis' evaluations); a fit inside the context
+computes as usual.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+from collections import OrderedDict
 
 import torch
 
+#: Entries kept by each cache. A front end at 640 x 480 holds ~7 maps (~10 MB): 48 entries cover the fit
+#: frames x two noise draws of a candidate search with room to spare.
+MATCH_ENTRIES = 256
+FRONT_END_ENTRIES = 48
+
+
+class LruCache:
+    """A dict that keeps its ``size`` most recently used entries."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.entries: OrderedDict = OrderedDict()
+
+    def get(self, key, compute):
+        if key in self.entries:
+            self.entries.move_to_end(key)
+            return self.entries[key]
+        value = compute()
+        self.entries[key] = value
+        if len(self.entries) > self.size:
+            self.entries.popitem(last=False)
+        return value
+
 
 @contextlib.contextmanager
-def reuse_matches():
+def reuse_matches(size: int = MATCH_ENTRIES):
     """Serve block-matching results from a cache while the matcher's input does not change.
 
     Inside the context, :func:`ddsgen.sensor.matcher.match` as called by the sensor is wrapped:
@@ -20,7 +57,7 @@ def reuse_matches():
     import ddsgen.sensor.depth_sensor as depth_sensor
 
     original = depth_sensor.match
-    cache: dict = {}
+    cache = LruCache(size)
 
     def cached_match(observed, reference_phases, pad, d_min, d_max, block, beta, *args, **kwargs):
         needs_grad = observed.requires_grad or (torch.is_tensor(beta) and beta.requires_grad)
@@ -29,12 +66,60 @@ def reuse_matches():
         digest = hashlib.blake2b(observed.detach().contiguous().cpu().numpy().tobytes(), digest_size=16).hexdigest()
         key = (digest, tuple(observed.shape), reference_phases.data_ptr(), pad, round(float(d_min), 9),
                round(float(d_max), 9), block, round(float(beta), 9), args, tuple(sorted(kwargs.items())))  # fmt: skip
-        if key not in cache:
-            cache[key] = original(observed, reference_phases, pad, d_min, d_max, block, beta, *args, **kwargs)
-        return cache[key]
+        return cache.get(key, lambda: original(observed, reference_phases, pad, d_min, d_max, block, beta, *args,
+                                               **kwargs))  # fmt: skip
 
     depth_sensor.match = cached_match
     try:
         yield cache
     finally:
         depth_sensor.match = original
+
+
+def front_end_state(sensor) -> tuple:
+    """Everything a sensor's front end depends on besides geometry and noise: the preset (without its effects),
+    the camera, every parameter value except those of validity-stage effects, and the other effects' entries."""
+    validity = {f"effects.{i}." for i, e in enumerate(sensor.effects) if e.stage == "validity"}
+    values = tuple((name, tuple(p.detach().reshape(-1).tolist())) for name, p in sensor.named_parameters()
+                   if not any(name.startswith(prefix) for prefix in validity))  # fmt: skip
+    buffers = tuple((name, tuple(b.detach().reshape(-1).tolist())) for name, b in sensor.named_buffers()
+                    if b.numel() <= 64)  # fmt: skip
+    effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage != "validity")
+    intr = sensor.intr
+    return (repr(sensor.preset.replace(effects=[])), (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy),
+            values, buffers, effects)  # fmt: skip
+
+
+@contextlib.contextmanager
+def reuse_front_ends(size: int = FRONT_END_ENTRIES):
+    """Serve noise draws and sensor front ends from caches (see the module docstring).
+
+    Noise draws are keyed by their integer seed (and the geometry when the speckle is fixed to the scene),
+    so the same seed returns the same object; front ends by that noise object, the geometry object and
+    :func:`front_end_state`. The cached objects are kept alive by the cache, so their ids stay unique.
+    """
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    original_noise, original_front = DepthSensor.draw_noise, DepthSensor.front_end
+    noises, fronts = LruCache(size), LruCache(size)
+
+    def draw_noise(self, seed, geometry=None):
+        if not isinstance(seed, (int, tuple, list)):  # a Generator: its draws depend on its state
+            return original_noise(self, seed, geometry)
+        p = self.preset
+        key = (tuple(seed) if isinstance(seed, (tuple, list)) else seed, self.intr.height, self.intr.width,
+               p.speckle_shape, p.speckle_grain_px, p.speckle_fixed_to_scene, id(geometry) if geometry is not None
+               else None)  # fmt: skip
+        return noises.get(key, lambda: (original_noise(self, seed, geometry), geometry))[0]
+
+    def front_end(self, geometry, noise, quantise=True):
+        if torch.is_grad_enabled():
+            return original_front(self, geometry, noise, quantise)
+        key = (id(geometry), id(noise), quantise, front_end_state(self))
+        return fronts.get(key, lambda: (original_front(self, geometry, noise, quantise), geometry, noise))[0]
+
+    DepthSensor.draw_noise, DepthSensor.front_end = draw_noise, front_end
+    try:
+        yield fronts
+    finally:
+        DepthSensor.draw_noise, DepthSensor.front_end = original_noise, original_front
