@@ -32,7 +32,9 @@ def box_mean(x: torch.Tensor, k: int, padding: str = "zeros") -> torch.Tensor:
     if padding not in _BORDERS:
         raise ValueError(f"padding must be 'zeros' or 'replicate', got {padding!r}")
     if x.device.type == "cpu" and not (x.requires_grad and torch.is_grad_enabled()):
-        planes = x.detach().double().reshape(-1, *x.shape[-2:]).numpy()
+        # OpenCV sums float32 images in float64 too: its float32 means equal the float64 ones rounded.
+        exact = x.detach() if x.dtype in (torch.float32, torch.float64) else x.detach().double()
+        planes = exact.reshape(-1, *x.shape[-2:]).numpy()
         means = [cv2.boxFilter(plane, -1, (k, k), normalize=True, borderType=_BORDERS[padding]) for plane in planes]
         return torch.from_numpy(np.stack(means)).reshape(x.shape).to(x.dtype)
     r = k // 2
