@@ -54,9 +54,9 @@ Two things make the comparison fair to every candidate:
 Speed: effects that act after block matching (disparity, depth and validity stages) do not
 change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches` serves the
 matcher's result from a cache keyed by the IR image; validity effects do not move the plane
-either, so their whole search runs without the matcher and uses every fit frame; depth effects
-are searched on at most
-:attr:`DiagnoseConfig.grid_frames` fit frames.
+either, so their whole search reuses the sensor's front end (IR image, matching, depth:
+:func:`~ddsgen.diagnose.match_cache.reuse_front_ends`) and uses every fit frame; depth effects
+are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames.
 """
 
 from __future__ import annotations
