@@ -525,3 +525,66 @@ def test_input_validation():
         match(observed, phases, 20, 0, 19, 5, 15.0, 2)
     with pytest.raises(ValueError, match="range"):
         match(observed, phases, 20, 5, 4.5, 5, 15.0, 2)
+
+
+# ---------------------------------------------------------------------------------------
+# Validity at depth edges: the confirmed-match rule (preset key confirmed_match_zncc)
+# ---------------------------------------------------------------------------------------
+def test_windows_across_a_depth_edge_keep_one_of_its_surfaces():
+    """A vertical depth edge (near surface d = 24 px on the left, far d = 14 px on the right): a
+    window across it sees both, its ZNCC has two peaks and fails the uniqueness test; confirmed by
+    a unique neighbour on the same surface it is kept, with that surface's disparity."""
+    height, width, edge = 40, 120, 60
+    disparity = np.where(np.arange(width) < edge, 24.0, 14.0)[None].repeat(height, 0)
+    observed, phases, pad, _ = _scene(height, width, disparity, n_sub=2, noise=6.0, seed=4)
+
+    def run(confirmed_match_zncc):
+        return match(observed, phases, pad, 5, pad - 12, 9, 15.0, 2, 64, 0.15, compile=False,
+                     confirmed_match_zncc=confirmed_match_zncc)  # fmt: skip
+
+    band = (slice(4, -4), slice(edge - 8, edge + 8))  # the windows that straddle the edge
+    uniqueness_only, device = run(1.0), run(0.4)
+    kept = {name: float(r.valid[band].float().mean()) for name, r in (("off", uniqueness_only), ("on", device))}
+    assert kept["off"] < 0.9 and kept["on"] > 0.95, kept  # measured 0.865 and 0.963
+    assert (device.valid | ~uniqueness_only.valid).all()  # the rule only adds pixels
+    d = device.disparity.detach()[band][device.valid[band]]
+    on_a_surface = torch.minimum((d - 24).abs(), (d - 14).abs()) <= 1
+    assert on_a_surface.float().mean() > 0.97
+
+
+def test_repeated_texture_stays_invalid_with_the_confirmed_match_rule():
+    """Texture that repeats every 8 px matches equally well at d and d +- 8 px (best and second ZNCC
+    both ~1): ambiguous, however strong. Next to uniquely textured pixels at the same disparity, only
+    windows whose best peak is that disparity are confirmed; farther than a window from them, nothing."""
+    height, width, period, true_d, seam = 32, 120, 8, 20.3, 48
+    pad = 60
+    xs, ys, amp = _dots(height, 0, period, seed=5)
+    tiles = range(-(pad + 8) // period - 1, (width + 8) // period + 2)
+    periodic = (np.concatenate([xs + k * period for k in tiles]), np.tile(ys, len(tiles)), np.tile(amp, len(tiles)))
+    unique = _dots(height, -pad - 3, width + 3, seed=6)
+    x_seam = seam - true_d  # pattern coordinate of the seam: unique texture left of it, repeated right of it
+
+    def texture(x, y):
+        return np.where(x < x_seam, _render(unique, x, y), _render(periodic, x, y))
+
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    observed = 40 + 800 * texture(u - true_d, v) + np.random.default_rng(1).normal(0, 2.0, u.shape)
+    vj, j = np.mgrid[0:height, 0 : width + pad].astype(np.float64)
+    phases = np.stack([40 + 800 * texture(j - pad - s / 4, vj) for s in range(4)])
+    observed, phases = torch.tensor(observed, dtype=torch.float32), torch.tensor(phases, dtype=torch.float32)
+    for confirmed_match_zncc in (1.0, 0.4, 0.0):
+        result = match(observed, phases, pad, 5, pad - 12, 9, 15.0, 2, 64, 0.15, compile=False,
+                       confirmed_match_zncc=confirmed_match_zncc)  # fmt: skip
+        deep = (slice(4, -4), slice(seam + 9 + 4, width - 4))  # windows that see only repeated texture
+        assert float(result.best_zncc[deep].median()) > 0.9  # strong: a best-ZNCC-only rule would keep them
+        assert not result.valid[deep].any(), confirmed_match_zncc
+        d = result.disparity.detach()[result.valid]
+        assert ((d - true_d).abs() <= 1).all()  # nothing valid at a wrong period
+
+
+def test_paper_presets_keep_the_uniqueness_test_alone():
+    from ddsgen.preset import load_preset
+
+    for name in ("kinect_v1_paper", "matterport_pro2"):
+        assert load_preset(name).confirmed_match_zncc == 1.0  # the neutral value: the rule is off
+    assert load_preset("kinect_v1").confirmed_match_zncc < 1.0

@@ -299,6 +299,7 @@ class DepthSensor(nn.Module):
         result = match(
             ir, self.reference_phases(), self.pad, d_min, d_max, p.block_size_px, self.beta,
             p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise,
+            confirmed_match_zncc=p.confirmed_match_zncc,
         )  # fmt: skip
         disparity = result.disparity
         for effect in self.effects:

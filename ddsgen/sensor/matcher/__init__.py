@@ -40,7 +40,13 @@ columns at the left and right borders are reported invalid.
 
 Confidence = clip(best, 0, 1) - clip(second peak, 0, 1) in [0, 1]: 0 for flat windows
 (ZNCC 0), for ambiguous (repeated) texture and where no candidate exists; ``valid`` is
-``confidence >= min_confidence`` (and > 0).
+``confidence >= min_confidence`` (and > 0). With ``confirmed_match_zncc`` < 1 a match that fails
+this uniqueness test is still valid when its best ZNCC exceeds ``confirmed_match_zncc`` and a
+unique match within its window has its integer disparity (+-1 px): a window across a depth edge
+sees two surfaces (two peaks of about half the ZNCC each) and its best peak is one of them, which
+a neighbour on that surface confirms; repeated texture and noise agree with a unique neighbour only
+by chance. Its confidence is then min_confidence + (best - confirmed_match_zncc), so
+``confidence >= min_confidence`` stays the validity test.
 
 Gradients: the disparity is differentiable w.r.t. ``observed``, ``beta`` and (if they
 require grad) ``reference_phases``; variance floors keep them finite on flat windows.
@@ -86,13 +92,52 @@ class MatchResult:
 
     disparity: float px; differentiable; forward value quantised to 2^-n_sub px.
     confidence: in [0, 1] (best ZNCC minus the best other peak), no gradient.
-    valid: bool, ``confidence >= min_confidence`` and inside the matchable area.
+    valid: bool, ``confidence >= min_confidence`` and inside the matchable area (see the module
+        docstring for confirmed matches).
+    best_zncc, second_zncc: the best integer-disparity ZNCC and the best other peak's, clipped to
+        [0, 1], no gradient (for diagnosis: confidence is derived from them).
     """
 
     disparity: torch.Tensor
     confidence: torch.Tensor
     valid: torch.Tensor
+    best_zncc: torch.Tensor | None = None
+    second_zncc: torch.Tensor | None = None
 
+
+def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, candidates: torch.Tensor,
+                                     block: int, chunk: int = 32768) -> torch.Tensor:
+    """(H, W) bool: candidate pixels whose integer disparity a unique match within their
+    block x block window shares (within 1 px).
+
+    A window across a depth edge sees two surfaces and its best peak is one of them, so a unique
+    neighbour on that surface has the same disparity. A wrong match (repeated texture, noise) agrees
+    with a unique neighbour only by chance, and where no neighbour is unique nothing is confirmed.
+
+    Args:
+        k_int: (H, W) integer disparity of the best peak (px).
+        unique: (H, W) bool, the matches that pass the uniqueness test.
+        candidates: (H, W) bool, the pixels to check (the others come back False).
+        chunk: candidates gathered at once (bounds memory to chunk x block^2 elements).
+    """
+    h = block // 2
+    width = k_int.shape[1] + 2 * h
+    # Disparities of the unique matches, far from any disparity elsewhere, padded by h: (H + 2h) x width, flat.
+    seeds = torch.where(unique, k_int.to(torch.int32), torch.full_like(k_int, -(2**20), dtype=torch.int32))
+    seeds = torch.nn.functional.pad(seeds[None], (h, h, h, h), value=-(2**20))[0].reshape(-1)
+    dy, dx = torch.meshgrid(torch.arange(block, device=k_int.device), torch.arange(block, device=k_int.device),
+                            indexing="ij")  # fmt: skip
+    window = (dy * width + dx).reshape(1, -1)  # offsets of a window's pixels from its top-left corner
+    ys, xs = torch.nonzero(candidates, as_tuple=True)
+    own = k_int[ys, xs].to(torch.int32)
+    corner = ys * width + xs
+    out = torch.zeros_like(candidates)
+    for start in range(0, ys.numel(), chunk):
+        part = slice(start, start + chunk)
+        neighbours = seeds[corner[part, None] + window]  # (chunk, block^2)
+        agree = ((neighbours - own[part, None]).abs() <= 1).any(dim=1)
+        out[ys[part], xs[part]] = agree
+    return out
 
 
 def match(
@@ -112,6 +157,7 @@ def match(
     backend: str = "auto",
     device=None,
     refine_level: int | None = None,
+    confirmed_match_zncc: float = 1.0,
 ) -> MatchResult:
     """Block-match ``observed`` against the reference: I_o(u, v) ~ R(u - d, v).
 
@@ -134,6 +180,9 @@ def match(
         device: run on this device (inputs are moved); default: ``observed.device``.
         refine_level: the refinement's candidates are 2^-refine_level px apart (default
             min(n_sub, REFINE_LEVEL), at most n_sub); the output is still quantised to 2^-n_sub px.
+        confirmed_match_zncc: a match that is not unique (confidence < min_confidence) is still
+            valid when its best ZNCC exceeds this and a unique match within its block x block
+            window has its integer disparity (+-1 px): a window across a depth edge. 1 = off.
 
     Returns:
         :class:`MatchResult` with (H, W) disparity, confidence, valid.
@@ -217,11 +266,19 @@ def match(
         disparity = disparity + (quantised - disparity).detach()
 
     with torch.no_grad():
-        confidence = (best.clamp(0, 1) - second.clamp(0, 1)).clamp(0, 1).to(dev)
-        confidence = torch.where(found, confidence, torch.zeros_like(confidence))
+        best, second = best.clamp(0, 1).to(dev), second.clamp(0, 1).to(dev)
+        matchable = found.to(dev).clone()
         if h > 0:
-            confidence[:, :h] = 0
-            confidence[:, W - h :] = 0
+            matchable[:, :h] = False
+            matchable[:, W - h :] = False
+        confidence = torch.where(matchable, (best - second).clamp(0, 1), torch.zeros_like(best))
+        if confirmed_match_zncc < 1.0:
+            unique = matchable & (confidence >= min_confidence) & (confidence > 0)
+            candidates = matchable & ~unique & (best > confirmed_match_zncc)
+            confirmed = _confirmed_by_a_unique_neighbour(k_int.to(dev), unique, candidates, block)
+            # The margin by which a confirmed match passes: min_confidence + (best - confirmed_match_zncc).
+            confirmed_margin = (min_confidence + best - confirmed_match_zncc).clamp(0, 1)
+            confidence = torch.where(confirmed, torch.maximum(confidence, confirmed_margin), confidence)
         confidence = confidence.to(dtype)
         valid = (confidence >= min_confidence) & (confidence > 0)
-    return MatchResult(disparity=disparity, confidence=confidence, valid=valid)
+    return MatchResult(disparity=disparity, confidence=confidence, valid=valid, best_zncc=best, second_zncc=second)
