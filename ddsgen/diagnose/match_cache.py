@@ -21,10 +21,11 @@ from collections import OrderedDict
 
 import torch
 
-#: Entries kept by each cache. A front end at 640 x 480 holds ~7 maps (~10 MB): 48 entries cover the fit
-#: frames x two noise draws of a candidate search with room to spare.
-MATCH_ENTRIES = 256
-FRONT_END_ENTRIES = 48
+#: Entries kept by each cache. At 640 x 480 a match result holds 5 maps (~6 MB), a front end ~7 maps and its
+#: noise draws (~15 MB): 32 front ends cover the fit frames x two noise draws of a candidate search with room to
+#: spare. (An unbounded match cache grew a test worker to 3 GB; 256 matches + 48 front ends to 4.6 GB.)
+MATCH_ENTRIES = 64
+FRONT_END_ENTRIES = 32
 
 
 class LruCache:
