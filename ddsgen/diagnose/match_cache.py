@@ -79,16 +79,16 @@ def reuse_matches(size: int = MATCH_ENTRIES):
 
 def front_end_state(sensor) -> tuple:
     """Everything a sensor's front end depends on besides geometry and noise: the preset (without its effects),
-    the camera, every parameter value except those of validity-stage effects, and the other effects' entries."""
-    validity = {f"effects.{i}." for i, e in enumerate(sensor.effects) if e.stage == "validity"}
-    values = tuple((name, tuple(p.detach().reshape(-1).tolist())) for name, p in sensor.named_parameters()
-                   if not any(name.startswith(prefix) for prefix in validity))  # fmt: skip
-    buffers = tuple((name, tuple(b.detach().reshape(-1).tolist())) for name, b in sensor.named_buffers()
-                    if b.numel() <= 64)  # fmt: skip
+    the camera, the values of every parameter and buffer except those of validity-stage effects and of the
+    post-processing (both act after the front end), and the other effects' entries."""
+    later = {f"effects.{i}." for i, e in enumerate(sensor.effects) if e.stage == "validity"} | {"postprocess."}
+    tensors = tuple((name, tuple(t.detach().reshape(-1).tolist()))
+                    for name, t in (*sensor.named_parameters(), *sensor.named_buffers())
+                    if not any(name.startswith(prefix) for prefix in later))  # fmt: skip
     effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage != "validity")
     intr = sensor.intr
     return (repr(sensor.preset.replace(effects=[])), (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy),
-            values, buffers, effects)  # fmt: skip
+            tensors, effects)  # fmt: skip
 
 
 @contextlib.contextmanager

@@ -38,7 +38,7 @@ import cv2
 import torch
 import torch.nn.functional as F
 
-from ddsgen.sensor.box_filter import box_mean, erode
+from ddsgen.sensor.box_filter import box_mean, erode, opencv_can_filter
 
 #: Huber threshold (mm).
 HUBER_DELTA_MM = 5.0
@@ -104,7 +104,7 @@ def sobel(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
     Without a gradient to carry (CPU), OpenCV's correlation computes the same (a convolution took ~12 ms at
     640 x 480, the hottest op of an evaluation)."""
-    if x.device.type == "cpu" and not (x.requires_grad and torch.is_grad_enabled()):
+    if opencv_can_filter(x):
         image = x.detach().numpy()
         return tuple(torch.from_numpy(cv2.filter2D(image, -1, kernel.numpy().astype(image.dtype),
                                                    borderType=cv2.BORDER_REPLICATE))

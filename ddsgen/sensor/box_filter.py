@@ -14,6 +14,11 @@ import torch
 import torch.nn.functional as F
 
 
+def opencv_can_filter(x: torch.Tensor) -> bool:
+    """Whether OpenCV may filter ``x`` instead of torch: a CPU tensor with no gradient to carry."""
+    return x.device.type == "cpu" and not (x.requires_grad and torch.is_grad_enabled())
+
+
 #: OpenCV border of each padding mode.
 _BORDERS = {"zeros": cv2.BORDER_CONSTANT, "replicate": cv2.BORDER_REPLICATE}
 
@@ -31,7 +36,7 @@ def box_mean(x: torch.Tensor, k: int, padding: str = "zeros") -> torch.Tensor:
     """
     if padding not in _BORDERS:
         raise ValueError(f"padding must be 'zeros' or 'replicate', got {padding!r}")
-    if x.device.type == "cpu" and not (x.requires_grad and torch.is_grad_enabled()):
+    if opencv_can_filter(x):
         # OpenCV sums float32 images in float64 too: its float32 means equal the float64 ones rounded.
         exact = x.detach() if x.dtype in (torch.float32, torch.float64) else x.detach().double()
         planes = exact.reshape(-1, *x.shape[-2:]).numpy()

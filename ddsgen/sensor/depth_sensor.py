@@ -271,7 +271,8 @@ class DepthSensor(nn.Module):
     def front_end(self, geometry: SensorGeometry, noise: IRNoise, quantise: bool = True) -> "FrontEnd":
         """Everything before the validity stage: IR image, ir effects, block matching, disparity and depth
         effects, and the matcher's keep-probability. Depends on the geometry, the noise and every parameter
-        except those of validity-stage effects (what :func:`validity_parameters` lists)."""
+        except those of validity-stage effects and the post-processing (see
+        :func:`ddsgen.diagnose.match_cache.front_end_state`)."""
         p, intr = self.preset, self.intr
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
