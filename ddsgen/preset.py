@@ -80,6 +80,9 @@ FIELDS: dict[str, Field] = {
     "cleanup_max_diff_px": Field(float, "device clean-up: neighbours differing by more disparity than this are separate regions (px)", 0, 1000, low_open=True, default=1.0),
     "cleanup_hole_px": Field(int, "device clean-up: invalid holes smaller than this take their nearest valid pixel's disparity (px; 0 = off)", 0, 1_000_000, default=0),
     "output_left_border_px": Field(int, "the device outputs no depth in this many leftmost columns (px; 0 = none)", 0, 16384, default=0),
+    "output_right_border_px": Field(int, "the device outputs no depth in this many rightmost columns (px; 0 = none; depth registered to an RGB camera leaves such a band)", 0, 16384, default=0),
+    "output_top_border_px": Field(int, "the device outputs no depth in this many top rows (px; 0 = none)", 0, 16384, default=0),
+    "output_bottom_border_px": Field(int, "the device outputs no depth in this many bottom rows (px; 0 = none)", 0, 16384, default=0),
     "band_rows": Field(int, "rows per matching band (bounds matcher memory)", 1, 16384, default=64),
     "pattern": Field(str, "dot pattern: a file in pattern_assets/ or a path (relative to the preset)", default="kinect_like_640.png"),
     "pattern_psf_px": Field(float, "Gaussian point-spread sigma of a projected dot (px)", 0, 10, low_open=True, default=0.5),
@@ -147,6 +150,9 @@ class SensorPreset:
     cleanup_max_diff_px: float
     cleanup_hole_px: int
     output_left_border_px: int
+    output_right_border_px: int
+    output_top_border_px: int
+    output_bottom_border_px: int
     band_rows: int
     pattern: str
     pattern_psf_px: float

@@ -323,6 +323,7 @@ def test_plane_footprint_is_the_real_table_closed_and_filled():
     block closed, the posed objects with their modelled shadows (here at the table's edge) in; beyond the table's
     edge, where the real frame sees the floor, out; an invalid far part with no sign of another surface, in."""
     from ddsgen.fit.compare_region import plane_footprint
+    from ddsgen.sensor.output_window import OutputWindow
 
     on_plane = np.zeros((100, 120), bool)
     on_plane[10:60, :] = True  # the table spans the view's width
@@ -343,8 +344,15 @@ def test_plane_footprint_is_the_real_table_closed_and_filled():
     blind = on_plane.copy()
     blind[:, :8] = False
     blind[:, 8:17] &= np.random.default_rng(0).random((100, 9)) < 0.3  # the real matcher's ramp beyond it
-    foot = plane_footprint(blind, modelled, floor, block_px=9, blind_left_px=8)
+    foot = plane_footprint(blind, modelled, floor, block_px=9, window=OutputWindow(left=8))
     assert foot[10:60, :17].all() and not foot[75:, :17].any()
+    # A registered device's right band and top rows: the table continues there too; the floor stays off it.
+    blind = on_plane.copy()
+    blind[:, -12:] = False
+    blind[:6, :] = False
+    foot = plane_footprint(blind, modelled, floor, block_px=9, window=OutputWindow(right=12, top=6))
+    assert foot[:60, -21:].all() and not foot[75:, -21:].any()
+    assert not plane_footprint(blind, modelled, floor, block_px=9)[10:60, -12:].any()
 
 
 def test_comparison_region_keeps_what_the_scene_explains():

@@ -345,3 +345,44 @@ def test_no_depth_in_the_devices_left_border_columns_even_in_a_crop():
         with torch.no_grad():
             out = DepthSensor(sensor.preset, intrinsics=crop)(plane_geometry(crop, 1.0), seed=0)
         assert not out.valid[:, :band].any() and out.valid[:, band : band + 12].float().mean() > 0.9, x0
+
+
+def test_a_registered_devices_right_top_and_bottom_bands_are_empty_in_full_frames_and_crops():
+    """Depth registered to an RGB camera leaves bands at the right, top and bottom (IC-BIN: 33-39 columns,
+    11 and 10 rows): no depth there, full depth next to them; a crop sees the part of a band inside it."""
+    from ddsgen.preset import Intrinsics
+
+    sensor = _device(160, 120, output_left_border_px=0, output_right_border_px=9, output_top_border_px=3,
+                     output_bottom_border_px=5)  # fmt: skip
+    with torch.no_grad():
+        out = sensor(plane_geometry(sensor.intr, 1.0), seed=0)
+    assert not out.valid[:, -9:].any() and not out.valid[:3].any() and not out.valid[-5:].any()
+    assert out.valid[10:-10, -30:-9].float().mean() > 0.9 and out.valid[3:8, 20:100].float().mean() > 0.9
+    assert out.valid[-10:-5, 20:100].float().mean() > 0.9
+    full = sensor.intr
+    crop = Intrinsics(60, 50, full.fx, full.fy, full.cx - 96, full.cy - 68)  # columns 96-155, rows 68-117
+    with torch.no_grad():
+        out = DepthSensor(sensor.preset, intrinsics=crop)(plane_geometry(crop, 1.0), seed=0)
+    assert not out.valid[:, -5:].any() and not out.valid[-3:].any()  # the bands' columns 151-155, rows 115-117
+    assert out.valid[5:-5, 40:-5].float().mean() > 0.9 and out.valid[40:-3, 5:40].float().mean() > 0.9
+
+
+def test_the_output_window_measured_on_real_frames():
+    """The window of the device that wrote a folder: the border columns (rows) empty in every frame. IC-BIN
+    (registered to RGB): right 33, top 11, bottom 10, left 0; the raw LineMOD Kinect V1 frame: left 7, top 1."""
+    import cv2
+
+    from ddsgen.sensor.output_window import OutputWindow, measure_output_window
+
+    icbin = sorted((DATA / "icbin_primesense_unpaired").glob("*/depth/*.png"))
+    cat = DATA / "linemod_bop" / "test" / "000006" / "depth" / "000000.png"
+    if not icbin or not cat.is_file():
+        pytest.skip(f"{DATA} absent (real data is not part of a fresh checkout)")
+    frames = [cv2.imread(str(path), cv2.IMREAD_UNCHANGED) > 0 for path in icbin]
+    assert measure_output_window(frames) == OutputWindow(left=0, right=33, top=11, bottom=10)
+    assert measure_output_window([cv2.imread(str(cat), cv2.IMREAD_UNCHANGED) > 0]) == OutputWindow(left=7, top=1)
+    # Scene content does not make a band: a frame whose right half is out of range, next to one that is not.
+    synthetic = np.ones((40, 60), bool)
+    far = synthetic.copy()
+    far[:, 30:] = False
+    assert measure_output_window([synthetic, far]) == OutputWindow()

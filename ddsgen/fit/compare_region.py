@@ -34,6 +34,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ddsgen.sensor.output_window import OutputWindow
+
 RULE = ("compare region = pixels where modelled geometry is hit and the real depth is within plausible_px px of "
         "disparity of the clean depth or invalid; a real-invalid pixel counts only if it is on a posed object or on "
         "the support plane's real footprint (the plane's plausible pixels with the objects and their modelled "
@@ -50,7 +52,7 @@ def disparity(depth_m: np.ndarray, fb: float) -> np.ndarray:
 
 
 def plane_footprint(on_plane: np.ndarray, modelled: np.ndarray, unmodelled: np.ndarray, block_px: int,
-                    blind_left_px: int = 0) -> np.ndarray:  # fmt: skip
+                    window: OutputWindow = OutputWindow()) -> np.ndarray:  # fmt: skip
     """(H, W) bool: the support plane's real extent, see rule 2 of the module docstring.
 
     The plane's pixels (with the objects and their shadows) are closed with a disc one block
@@ -64,15 +66,21 @@ def plane_footprint(on_plane: np.ndarray, modelled: np.ndarray, unmodelled: np.n
             even where the real depth is missing, also at the table's edge).
         unmodelled: (H, W) bool, real surfaces the model does not explain (valid, implausible).
         block_px: the matching block (the closing disc's diameter).
-        blind_left_px: leftmost columns where the device outputs no depth at all (its output
-            window). They, and the next block's width where the real matcher's window still
-            overlaps them, say nothing about the table, which is taken to continue there as in
-            the first column beyond.
+        window: the device's output window: border bands where it outputs no depth at all.
+            They, and the next block's width where the real matcher's window still overlaps
+            them, say nothing about the table, which is taken to continue there as in the
+            first column (row) beyond.
     """
     seed = (on_plane | modelled).astype(np.uint8)
-    edge = blind_left_px + block_px if blind_left_px > 0 else 0
-    if edge < seed.shape[1]:
-        seed[:, :edge] = seed[:, edge : edge + 1]
+    for axis, near_band, far_band in ((1, window.left, window.right), (0, window.top, window.bottom)):
+        view = seed if axis == 1 else seed.T
+        size = view.shape[1]
+        near = near_band + block_px if near_band > 0 else 0
+        far = far_band + block_px if far_band > 0 else 0
+        if near < size:
+            view[:, :near] = view[:, near : near + 1]
+        if far < size and far > 0:
+            view[:, size - far :] = view[:, size - far - 1 : size - far]
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (block_px, block_px))
     closed = cv2.morphologyEx(seed, cv2.MORPH_CLOSE, disc)
     _, labels = cv2.connectedComponents((closed == 0).astype(np.uint8), connectivity=8)
@@ -101,7 +109,7 @@ def unmodelled_shadow(real_disparity: np.ndarray, clean_disparity: np.ndarray, o
 
 def comparison_region(real_depth: np.ndarray, clean_depth: np.ndarray, hit: np.ndarray, objects: np.ndarray,
                       shadow: np.ndarray, fb: float, plausible_px: float, block_px: int, has_plane: bool,
-                      blind_left_px: int = 0) -> np.ndarray:  # fmt: skip
+                      window: OutputWindow = OutputWindow()) -> np.ndarray:  # fmt: skip
     """(H, W) bool: the comparison region (the module docstring's rule).
 
     Args:
@@ -114,7 +122,7 @@ def comparison_region(real_depth: np.ndarray, clean_depth: np.ndarray, hit: np.n
         plausible_px: plausibility threshold (px of disparity).
         block_px: the matching block size (px).
         has_plane: a support plane is modelled (hit pixels that are not objects are plane).
-        blind_left_px: the device's blind leftmost columns (see :func:`plane_footprint`).
+        window: the device's output window (see :func:`plane_footprint`).
     """
     real_valid = real_depth > 0
     d_real, d_clean = disparity(real_depth, fb), disparity(clean_depth, fb)
@@ -127,6 +135,6 @@ def comparison_region(real_depth: np.ndarray, clean_depth: np.ndarray, hit: np.n
     explained = np.ones_like(region)
     if has_plane:
         explained = objects | plane_footprint(agrees & ~objects, objects | (hit & shadow), unmodelled, block_px,
-                                              blind_left_px)  # fmt: skip
+                                              window)  # fmt: skip
     explained &= ~unmodelled_shadow(d_real, d_clean, unmodelled, block_px // 2)
     return region & (real_valid | explained)

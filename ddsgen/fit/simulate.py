@@ -276,9 +276,10 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
 
     # Comparison region, on the whole frame (the support plane's real extent is a whole-frame notion).
     from ddsgen.fit.compare_region import comparison_region
+    from ddsgen.sensor.output_window import OutputWindow
 
     region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px,
-                               preset.block_size_px, plane is not None, preset.output_left_border_px)  # fmt: skip
+                               preset.block_size_px, plane is not None, OutputWindow.of(preset))  # fmt: skip
 
     box = _crop_box(instance, crop_margin_px, min_size=max(4 * preset.block_size_px, 48)) if crop else (
         0, 0, intr.width, intr.height)  # fmt: skip

@@ -25,6 +25,7 @@ from ddsgen.sensor.cleanup import device_cleanup
 from ddsgen.sensor.effects import build_effects
 from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
+from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
 from ddsgen.sensor.speckle import scene_seed
 
@@ -340,14 +341,17 @@ class DepthSensor(nn.Module):
             removed = valid & ~cleaned
             valid_soft = valid_soft.reshape(-1)[flat].reshape(valid_soft.shape) * (~removed).float()
             valid = cleaned
-        if p.output_left_border_px:
-            # The device's output window starts this many columns into the full image; a crop of it
-            # (compare --crop) is offset by the shift of its principal point.
-            offset = int(round(p.cx_px - intr.cx)) if intr.width < p.width_px else 0
-            columns = torch.arange(valid.shape[1], device=valid.device) + offset
-            inside = columns >= p.output_left_border_px
-            valid = valid & inside[None, :]
-            valid_soft = valid_soft * inside[None, :].to(valid_soft.dtype)
+        window = OutputWindow.of(p)
+        if not window.is_full:
+            # The device's output window in the full image; a crop of it (compare --crop) is offset
+            # by the shift of its principal point.
+            crop_x, crop_y = intr.width < p.width_px, intr.height < p.height_px
+            x0 = int(round(p.cx_px - intr.cx)) if crop_x else 0
+            y0 = int(round(p.cy_px - intr.cy)) if crop_y else 0
+            full_h, full_w = (p.height_px if crop_y else intr.height), (p.width_px if crop_x else intr.width)
+            inside = torch.from_numpy(window.inside(*valid.shape, full_h, full_w, x0, y0)).to(valid.device)
+            valid = valid & inside
+            valid_soft = valid_soft * inside.to(valid_soft.dtype)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         if self.postprocess is not None:
             depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)

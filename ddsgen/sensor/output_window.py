@@ -1,0 +1,79 @@
+"""The device's output window: the columns and rows at the image border where it outputs no depth.
+
+A raw Kinect V1 outputs no depth in its leftmost 8 columns (its matcher's window); a PrimeSense
+device that registers depth to its RGB camera (IC-BIN, many BOP datasets) leaves bands at the
+right, top and bottom where the RGB view is not covered by the IR camera (measured on the nine
+IC-BIN frames: right 33-39 columns, top 11 rows, bottom 10 rows, left none). The window is a
+property of the device's output, not of the scene: an image column empty in every frame of a
+folder is the window, whatever the scenes show (:func:`measure_output_window`).
+
+Widths are in pixels of the preset's full image. A crop (``compare --crop``) sees the part of the
+band that falls inside it: its offset in the full image is the shift of its principal point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Preset keys of the window, in the order of :class:`OutputWindow`'s fields.
+WINDOW_KEYS = ("output_left_border_px", "output_right_border_px", "output_top_border_px", "output_bottom_border_px")
+
+
+@dataclass(frozen=True)
+class OutputWindow:
+    """Border bands without depth (px of the full image): left, right (columns), top, bottom (rows)."""
+
+    left: int = 0
+    right: int = 0
+    top: int = 0
+    bottom: int = 0
+
+    @classmethod
+    def of(cls, preset) -> "OutputWindow":
+        """The window a preset declares (keys it lacks count as 0)."""
+        return cls(*(int(getattr(preset, key, 0) or 0) for key in WINDOW_KEYS))
+
+    def as_keys(self) -> dict[str, int]:
+        """{preset key: width} for ``SensorPreset.replace``."""
+        return dict(zip(WINDOW_KEYS, (self.left, self.right, self.top, self.bottom)))
+
+    @property
+    def is_full(self) -> bool:
+        """True when the device outputs depth up to every border."""
+        return not (self.left or self.right or self.top or self.bottom)
+
+    def inside(self, height: int, width: int, full_height: int, full_width: int, x0: int = 0,
+               y0: int = 0) -> np.ndarray:  # fmt: skip
+        """(height, width) bool: pixels of an image (the full one, or a crop whose pixel (0, 0) is the
+        full image's (x0, y0)) where the device outputs depth."""
+        columns = np.arange(width) + x0
+        rows = np.arange(height) + y0
+        col_ok = (columns >= self.left) & (columns < full_width - self.right)
+        row_ok = (rows >= self.top) & (rows < full_height - self.bottom)
+        return row_ok[:, None] & col_ok[None, :]
+
+
+def measure_output_window(valid_frames, max_valid_share: float = 0.01) -> OutputWindow:
+    """The window of the device that wrote these frames: at each side, the run of outermost columns
+    (rows) whose pixels are valid in at most ``max_valid_share`` of all frames together.
+
+    Scene content cannot empty a whole column of every frame; the device's window does. The band
+    is the part common to all frames (a registered device's right band also moves with depth by a
+    few px: the always-empty part is taken).
+
+    Args:
+        valid_frames: sequence of (H, W) bool maps (depth > 0) of one device, all the same size.
+    """
+    frames = [np.asarray(v, bool) for v in valid_frames]
+    if not frames:
+        raise ValueError("measure_output_window needs at least one frame")
+    share = np.mean(frames, axis=0)
+    columns, rows = share.mean(axis=0), share.mean(axis=1)
+
+    def run(profile: np.ndarray) -> int:
+        empty = profile <= max_valid_share
+        return int(len(profile) if empty.all() else np.argmin(empty))
+
+    return OutputWindow(left=run(columns), right=run(columns[::-1]), top=run(rows), bottom=run(rows[::-1]))
