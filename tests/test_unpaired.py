@@ -213,15 +213,19 @@ def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys, 
     lattice_only = {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]}
     monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS", lattice_only)
     stock, real = hidden_device
-    for frame in real[:4]:
-        write_depth_png(tmp_path / "real" / "depth" / frame.name, frame.depth)
+    for frame in real[:4]:  # as a device registered to its RGB camera writes them: a band without depth at the right
+        write_depth_png(tmp_path / "real" / "depth" / frame.name, np.where(np.arange(W) < W - 10, frame.depth, 0.0))
     save_preset(stock, tmp_path / "stock.yaml")
     out = tmp_path / "out" / "fitted.yaml"
     assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--out", str(out),
                  "--quiet", "--report", str(tmp_path / "report")]) == 0  # fmt: skip
     fitted = load_preset(out)
     assert fitted.subpixel_level == HIDDEN["subpixel_level"] and fitted.width_px == W
-    assert "+-" in capsys.readouterr().out
+    # The output window is measured from the folder: the 10-column band, nothing at the top or bottom.
+    assert (fitted.output_right_border_px, fitted.output_top_border_px, fitted.output_bottom_border_px) == (10, 0, 0)
+    assert stock.output_right_border_px == 0
+    printed = capsys.readouterr().out
+    assert "+-" in printed and "output window" in printed
     for name in ("distributions.png", "patches.png", "frames.png", "unpaired_report.json"):
         assert (tmp_path / "report" / name).stat().st_size > 1000
 

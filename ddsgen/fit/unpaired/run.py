@@ -13,6 +13,7 @@ from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+from ddsgen.sensor.output_window import measure_output_window
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -42,13 +43,16 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
 
     height, width = real[0].depth.shape
     camera = camera_for(original, width, height)
+    # The device's output window is measured, not searched: border columns/rows empty in every real frame.
+    window = measure_output_window([f.depth > 0 for f in real]).as_keys()
     geometries = cast_scenes(camera, scene_list, sim_frames, seed, progress)
-    result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, keys=keys, progress=progress)
+    result = fit_unpaired(camera.replace(**window), real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
+                          progress=progress)  # fmt: skip
 
     resolution = max(f.resolution_m for f in real)
     fb = camera.focal_px * camera.baseline_m
     depths = {"real": [f.depth for f in real]}
-    for label, values in (("stock", result.before), ("fitted", result.after)):
+    for label, values in (("stock", result.before), ("fitted", {**window, **result.after})):
         rendered = render_depths(camera.replace(**values), geometries, seed + 1)  # fresh noise: not the fit's
         depths[label] = [round_like(d, resolution) for d in rendered]
     pooled = {label: pool([frame_features(d, fb) for d in ds]) for label, ds in depths.items()}
@@ -56,9 +60,14 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
         "assumed_intrinsics": camera.intrinsics.as_dict(), "sim_frames": sim_frames, **result.to_dict(),
+        "output_window": {"stock": {key: getattr(camera, key) for key in window}, "measured": window,
+                          "rule": "border columns (rows) valid in at most 1 % of the real frames' pixels"},
     }  # fmt: skip
     content = write_report(report, content, pooled, depths, resolution, seed)
-    changes = dict(result.after)
+    # The window in the preset's own pixels (the fit ran at the real frames' size).
+    scale = {key: (original.height_px / height if "top" in key or "bottom" in key else original.width_px / width)
+             for key in window}  # fmt: skip
+    changes = {**{key: int(round(px * scale[key])) for key, px in window.items()}, **result.after}
     for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
         name = getattr(original, key)
         if name and not (key == "pattern" and (PATTERN_DIR / name).exists()):
@@ -83,4 +92,7 @@ def print_summary(content: dict) -> None:
         note = "  (flat profile: weakly identified)" if bound else ""
         sigma = content["uncertainty"][key]
         click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} +- {bound}{sigma:.2g}{note}")
+    stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
+    click.echo("  output window (measured; px without depth at the left, right, top, bottom): "
+               f"{tuple(stock.values())} -> {tuple(measured.values())}")  # fmt: skip
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")
