@@ -15,7 +15,8 @@
 4. The fitted preset's paired gap on the new frames, its ratio to the stock's, and whether
    each parameter lies within 2 reported standard deviations of the hidden value.
 
-Prints ``bench: NAME VALUE`` lines. Usage: python bench/unpaired_hidden_device.py [SEED] [WIDTH]
+Prints ``bench: NAME VALUE`` lines. Usage: python bench/unpaired_hidden_device.py [SEED] [WIDTH] [DRAWS]
+[WINDOW]: WINDOW 1 draws the hidden device's output window too (see :func:`hidden_values`).
 """
 
 from __future__ import annotations
@@ -55,7 +56,10 @@ REACHABLE = 0.5
 MAX_DRAWS = 4
 
 
-def hidden_values(seed: int) -> dict:
+def hidden_values(seed: int, width: int = 0) -> dict:
+    """The table's parameters drawn within their bounds; with ``width`` > 0 also an output window (each side
+    0 to width/16 px: real devices differ there -- raw LineMOD left 7, top 1; registered IC-BIN right 33,
+    top 11, bottom 10 at 640 px), which the fit measures rather than searches."""
     rng = np.random.default_rng(seed)
     values = {}
     for p in UNPAIRED_PARAMETERS.values():
@@ -67,6 +71,10 @@ def hidden_values(seed: int) -> dict:
             # stay off the bounds by 10 % of the range: a value on a bound has a one-sided profile
             lo, hi = p.to_unit(p.low), p.to_unit(p.high)
             values[p.key] = p.from_unit(float(rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))))
+    if width:  # drawn last: the table's values are those of the same seed without a window
+        from ddsgen.sensor.output_window import WINDOW_KEYS
+
+        values.update({key: int(rng.integers(0, width // 16 + 1)) for key in WINDOW_KEYS})
     return values
 
 
@@ -81,7 +89,7 @@ def paired_gap(preset_path: Path, scan_dir: Path) -> float:
     return gap(DepthSensor(preset), frames, seed=5, noise_floor=False).gap
 
 
-def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS) -> None:
+def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS, window: int = 0) -> None:
     from ddsgen.runner import render_dataset
 
     work = Path(tempfile.mkdtemp(prefix="ddsgen_unpaired_"))
@@ -91,12 +99,13 @@ def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS) -> None:
     scenes_a.write_text(yaml.safe_dump(scene_list_a()))
     tried = []  # (best ratio, draw seed, stock gap, hidden gap)
     for draw in range(seed, seed + draws):
-        save_preset(stock.replace(**hidden_values(draw), name="hidden"), hidden_path)
+        save_preset(stock.replace(**hidden_values(draw, width * window), name="hidden"), hidden_path)
         shutil.rmtree(work / "new_scans", ignore_errors=True)
         render_dataset(str(hidden_path), str(scenes_a), 6, str(work / "new_scans"), seed=draw + 200, progress=False)
         stock_gap = paired_gap(stock_path, work / "new_scans")
         floor_gap = paired_gap(hidden_path, work / "new_scans")
-        print(f"bench: unpaired_draw {draw} hidden {hidden_values(draw)} gap_stock_mm {stock_gap:.3f} gap_hidden_mm "
+        print(f"bench: unpaired_draw {draw} hidden {hidden_values(draw, width * window)} gap_stock_mm {stock_gap:.3f} "
+              f"gap_hidden_mm "
               f"{floor_gap:.3f} best_ratio {floor_gap / stock_gap:.3f}")
         tried.append((floor_gap / stock_gap, draw, stock_gap, floor_gap))
         if floor_gap <= REACHABLE * stock_gap:
@@ -106,7 +115,7 @@ def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS) -> None:
     if floor_gap > REACHABLE * stock_gap:
         print(f"bench: unpaired_no_usable_draw: fitting draw {draw}, whose best possible ratio is "
               f"{floor_gap / stock_gap:.3f}")
-    hidden = hidden_values(draw)
+    hidden = hidden_values(draw, width * window)
     save_preset(stock.replace(**hidden, name="hidden"), hidden_path)
     shutil.rmtree(work / "new_scans", ignore_errors=True)
     render_dataset(str(hidden_path), str(scenes_a), 6, str(work / "new_scans"), seed=draw + 200, progress=False)
@@ -124,6 +133,10 @@ def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS) -> None:
     print(f"bench: unpaired_gap_ratio {fitted_gap / stock_gap:.3f}")
     print(f"bench: unpaired_excess_ratio {(fitted_gap - floor_gap) / (stock_gap - floor_gap):.3f}")
     for key, value in hidden.items():
+        if key not in content["after"]:  # the output window: measured, no uncertainty
+            measured = content["output_window"]["measured"][key]
+            print(f"bench: unpaired_{key} hidden {value} stock {getattr(stock, key)} measured {measured}")
+            continue
         fitted, sigma = content["after"][key], content["uncertainty"][key]
         inside = abs(fitted - value) <= max(2 * sigma, 1e-9)
         print(f"bench: unpaired_{key} hidden {value:.4g} stock {content['before'][key]:.4g} fitted {fitted:.4g} "
