@@ -254,3 +254,36 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     falloff, sigma = result.after["projector_falloff_exponent"], result.uncertainty["projector_falloff_exponent"]
     assert abs(falloff - 12.0) < max(2.5 * sigma, 2.0) and sigma < 3.0  # stock: 4
     assert result.distance_after["radius"] < 0.5 * result.distance_before["radius"]
+
+
+def test_joint_uncertainty_sees_a_trade_off_that_the_profiles_do_not():
+    """A distance flat along a diagonal (two keys that trade off, as SNR against fall-off): each 1-D profile
+    is sharp, the joint spread is wide along the valley; for independent keys both agree."""
+    from ddsgen.fit.unpaired.joint import joint_uncertainty, quadratic_minimum
+    from ddsgen.fit.unpaired.parameters import UnpairedParameter
+
+    params = [UnpairedParameter("a", 0.0, 10.0, log=False, grid=11), UnpairedParameter("b", 0.0, 10.0, log=False,
+                                                                                          grid=11)]  # fmt: skip
+    fitted = {"a": 5.0, "b": 5.0}
+    rng = np.random.default_rng(0)
+    resamples = [rng.normal(0.0, 0.02, 2) for _ in range(200)]  # each resample tilts the surface a little
+
+    def valley(v, tilt):  # sharp across the diagonal, nearly flat along it
+        u, w = v["a"] - 5.0, v["b"] - 5.0
+        return 4.0 * (u - w) ** 2 + 0.05 * (u + w) ** 2 + tilt[0] * u + tilt[1] * w
+
+    def bowl(v, tilt):
+        u, w = v["a"] - 5.0, v["b"] - 5.0
+        return 2.0 * u**2 + 2.0 * w**2 + tilt[0] * u + tilt[1] * w
+
+    joint_valley = joint_uncertainty(params, fitted, valley, resamples)
+    joint_bowl = joint_uncertainty(params, fitted, bowl, resamples)
+    # The 1-D profile's spread: vertex of 4 (1.05) u^2 + t u -> std of t / 8.1 = 0.0025.
+    conditional = np.std([t[0] / (2 * 4.05) for t in resamples])
+    assert joint_valley["a"]["std"] > 10 * conditional and joint_valley["b"]["std"] > 10 * conditional
+    assert joint_bowl["a"]["std"] == pytest.approx(np.std([t[0] / 4.0 for t in resamples]), rel=0.05)
+    assert not joint_bowl["a"]["lower_bound"]
+    # A saddle has no minimum: clipped to the limit, never a confident value.
+    x = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1]], float)
+    _, clipped = quadratic_minimum(x, x[:, 0] ** 2 - x[:, 1] ** 2, limit=4.0)
+    assert clipped

@@ -18,7 +18,9 @@
    standard deviation of the vertices is the reported uncertainty (conditional on the other
    parameters at their fitted values). When more than 20 % of the vertices sit on the
    profile's ends, the profile is too flat to bound the value and the spread is flagged as a
-   lower bound (``bootstrap[key]["lower_bound"]``).
+   lower bound (``bootstrap[key]["lower_bound"]``). The continuous keys are then bootstrapped
+   together on a quadratic response surface (:mod:`.joint`: trade-offs between keys widen it);
+   the reported uncertainty is the larger of the two spreads.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import numpy as np
 import torch
 
 from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool
+from ddsgen.fit.unpaired.joint import design_offsets, joint_uncertainty
 from ddsgen.fit.unpaired.parameters import UnpairedParameter, parameters_for
 from ddsgen.fit.unpaired.realfolder import RealDepthFrame, round_like
 
@@ -204,8 +207,10 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
     profile = sum(3 if p.integer else len(PROFILE_OFFSETS) for p in params)  # at most: near bounds, fewer
-    bar = tqdm(total=coarse * coarse_frames + (1 + 2 * profile) * sim_frames, desc="unpaired fit", unit="frame",
-               disable=not progress)  # fmt: skip
+    continuous = sum(not (p.integer or p.choices) for p in params)
+    design = len(design_offsets(continuous)) if continuous >= 2 else 0
+    bar = tqdm(total=coarse * coarse_frames + (1 + 2 * profile + design) * sim_frames, desc="unpaired fit",
+               unit="frame", disable=not progress)  # fmt: skip
     ev = _Evaluator(preset, geometries, real_features, resolution, seed, bar)
     values = {p.key: getattr(preset, p.key) for p in params}
     before = dict(values)
@@ -240,6 +245,12 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
         at_end = np.isclose(draws, min(points)) | np.isclose(draws, max(points))
         boots[p.key] = {"p05": float(np.percentile(draws, 5)), "p95": float(np.percentile(draws, 95)),
                         "at_profile_end": float(at_end.mean()), "lower_bound": bool(at_end.mean() > 0.2)}  # fmt: skip
+    # Joint: the continuous keys together (their profiles above are conditional on each other).
+    joint = joint_uncertainty(params, values, lambda v, r: ev.distance(v, *r)["total"], resamples)
+    for key, spread in joint.items():
+        boots[key]["joint"] = spread
+        uncertainty[key] = max(uncertainty[key], spread["std"])
+        boots[key]["lower_bound"] = boots[key]["lower_bound"] or spread["lower_bound"]
     distance_after = ev.distance(values)
     bar.close()
     return UnpairedResult(
