@@ -48,7 +48,9 @@ from ddsgen.errors import InputError
 @click.option("--pose-steps", type=int, default=40, show_default=True, help="Pose-refinement steps per frame and round.")
 @click.option("--unpaired", is_flag=True,
               help="REAL_DIR is any folder of depth images (16-bit PNG, EXR in m), no poses: fit the sensor by "
-                   "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md).")
+                   "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md). "
+                   "The output window (border columns/rows empty in every frame) is measured from the folder: "
+                   "give frames of varied views, or a camera that always sees nothing at one border gets a band.")
 @click.option("--scenes", type=click.Path(dir_okay=False), default=None,
               help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
 @click.option("--depth-scale", type=float, default=0.001, show_default=True,
