@@ -421,3 +421,27 @@ def test_compare_draws_the_speckle_fixed_to_the_scene_as_render_does(small):
         render_noise = sensor.draw_noise([7, 0, 1], frame.geometry)  # any frame seed: the scene's speckle
         compare_noise = sensor.draw_noise(frame.noise_seed(0), frame.geometry)
     assert torch.equal(render_noise.speckle_unit, compare_noise.speckle_unit)
+
+
+def test_a_real_folders_other_output_window_is_pointed_out():
+    """Frames of a device registered to its RGB camera (a right band and top rows without depth in every
+    frame) against a preset without them: one line naming the keys; none when the preset declares them or
+    when only one frame is given (its empty border may be the scene's)."""
+    from types import SimpleNamespace
+
+    from ddsgen.fit.inputs import output_window_hint
+    from ddsgen.preset import load_preset
+
+    preset = load_preset("kinect_v1_paper").replace(width_px=80, height_px=60, focal_px=71.5, focal_y_px=71.5,
+                                                    cx_px=39.5, cy_px=29.5)  # fmt: skip
+    rng = np.random.default_rng(0)
+    scans = []
+    for _ in range(3):
+        depth = np.where(rng.random((60, 80)) < 0.9, 1.2, 0.0).astype(np.float32)
+        depth[:, -9:] = 0.0
+        depth[:4] = 0.0
+        scans.append(SimpleNamespace(depth=depth))
+    hint = output_window_hint(preset, scans)
+    assert "output_right_border_px: 9" in hint and "output_top_border_px: 4" in hint and "left" not in hint
+    assert output_window_hint(preset.replace(output_right_border_px=9, output_top_border_px=4), scans) is None
+    assert output_window_hint(preset, scans[:1]) is None

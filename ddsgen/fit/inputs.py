@@ -60,4 +60,27 @@ def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausi
     plane_depth = plane_depth_for(DepthSensor(camera_preset)) if support_plane else None
     frames = prepare_frames(camera_preset, scans, support_plane=support_plane, crop=crop, plausible_px=plausible_px,
                             seed=seed, progress=progress, plane_depth=plane_depth)  # fmt: skip
+    hint = output_window_hint(camera_preset, scans)
+    if hint and progress and echo is not None:
+        echo(hint)
     return preset, camera_preset, scans, frames
+
+
+def output_window_hint(preset, scans, tolerance_px: int = 2) -> str | None:
+    """One line for the user when the real frames' output window (border bands empty in every frame,
+    :func:`~ddsgen.sensor.output_window.measure_output_window`) differs from the preset's by more
+    than ``tolerance_px`` on a side, else None. Needs two frames of one size (one frame's empty
+    border may be the scene's)."""
+    from ddsgen.sensor.output_window import WINDOW_KEYS, OutputWindow, measure_output_window
+
+    shapes = {scan.depth.shape for scan in scans}
+    if len(scans) < 2 or len(shapes) != 1:
+        return None
+    measured = measure_output_window([scan.depth > 0 for scan in scans]).as_keys()
+    declared = OutputWindow.of(preset).as_keys()
+    differ = {key: px for key, px in measured.items() if abs(px - declared[key]) > tolerance_px}
+    if not differ:
+        return None
+    keys = ", ".join(f"{key}: {px}" for key, px in differ.items() if key in WINDOW_KEYS)
+    return (f"the real frames have no depth in other border bands than the preset declares ({keys} measured, "
+            f"in px of these frames): set them in the preset, or run fit --unpaired, which measures them")
