@@ -42,9 +42,17 @@ def _sphere(radius):
     return creation.icosphere(subdivisions=3, radius=radius)
 
 
-def _capsule(radius, height):
-    # ``height`` is the total height (cap to cap); trimesh wants the distance between the cap centres.
-    return creation.capsule(height=max(height - 2.0 * radius, 0.0), radius=radius, count=[32, 32])
+def _capsule(radius, height, arc_points: int = 16, sections: int = 32):
+    """A capsule of total height ``height`` (cap to cap), as a surface of revolution of an explicit
+    profile: trimesh's own ``creation.capsule`` tessellates differently from one major version to the
+    next (4.x: 962 vertices, 5.x: 1026 for the same ``count``), which changed rendered datasets."""
+    half = max(height / 2.0 - radius, 0.0)  # the cap centres are at z = +-half
+    angles = np.linspace(-np.pi / 2.0, np.pi / 2.0, 2 * arc_points + 1)  # pole to pole through the equator
+    r, z = radius * np.cos(angles), radius * np.sin(angles)
+    lower, upper = angles <= 0.0, angles >= 0.0
+    profile = np.concatenate([np.stack([r[lower], z[lower] - half], 1), np.stack([r[upper], z[upper] + half], 1)])
+    profile[[0, -1], 0] = 0.0  # the poles exactly on the axis
+    return creation.revolve(profile, sections=sections)
 
 
 def _cone(radius, height):
