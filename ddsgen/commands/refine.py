@@ -15,7 +15,8 @@ from ddsgen.errors import InputError
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
               help="Output folder: the refined poses in the input's layout (BOP: <split>/<scene>/scene_gt.json; "
                    "ddsgen: manifest.jsonl) and report/.")
-@click.option("--steps", type=int, default=80, show_default=True, help="Adam steps per frame.")
+@click.option("--steps", type=int, default=120, show_default=True,  # = RefineSettings().steps (torch is imported lazily)
+              help="Adam steps per frame (the result averages the poses of the last half of them).")
 @click.option("--recast-every", type=int, default=5, show_default=True,
               help="Ray-cast again every K steps (visibility, silhouettes and shadows follow the poses).")
 @click.option("--band-mm", type=float, default=25.0, show_default=True,
