@@ -46,7 +46,8 @@ unique match within its window has its integer disparity (+-1 px): a window acro
 sees two surfaces (two peaks of about half the ZNCC each) and its best peak is one of them, which
 a neighbour on that surface confirms; repeated texture and noise agree with a unique neighbour only
 by chance. Its confidence is then min_confidence + (best - confirmed_match_zncc), so
-``confidence >= min_confidence`` stays the validity test.
+``confidence >= min_confidence`` stays the validity test. Uniqueness and confirmation use the
+integer search only, so they are decided before the refinement.
 
 Gradients: the disparity is differentiable w.r.t. ``observed``, ``beta`` and (if they
 require grad) ``reference_phases``; variance floors keep them finite on flat windows.
@@ -96,6 +97,8 @@ class MatchResult:
         docstring for confirmed matches).
     best_zncc, second_zncc: the best integer-disparity ZNCC and the best other peak's, clipped to
         [0, 1], no gradient (for diagnosis: confidence is derived from them).
+    peak_px: int64, the integer disparity the sub-pixel refinement centred on (the best peak's).
+    second_peak_px: int32, the integer disparity of the second peak (-1 where there is none).
     """
 
     disparity: torch.Tensor
@@ -103,6 +106,8 @@ class MatchResult:
     valid: torch.Tensor
     best_zncc: torch.Tensor | None = None
     second_zncc: torch.Tensor | None = None
+    peak_px: torch.Tensor | None = None
+    second_peak_px: torch.Tensor | None = None
 
 
 def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, candidates: torch.Tensor,
@@ -138,6 +143,32 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
         agree = ((neighbours - own[part, None]).abs() <= 1).any(dim=1)
         out[ys[part], xs[part]] = agree
     return out
+
+
+def _validity(best: torch.Tensor, second: torch.Tensor, found: torch.Tensor, k_int: torch.Tensor, k_second: torch.Tensor,
+              block: int, min_confidence: float, confirmed_match_zncc: float):  # fmt: skip
+    """(confidence, valid, k_int): the uniqueness test, then confirmed matches (module docstring).
+
+    best, second: (H, W) ZNCC of the best and second peaks, clipped to [0, 1]; found: (H, W) bool, a
+    candidate existed; k_int, k_second: (H, W) their integer disparities (-1: no second peak).
+    Returns k_int unchanged.
+    """
+    W = best.shape[1]
+    h = block // 2
+    matchable = found.clone()
+    if h > 0:
+        matchable[:, :h] = False
+        matchable[:, W - h :] = False
+    confidence = torch.where(matchable, (best - second).clamp(0, 1), torch.zeros_like(best))
+    if confirmed_match_zncc < 1.0:
+        unique = matchable & (confidence >= min_confidence) & (confidence > 0)
+        candidates = matchable & ~unique & (best > confirmed_match_zncc)
+        confirmed = _confirmed_by_a_unique_neighbour(k_int.to(best.device), unique, candidates, block)
+        # The margin by which a confirmed match passes: min_confidence + (best - confirmed_match_zncc).
+        confirmed_margin = (min_confidence + best - confirmed_match_zncc).clamp(0, 1)
+        confidence = torch.where(confirmed, torch.maximum(confidence, confirmed_margin), confidence)
+    valid = (confidence >= min_confidence) & (confidence > 0)
+    return confidence, valid, k_int
 
 
 def match(
@@ -239,11 +270,19 @@ def match(
     r0 = pad + ref.offset - h - k_hi
     with torch.no_grad():
         if kernel is not None and dev.type == "cpu":
-            best, second, arg = _integer_search_c(kernel, o_pad, ref, osum, oinv, block, r0, n_disp)
+            best, second, arg, arg2 = _integer_search_c(kernel, o_pad, ref, osum, oinv, block, r0, n_disp)
         else:
-            best, second, arg = _integer_search_torch(o_pad, ref, osum, oinv, block, r0, n_disp, band_rows)
+            best, second, arg, arg2 = _integer_search_torch(o_pad, ref, osum, oinv, block, r0, n_disp, band_rows)
         found = arg >= 0
         k_int = torch.where(found, k_hi - arg, torch.full_like(arg, k_lo))
+        k_second = torch.where(arg2 >= 0, k_hi - arg2, torch.full_like(arg2, -1)).to(torch.int32)
+        del arg, arg2
+        best, second = best.clamp(0, 1).to(dev), second.clamp(0, 1).to(dev)
+        # Validity is decided on the integer peaks, so before the refinement (which centres on the peak it keeps).
+        confidence, valid, k_int = _validity(best, second, found.to(dev), k_int, k_second, block, min_confidence,
+                                             confirmed_match_zncc)  # fmt: skip
+        confidence = confidence.to(dtype)
+        del found
 
     # Stage 2: sub-pixel refinement.
     grad = torch.is_grad_enabled() and (observed.requires_grad or beta.requires_grad or reference_phases.requires_grad)
@@ -265,20 +304,5 @@ def match(
         quantised = torch.round(disparity.detach() * S) / S
         disparity = disparity + (quantised - disparity).detach()
 
-    with torch.no_grad():
-        best, second = best.clamp(0, 1).to(dev), second.clamp(0, 1).to(dev)
-        matchable = found.to(dev).clone()
-        if h > 0:
-            matchable[:, :h] = False
-            matchable[:, W - h :] = False
-        confidence = torch.where(matchable, (best - second).clamp(0, 1), torch.zeros_like(best))
-        if confirmed_match_zncc < 1.0:
-            unique = matchable & (confidence >= min_confidence) & (confidence > 0)
-            candidates = matchable & ~unique & (best > confirmed_match_zncc)
-            confirmed = _confirmed_by_a_unique_neighbour(k_int.to(dev), unique, candidates, block)
-            # The margin by which a confirmed match passes: min_confidence + (best - confirmed_match_zncc).
-            confirmed_margin = (min_confidence + best - confirmed_match_zncc).clamp(0, 1)
-            confidence = torch.where(confirmed, torch.maximum(confidence, confirmed_margin), confidence)
-        confidence = confidence.to(dtype)
-        valid = (confidence >= min_confidence) & (confidence > 0)
-    return MatchResult(disparity=disparity, confidence=confidence, valid=valid, best_zncc=best, second_zncc=second)
+    return MatchResult(disparity=disparity, confidence=confidence, valid=valid, best_zncc=best, second_zncc=second,
+                       peak_px=k_int.to(dev), second_peak_px=k_second.to(dev))  # fmt: skip

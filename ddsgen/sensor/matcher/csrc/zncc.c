@@ -10,7 +10,7 @@
  *   ddsgen_observed_stats     the mirrored, padded O and its per-pixel window sum and 1 / std;
  *   ddsgen_zncc_search        stage 1: ZNCC at every integer disparity, streaming (no cost
  *                             volume); per pixel the best score, the second peak (confidence)
- *                             and the best disparity K;
+ *                             and the disparities of both;
  *   ddsgen_refine             stage 2: ZNCC of the sub-pixel candidates d_t = K + (t - T) / S
  *                             against the reference phases, then the soft-argmax
  *                             d = sum_t softmax(beta ZNCC)_t d_t; in backward mode also the
@@ -60,8 +60,9 @@ static inline v8 vmax8(v8 a, v8 b) { return vsel8(a > b, a, b); }
  * values zeroed), PEN is 0 where the reference window is known and -1e30 where it is not.
  * Window sums are running sums (vertical ones restarted every ROW_BLOCK rows, so the result
  * is independent of the thread count). Outputs per pixel: best score, the best score at least 2 candidates away from the
- * best (the "second peak"), and the best candidate index (-1 if every candidate is
- * excluded). Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
+ * best (the "second peak"), the best candidate index (-1 if every candidate is excluded) and
+ * the second peak's candidate index (-1 if no candidate is left; ties in either go to the
+ * lowest index). Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
  */
 void ddsgen_zncc_search(const float *restrict O, int Wo,
                         const float *restrict R, int Wr,
@@ -70,7 +71,7 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                         const float *restrict PEN, int Ws,
                         int H, int W, int b, int r0, int D,
                         float *restrict best_out, float *restrict second_out,
-                        int32_t *restrict arg_out, int n_threads)
+                        int32_t *restrict arg_out, int32_t *restrict arg2_out, int n_threads)
 {
     const float inv_n = 1.0f / (float)(b * b);
     const int Wv = W + b - 1;
@@ -140,19 +141,33 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                 }
                 if (!(best > 0.5f * NEG_BIG)) arg = -1;
                 float second = -2.0f;
+                int arg2 = -1;
                 if (arg >= 0) {
                     float *scw = (float *)SC;  /* exclude the best peak itself (+-1 candidate) */
                     for (int c = arg - 1; c <= arg + 1; c++) {
                         if (c >= 0 && c < Dp) scw[c] = NEG_BIG;
                     }
                     v8 m2 = {NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG};
-                    for (int q = 0; q < nb; q++) m2 = vmax8(m2, SC[q]);
-                    float s2 = hmax8(m2);
-                    if (s2 > second) second = s2;
+                    vi8 mi2 = {0, 0, 0, 0, 0, 0, 0, 0};
+                    vi8 ci2 = {0, 1, 2, 3, 4, 5, 6, 7};
+                    for (int q = 0; q < nb; q++) {
+                        vi8 gt = SC[q] > m2;
+                        m2 = vsel8(gt, SC[q], m2);
+                        mi2 = (gt & ci2) | (~gt & mi2);
+                        ci2 += 8;
+                    }
+                    /* lowest index among the lanes holding the maximum, as for the best peak */
+                    float s2 = m2[0];
+                    int a2 = mi2[0];
+                    for (int k = 1; k < 8; k++) {
+                        if (m2[k] > s2 || (m2[k] == s2 && mi2[k] < a2)) { s2 = m2[k]; a2 = mi2[k]; }
+                    }
+                    if (s2 > second) { second = s2; arg2 = a2; }
                 }
                 best_out[(size_t)v * W + u] = arg >= 0 ? best : -2.0f;
                 second_out[(size_t)v * W + u] = second;
                 arg_out[(size_t)v * W + u] = arg;
+                arg2_out[(size_t)v * W + u] = arg2;
                 if (u + 1 < W) {
                     const v8 *add = V + (size_t)(u + b) * nb;
                     const v8 *sub = V + (size_t)u * nb;
