@@ -152,6 +152,14 @@ def test_backends_agree(sloped):
     close = (a.disparity - b.disparity).abs() < 1e-3
     assert close.float().mean() > 0.995  # differences only at exact ties of the integer search
     assert (a.confidence - b.confidence).abs().max() < 1e-3  # float32 running sums vs explicit sums
+    # With the confirmed-match rule: the same validity, and both peaks' integer disparities (the second
+    # one is searched where the rule may use it: a peak above its threshold at a non-unique match).
+    a, b = (match(observed, phases, pad, 8, 30, 9, 15.0, 2, 64, 0.05, backend=backend, compile=False, quantize=False,
+                  confirmed_match_zncc=0.0) for backend in ("c", "torch"))  # fmt: skip
+    assert (a.second_peak_px >= 0).sum() > 0
+    assert (a.peak_px == b.peak_px).float().mean() > 0.995
+    assert (a.second_peak_px == b.second_peak_px).float().mean() > 0.995
+    assert (a.valid == b.valid).float().mean() > 0.995
 
 
 def test_c_and_torch_paths_give_the_same_depth_and_gradients_in_float32(small64):
@@ -580,6 +588,29 @@ def test_repeated_texture_stays_invalid_with_the_confirmed_match_rule():
         assert not result.valid[deep].any(), confirmed_match_zncc
         d = result.disparity.detach()[result.valid]
         assert ((d - true_d).abs() <= 1).all()  # nothing valid at a wrong period
+
+
+@pytest.mark.parametrize("backend", ["c", "torch"])
+def test_second_peak_of_repeated_texture_is_one_period_away(backend):
+    """Texture repeating every 8 px matches at d and d +- 8 px (not unique): the integer search reports the
+    second peak's disparity one period from the best (C kernel and torch twin alike)."""
+    if backend == "c" and M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    height, width, period, true_d, pad = 24, 80, 8, 20.0, 48
+    xs, ys, amp = _dots(height, 0, period, seed=5)
+    tiles = range(-(pad + 8) // period - 1, (width + 8) // period + 2)
+    periodic = (np.concatenate([xs + k * period for k in tiles]), np.tile(ys, len(tiles)), np.tile(amp, len(tiles)))
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    observed = torch.tensor(40 + 800 * _render(periodic, u - true_d, v), dtype=torch.float32)
+    vj, j = np.mgrid[0:height, 0 : width + pad].astype(np.float64)
+    phases = torch.tensor(np.stack([40 + 800 * _render(periodic, j - pad - s / 4, vj) for s in range(4)]),
+                          dtype=torch.float32)  # fmt: skip
+    result = match(observed, phases, pad, 5, pad - 12, 9, 15.0, 2, 64, 0.15, compile=False, backend=backend,
+                   confirmed_match_zncc=0.4)  # fmt: skip
+    inner = (slice(4, -4), slice(4, -4))
+    gap = (result.second_peak_px[inner].long() - result.peak_px[inner]).abs()
+    assert float(result.second_zncc[inner].median()) > 0.9
+    assert ((gap - period).abs() <= 1).float().mean() > 0.99, gap.unique()
 
 
 def test_paper_presets_keep_the_uniqueness_test_alone():

@@ -45,8 +45,13 @@ this uniqueness test is still valid when its best ZNCC exceeds ``confirmed_match
 unique match within its window has its integer disparity (+-1 px): a window across a depth edge
 sees two surfaces (two peaks of about half the ZNCC each) and its best peak is one of them, which
 a neighbour on that surface confirms; repeated texture and noise agree with a unique neighbour only
-by chance. Its confidence is then min_confidence + (best - confirmed_match_zncc), so
-``confidence >= min_confidence`` stays the validity test.
+by chance. Where the best peak is not confirmed (another alignment of the dot pattern can outscore
+both surfaces' part-window peaks), the second peak is checked the same way (its ZNCC exceeds
+``confirmed_match_zncc`` and a unique neighbour within the window has its disparity); the pixel
+then takes the second peak, and the sub-pixel refinement centres on it. A confirmed match's
+confidence is min_confidence + (its peak's ZNCC - confirmed_match_zncc), so
+``confidence >= min_confidence`` stays the validity test. Uniqueness and confirmation use the
+integer search only, so they are decided before the refinement.
 
 Gradients: the disparity is differentiable w.r.t. ``observed``, ``beta`` and (if they
 require grad) ``reference_phases``; variance floors keep them finite on flat windows.
@@ -96,6 +101,11 @@ class MatchResult:
         docstring for confirmed matches).
     best_zncc, second_zncc: the best integer-disparity ZNCC and the best other peak's, clipped to
         [0, 1], no gradient (for diagnosis: confidence is derived from them).
+    peak_px: int64, the integer disparity the sub-pixel refinement centred on: the best peak's, or the
+        second peak's where only that one was confirmed (see the module docstring).
+    second_peak_px: int32, the integer disparity of the second peak where the rule may use it: its ZNCC
+        exceeds ``confirmed_match_zncc`` and the match fails the uniqueness test (-1 elsewhere, where
+        the search skips it).
     """
 
     disparity: torch.Tensor
@@ -103,23 +113,29 @@ class MatchResult:
     valid: torch.Tensor
     best_zncc: torch.Tensor | None = None
     second_zncc: torch.Tensor | None = None
+    peak_px: torch.Tensor | None = None
+    second_peak_px: torch.Tensor | None = None
 
 
 def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, candidates: torch.Tensor,
-                                     block: int, chunk: int = 32768) -> torch.Tensor:
-    """(H, W) bool: candidate pixels whose integer disparity a unique match within their
-    block x block window shares (within 1 px).
+                                     block: int, peaks: tuple[torch.Tensor, ...] | None = None,
+                                     chunk: int = 32768) -> list[torch.Tensor]:  # fmt: skip
+    """[(H, W) bool per peak]: candidate pixels whose peak's integer disparity a unique match within
+    their block x block window has (within 1 px).
 
-    A window across a depth edge sees two surfaces and its best peak is one of them, so a unique
-    neighbour on that surface has the same disparity. A wrong match (repeated texture, noise) agrees
+    A window across a depth edge sees two surfaces and has a peak at each, so a unique neighbour on
+    the surface of a peak has that peak's disparity. A wrong match (repeated texture, noise) agrees
     with a unique neighbour only by chance, and where no neighbour is unique nothing is confirmed.
 
     Args:
-        k_int: (H, W) integer disparity of the best peak (px).
+        k_int: (H, W) integer disparity of the best peak (px): the unique neighbours' disparities.
         unique: (H, W) bool, the matches that pass the uniqueness test.
         candidates: (H, W) bool, the pixels to check (the others come back False).
+        peaks: the candidates' peak disparities to check, each (H, W) (default: ``(k_int,)``, the best
+            peak); the neighbours' disparities are always their best peaks'.
         chunk: candidates gathered at once (bounds memory to chunk x block^2 elements).
     """
+    peaks = (k_int,) if peaks is None else peaks
     h = block // 2
     width = k_int.shape[1] + 2 * h
     # Disparities of the unique matches, far from any disparity elsewhere, padded by h: (H + 2h) x width, flat.
@@ -129,15 +145,49 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
                             indexing="ij")  # fmt: skip
     window = (dy * width + dx).reshape(1, -1)  # offsets of a window's pixels from its top-left corner
     ys, xs = torch.nonzero(candidates, as_tuple=True)
-    own = k_int[ys, xs].to(torch.int32)
+    owns = [peak[ys, xs].to(torch.int32) for peak in peaks]
     corner = ys * width + xs
-    out = torch.zeros_like(candidates)
+    outs = [torch.zeros_like(candidates) for _ in peaks]
     for start in range(0, ys.numel(), chunk):
         part = slice(start, start + chunk)
         neighbours = seeds[corner[part, None] + window]  # (chunk, block^2)
-        agree = ((neighbours - own[part, None]).abs() <= 1).any(dim=1)
-        out[ys[part], xs[part]] = agree
-    return out
+        for own, out in zip(owns, outs):
+            out[ys[part], xs[part]] = ((neighbours - own[part, None]).abs() <= 1).any(dim=1)
+    return outs
+
+
+def _validity(best: torch.Tensor, second: torch.Tensor, found: torch.Tensor, k_int: torch.Tensor, k_second: torch.Tensor,
+              block: int, min_confidence: float, confirmed_match_zncc: float):  # fmt: skip
+    """(confidence, valid, k_int): the uniqueness test, then confirmed matches (module docstring).
+
+    best, second: (H, W) ZNCC of the best and second peaks, clipped to [0, 1]; found: (H, W) bool, a
+    candidate existed; k_int, k_second: (H, W) their integer disparities (-1: no second peak).
+    Returns k_int with the second peak's disparity where only that one was confirmed.
+    """
+    W = best.shape[1]
+    h = block // 2
+    matchable = found.clone()
+    if h > 0:
+        matchable[:, :h] = False
+        matchable[:, W - h :] = False
+    confidence = torch.where(matchable, (best - second).clamp(0, 1), torch.zeros_like(best))
+    if confirmed_match_zncc < 1.0:
+        unique = matchable & (confidence >= min_confidence) & (confidence > 0)
+        # The best peak, or else the second, when a unique neighbour within the window confirms it. A
+        # window across a depth edge has a peak per surface and its best may be neither (another
+        # alignment of the dot pattern); the surface's peak is then the second.
+        candidates = matchable & ~unique & (best > confirmed_match_zncc)
+        k_second = k_second.to(best.device)
+        by_best, by_second = _confirmed_by_a_unique_neighbour(k_int.to(best.device), unique, candidates, block,
+                                                              (k_int.to(best.device), k_second))  # fmt: skip
+        by_second &= ~by_best & (k_second >= 0) & (second > confirmed_match_zncc)
+        k_int = torch.where(by_second.to(k_int.device), k_second.to(k_int.dtype), k_int)
+        # The margin by which a confirmed match passes: min_confidence + (its peak's ZNCC - confirmed_match_zncc).
+        peak = torch.where(by_second, second, best)
+        confirmed_margin = (min_confidence + peak - confirmed_match_zncc).clamp(0, 1)
+        confidence = torch.where(by_best | by_second, torch.maximum(confidence, confirmed_margin), confidence)
+    valid = (confidence >= min_confidence) & (confidence > 0)
+    return confidence, valid, k_int
 
 
 def match(
@@ -182,7 +232,8 @@ def match(
             min(n_sub, REFINE_LEVEL), at most n_sub); the output is still quantised to 2^-n_sub px.
         confirmed_match_zncc: a match that is not unique (confidence < min_confidence) is still
             valid when its best ZNCC exceeds this and a unique match within its block x block
-            window has its integer disparity (+-1 px): a window across a depth edge. 1 = off.
+            window has its integer disparity (+-1 px): a window across a depth edge. Failing that,
+            the same test on its second peak (ZNCC and disparity), which it then takes. 1 = off.
 
     Returns:
         :class:`MatchResult` with (H, W) disparity, confidence, valid.
@@ -239,11 +290,21 @@ def match(
     r0 = pad + ref.offset - h - k_hi
     with torch.no_grad():
         if kernel is not None and dev.type == "cpu":
-            best, second, arg = _integer_search_c(kernel, o_pad, ref, osum, oinv, block, r0, n_disp)
+            best, second, arg, arg2 = _integer_search_c(kernel, o_pad, ref, osum, oinv, block, r0, n_disp,
+                                                        confirmed_match_zncc, min_confidence)  # fmt: skip
         else:
-            best, second, arg = _integer_search_torch(o_pad, ref, osum, oinv, block, r0, n_disp, band_rows)
+            best, second, arg, arg2 = _integer_search_torch(o_pad, ref, osum, oinv, block, r0, n_disp, band_rows,
+                                                            confirmed_match_zncc, min_confidence)  # fmt: skip
         found = arg >= 0
         k_int = torch.where(found, k_hi - arg, torch.full_like(arg, k_lo))
+        k_second = torch.where(arg2 >= 0, k_hi - arg2, torch.full_like(arg2, -1)).to(torch.int32)
+        del arg, arg2
+        best, second = best.clamp(0, 1).to(dev), second.clamp(0, 1).to(dev)
+        # Validity is decided on the integer peaks, so before the refinement (which centres on the peak it keeps).
+        confidence, valid, k_int = _validity(best, second, found.to(dev), k_int, k_second, block, min_confidence,
+                                             confirmed_match_zncc)  # fmt: skip
+        confidence = confidence.to(dtype)
+        del found
 
     # Stage 2: sub-pixel refinement.
     grad = torch.is_grad_enabled() and (observed.requires_grad or beta.requires_grad or reference_phases.requires_grad)
@@ -265,20 +326,5 @@ def match(
         quantised = torch.round(disparity.detach() * S) / S
         disparity = disparity + (quantised - disparity).detach()
 
-    with torch.no_grad():
-        best, second = best.clamp(0, 1).to(dev), second.clamp(0, 1).to(dev)
-        matchable = found.to(dev).clone()
-        if h > 0:
-            matchable[:, :h] = False
-            matchable[:, W - h :] = False
-        confidence = torch.where(matchable, (best - second).clamp(0, 1), torch.zeros_like(best))
-        if confirmed_match_zncc < 1.0:
-            unique = matchable & (confidence >= min_confidence) & (confidence > 0)
-            candidates = matchable & ~unique & (best > confirmed_match_zncc)
-            confirmed = _confirmed_by_a_unique_neighbour(k_int.to(dev), unique, candidates, block)
-            # The margin by which a confirmed match passes: min_confidence + (best - confirmed_match_zncc).
-            confirmed_margin = (min_confidence + best - confirmed_match_zncc).clamp(0, 1)
-            confidence = torch.where(confirmed, torch.maximum(confidence, confirmed_margin), confidence)
-        confidence = confidence.to(dtype)
-        valid = (confidence >= min_confidence) & (confidence > 0)
-    return MatchResult(disparity=disparity, confidence=confidence, valid=valid, best_zncc=best, second_zncc=second)
+    return MatchResult(disparity=disparity, confidence=confidence, valid=valid, best_zncc=best, second_zncc=second,
+                       peak_px=k_int.to(dev), second_peak_px=k_second.to(dev))  # fmt: skip

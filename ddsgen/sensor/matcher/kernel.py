@@ -77,7 +77,7 @@ def _load_kernel():
                     os.replace(out, lib_path)  # atomic: concurrent workers never see half a file
             lib = ctypes.CDLL(str(lib_path))
             p, i = ctypes.c_void_p, ctypes.c_int
-            lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, i]
+            lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, p, ctypes.c_float, ctypes.c_float, i]
             f = ctypes.c_float
             q = ctypes.c_int64
             lib.ddsgen_refine.argtypes = [p, i, p, q, q, i, i, i, i, p, i, i, i, i, i, p, p, p, q, q, p, p, f, i, f, f,
@@ -104,17 +104,23 @@ def _n_threads() -> int:
 
 
 
-def _integer_search_c(fn, o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp):
+def _integer_search_c(fn, o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp, second_floor: float = 1.0,
+                      min_confidence: float = 0.0):  # fmt: skip
+    """(best, second, arg, arg2), each (H, W): the best and second-peak ZNCC and their candidate indices
+    (disparity k_hi - index; -1 where there is none; arg2 only where second > second_floor at a match
+    failing the uniqueness test, -1 elsewhere)."""
     H, W = os_.shape
     o = o_pad.detach().float().contiguous()
     osum, oinv = os_.detach().float().contiguous(), inv_o.detach().float().contiguous()
     best = torch.empty(H, W, dtype=torch.float32)
     second = torch.empty(H, W, dtype=torch.float32)
     arg = torch.empty(H, W, dtype=torch.int32)
+    arg2 = torch.empty(H, W, dtype=torch.int32)
     fn.ddsgen_zncc_search(o.data_ptr(), o.shape[1], ref.r0_int.data_ptr(), ref.r0_int.shape[1], osum.data_ptr(), oinv.data_ptr(),
        ref.rs_int.data_ptr(), ref.inv_int.data_ptr(), ref.pen_int.data_ptr(), ref.rs_int.shape[1], H, W, block, r0, n_disp,
-       best.data_ptr(), second.data_ptr(), arg.data_ptr(), max(1, torch.get_num_threads()))  # fmt: skip
-    return best, second, arg.long()
+       best.data_ptr(), second.data_ptr(), arg.data_ptr(), arg2.data_ptr(), float(second_floor),
+       float(min_confidence), max(1, torch.get_num_threads()))  # fmt: skip
+    return best, second, arg.long(), arg2
 
 
 

@@ -17,12 +17,13 @@ from ddsgen.sensor.matcher.windows import _EXCLUDED_INT, _EXCLUDED_SCORE
 log = logging.getLogger(__name__)
 
 
-def _integer_search_torch(o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp, band_rows):
-    """Same as the C kernel, as row bands of a (row, column, disparity) volume."""
+def _integer_search_torch(o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp, band_rows, second_floor: float = 1.0,
+                          min_confidence: float = 0.0):  # fmt: skip
+    """Same as the C kernel, as row bands of a (row, column, disparity) volume: (best, second, arg, arg2)."""
     H, W = os_.shape
     n = block * block
     o = o_pad.detach().to(ref.r0_int.dtype)
-    best_all, second_all, arg_all = [], [], []
+    best_all, second_all, arg_all, arg2_all = [], [], [], []
     rows = max(1, min(band_rows, H))
     near = torch.tensor([-1, 0, 1], device=o.device)
     for start in range(0, H, rows):
@@ -44,12 +45,16 @@ def _integer_search_torch(o_pad, ref: _Reference, os_, inv_o, block, r0, n_disp,
         score = (cross - (os_[start:stop, :, None] / n) * rs) * inv_o[start:stop, :, None] * ri + pen
         best, arg = score.max(dim=-1)
         peak = (arg[..., None] + near).clamp(0, n_disp - 1)  # the best peak itself (+-1 candidate)
-        second = score.scatter_(-1, peak, -2.0).amax(dim=-1).clamp_min(-2.0)
+        second, arg2 = score.scatter_(-1, peak, -2.0).max(dim=-1)  # first index among ties, as in C
         none = best < 0.5 * _EXCLUDED_INT
+        no_second = none | ~(second > -2.0)
+        conf = (best.float().clamp(0, 1) - second.float().clamp(0, 1)).clamp(0, 1)
+        no_arg2 = none | ~(second > second_floor) | ((conf >= min_confidence) & (conf > 0))
         best_all.append(torch.where(none, torch.full_like(best, -2.0), best))
-        second_all.append(torch.where(none, torch.full_like(second, -2.0), second))
+        second_all.append(torch.where(no_second, torch.full_like(second, -2.0), second))
         arg_all.append(torch.where(none, torch.full_like(arg, -1), arg))
-    return torch.cat(best_all).float(), torch.cat(second_all).float(), torch.cat(arg_all)
+        arg2_all.append(torch.where(no_arg2, torch.full_like(arg2, -1), arg2).to(torch.int32))
+    return torch.cat(best_all).float(), torch.cat(second_all).float(), torch.cat(arg_all), torch.cat(arg2_all)
 
 
 

@@ -10,7 +10,7 @@
  *   ddsgen_observed_stats     the mirrored, padded O and its per-pixel window sum and 1 / std;
  *   ddsgen_zncc_search        stage 1: ZNCC at every integer disparity, streaming (no cost
  *                             volume); per pixel the best score, the second peak (confidence)
- *                             and the best disparity K;
+ *                             and the disparities of both;
  *   ddsgen_refine             stage 2: ZNCC of the sub-pixel candidates d_t = K + (t - T) / S
  *                             against the reference phases, then the soft-argmax
  *                             d = sum_t softmax(beta ZNCC)_t d_t; in backward mode also the
@@ -51,6 +51,14 @@ static inline v8 vsel8(vi8 mask, v8 a, v8 b) { /* mask ? a : b, lane-wise */
 
 static inline v8 vmax8(v8 a, v8 b) { return vsel8(a > b, a, b); }
 
+static inline float clip01(float x) { return x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x); }
+
+/* The matcher's uniqueness test on clipped scores, as matcher/__init__.py computes it in float32. */
+static inline int unique_match(float best, float second, float min_confidence) {
+    const float conf = clip01(clip01(best) - clip01(second));
+    return conf >= min_confidence && conf > 0.0f;
+}
+
 /* Stage 1, integer-disparity search (no gradient needed here).
  *
  * For every output pixel (v, u) and candidate c = 0..D-1 (integer disparity k = k_hi - c):
@@ -60,8 +68,11 @@ static inline v8 vmax8(v8 a, v8 b) { return vsel8(a > b, a, b); }
  * values zeroed), PEN is 0 where the reference window is known and -1e30 where it is not.
  * Window sums are running sums (vertical ones restarted every ROW_BLOCK rows, so the result
  * is independent of the thread count). Outputs per pixel: best score, the best score at least 2 candidates away from the
- * best (the "second peak"), and the best candidate index (-1 if every candidate is
- * excluded). Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
+ * best (the "second peak"), the best candidate index (-1 if every candidate is excluded) and
+ * the second peak's candidate index where its score exceeds second_floor and the match fails the
+ * uniqueness test (clipped best - second < min_confidence; -1 elsewhere: the confirmed-match rule
+ * needs no other, and the search for it costs; ties in either go to the lowest index).
+ * Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
  */
 void ddsgen_zncc_search(const float *restrict O, int Wo,
                         const float *restrict R, int Wr,
@@ -70,7 +81,8 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                         const float *restrict PEN, int Ws,
                         int H, int W, int b, int r0, int D,
                         float *restrict best_out, float *restrict second_out,
-                        int32_t *restrict arg_out, int n_threads)
+                        int32_t *restrict arg_out, int32_t *restrict arg2_out, float second_floor,
+                        float min_confidence, int n_threads)
 {
     const float inv_n = 1.0f / (float)(b * b);
     const int Wv = W + b - 1;
@@ -140,6 +152,7 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                 }
                 if (!(best > 0.5f * NEG_BIG)) arg = -1;
                 float second = -2.0f;
+                int arg2 = -1;
                 if (arg >= 0) {
                     float *scw = (float *)SC;  /* exclude the best peak itself (+-1 candidate) */
                     for (int c = arg - 1; c <= arg + 1; c++) {
@@ -149,10 +162,18 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                     for (int q = 0; q < nb; q++) m2 = vmax8(m2, SC[q]);
                     float s2 = hmax8(m2);
                     if (s2 > second) second = s2;
+                    /* Its index only where the confirmed-match rule may ask for it: a peak above
+                       second_floor at a match failing the uniqueness test (clipped scores, as in Python). */
+                    if (s2 > second_floor && !unique_match(best, s2, min_confidence)) {  /* lowest index among ties */
+                        for (int c = 0; c < Dp; c++) {
+                            if (scw[c] == s2) { arg2 = c; break; }
+                        }
+                    }
                 }
                 best_out[(size_t)v * W + u] = arg >= 0 ? best : -2.0f;
                 second_out[(size_t)v * W + u] = second;
                 arg_out[(size_t)v * W + u] = arg;
+                arg2_out[(size_t)v * W + u] = arg2;
                 if (u + 1 < W) {
                     const v8 *add = V + (size_t)(u + b) * nb;
                     const v8 *sub = V + (size_t)u * nb;
