@@ -138,15 +138,17 @@ def stage_times() -> None:
 
 
 def render_fps(workers: int, short: int = 6, long: int = 30, preset: str = "kinect_v1") -> float:
-    """Steady-state frames/s of `ddsgen render` (worker start-up and compile excluded by differencing)."""
+    """Steady-state frames/s of `ddsgen render`: from the write times of its depth files, frames ``short``..``long``
+    (worker start-up and compile excluded). (Differencing two runs' wall times, as before, gave nonsense under
+    load: 2.4e10 frames/s when the longer run happened to finish as fast as the shorter.)"""
     configure_torch_compile_cache()
-    times = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for n in (short, long):
-            start = time.perf_counter()
-            render_dataset(preset, None, n, str(Path(tmp) / f"run{n}"), workers=workers, seed=1, progress=False)
-            times[n] = time.perf_counter() - start
-    return (long - short) / max(times[long] - times[short], 1e-9)
+        render_dataset(preset, None, long, str(Path(tmp) / "run"), workers=workers, seed=1, progress=False)
+        written = sorted(p.stat().st_mtime_ns for p in (Path(tmp) / "run" / "depth").glob("*.png"))
+    if len(written) < long:
+        raise RuntimeError(f"expected {long} depth files, found {len(written)}")
+    steady = written[short - 1:]  # from the end of the warm-up to the last frame
+    return (len(steady) - 1) / max((steady[-1] - steady[0]) / 1e9, 1e-6)
 
 
 def cpu_profile(preset_name: str, warm: int = 4, frames: int = 16) -> dict[str, float]:
