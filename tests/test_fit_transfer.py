@@ -163,19 +163,21 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     The design is not noise-dominated: each sensor is judged on held-out frames whose support planes are
     fitted where *its* disparity errors put them (ddsgen.fit.plane_depth; with planes fitted to the raw
     real depth the true device scored 21.4 mm and the stock one 18.6 -- the planes had absorbed the
-    distortion) and the gap is averaged over two simulation noise seeds. Measured (160 x 120, load ~25,
-    200 s): true device 10.58 mm, stock 18.47, fitted and kept 15.24 (0.83x; the least-squares start finds
-    the field's shape -- correlation 0.85 with the truth -- but not its corners, which three small frames
-    barely see); eta_c 4.24e6 +- 0.43e6 vs true 4.96e6 (1.7 s.d.; the diagonal sandwich is optimistic where
-    eta_c trades against the distortion field).
+    distortion) and the gap is averaged over two simulation noise seeds. Fit on 8 views of one layout of
+    list A, 80 steps (session 14, 1 thread): true device 10.55 mm, stock 18.55, fitted and kept 14.31 (0.77x);
+    eta_c 4.33e6 +- 0.26e6 vs true 4.96e6. With 3 views and 30 steps (before): 0.83x. The noise texture is
+    judged on the objects (``plane_nuisance``): on all pixels eta_c came out 4.24e6 in every variant (the
+    plane's disparity staircase depends on where the plane was placed). Spread over 3 layouts (3+3+2 views)
+    the same fit gives 0.78x but eta_c 4.24e6 +- 0.20e6 (3.6 s.d.: the sandwich s.d. of a searched
+    parameter is optimistic where eta_c trades against the distortion field).
     """
     torch.set_num_threads(2)
     text, truth = hidden_device(np.random.default_rng(14))
     stock_text = SMALL_PRESET + "effects:\n  - {name: disparity_distortion, alpha0: 0.0, alpha1: 0.02}\n"
-    for name, content in (("hidden.yaml", text), ("stock.yaml", stock_text), ("a.yaml", SCENES_A),
+    for name, content in (("hidden.yaml", text), ("stock.yaml", stock_text), ("a.yaml", SCENES_A.replace("frames: 3", "frames: 8")),
                           ("b.yaml", SCENES_B)):  # fmt: skip
         (tmp_path / name).write_text(content)
-    render(tmp_path / "hidden.yaml", tmp_path / "a.yaml", tmp_path / "A", 3, seed=5)
+    render(tmp_path / "hidden.yaml", tmp_path / "a.yaml", tmp_path / "A", 8, seed=5)
     render(tmp_path / "hidden.yaml", tmp_path / "b.yaml", tmp_path / "B", 2, seed=6)
     stock = load_preset(tmp_path / "stock.yaml")
     scans_b = read_scan_folder(tmp_path / "B")
@@ -193,7 +195,7 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     start = snapshot(resolve_params(sensor, names))
     stock_gap = held_gap(sensor)
     true_gap = held_gap(DepthSensor(load_preset(tmp_path / "hidden.yaml")))
-    result = fit_sensor(sensor, fit_frames, names, steps=30, progress=False, start_effects=True, weights=FIT_WEIGHTS)
+    result = fit_sensor(sensor, fit_frames, names, steps=80, progress=False, start_effects=True, weights=FIT_WEIGHTS)
     sigma = estimate_uncertainty(sensor, fit_frames, result, SENSOR_PARAMS, names={"emitted_intensity"},
                                  weights=FIT_WEIGHTS)  # fmt: skip
     outcome = revert_unhelpful(sensor, resolve_params(sensor, names), start, held_for, SENSOR_PARAMS, seed=1)
@@ -206,7 +208,7 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     for name, info in sigma.items():  # recovered within three reported standard deviations (see the docstring)
         assert math.isfinite(info["sigma"]) and info["sigma"] < 0.5 * info["value"], name
         assert abs(info["value"] - truth[info["key"]]) <= 3.0 * info["sigma"], name
-    assert fitted_gap <= 0.9 * stock_gap  # issue 14's target is 0.8x: not reached here (see the docstring)
+    assert fitted_gap <= 0.8 * stock_gap  # issue 14's target
 
 
 # ------------------------------------------------------------------------------------------ device keys

@@ -237,13 +237,15 @@ def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
     return totals
 
 
-def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 16) -> dict:
+def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 16,
+               plane_nuisance: bool = False) -> dict:  # fmt: skip
     """Golden-section search of log(eta_c) (``which="emitted_intensity"``) or log(sigma)
-    (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames``."""
+    (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames`` (with
+    ``plane_nuisance``, the texture on the objects: :func:`ddsgen.fit.losses.texture_pixels`)."""
     spec = SENSOR_PARAMS[which]
     param = getattr(sensor, spec.attr)
     start = float(param)
-    weights = LossWeights(depth=0.0, gradient=1.0, validity=1.0)
+    weights = LossWeights(depth=0.0, gradient=1.0, validity=1.0, plane_nuisance=plane_nuisance)  # = uncertainty's
     cache: dict[float, float] = {}
 
     def objective(x: float) -> float:
@@ -330,7 +332,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         searched.add("baseline")
     snr = [n for n in ("emitted_intensity", "read_noise_std") if n in resolved]
     if search and snr:
-        searches["snr"] = search_snr(sensor, frames, snr[0], seed)
+        searches["snr"] = search_snr(sensor, frames, snr[0], seed, plane_nuisance=weights.plane_nuisance)
         searched.update(snr)  # the other one is not identifiable separately: held
     device_keys = [n for n in resolved if n in SENSOR_PARAMS and is_device_key(SENSOR_PARAMS[n])]
     if device_keys:  # always searched: they have no usable gradient (ddsgen.fit.device_keys)

@@ -70,7 +70,8 @@ class LossWeights:
     validity: float = 1.0
     pixel: float = 0.0
     #: Fitting: on the support plane, the depth error's part that a plane shift or tilt explains is not
-    #: evidence about the sensor (:func:`without_plane_pose`). ``compare`` keeps it (False).
+    #: evidence about the sensor (:func:`without_plane_pose`), and neither is its noise texture when the
+    #: objects show enough of theirs (:func:`texture_pixels`). ``compare`` keeps both (False).
     plane_nuisance: bool = False
 
 
@@ -146,6 +147,26 @@ def without_plane_pose(err_mm: torch.Tensor, frame, both: torch.Tensor) -> torch
     return err_mm - explained
 
 
+#: With ``plane_nuisance``, the noise texture is judged on the objects alone when they have this many pixels.
+MIN_OBJECT_TEXTURE_PX = 200
+
+
+def texture_pixels(both: torch.Tensor, frame, plane_nuisance: bool) -> torch.Tensor:
+    """The pixels (H, W bool) whose noise texture (roughness) is compared: ``both``, or with ``plane_nuisance``
+    its object pixels when there are at least :data:`MIN_OBJECT_TEXTURE_PX`.
+
+    Why: the support plane is placed where the *input* sensor's disparity errors put it, and a slanted plane's
+    quantised disparity is a staircase whose steps follow its slope, so its roughness depends on the plane's
+    pose, not only on the sensor's noise. Measured (hidden device, 160 x 120, at its true SNR and distortion
+    field): the plane's roughness 7-9 % higher in the rendered "real" frames than in the simulation, the
+    objects' equal within 2 %; searched on all pixels, eta_c came out 15-19 % low, on the objects 3-13 %.
+    """
+    if not plane_nuisance or frame.plane is None:
+        return both
+    objects = both & (frame.instance > 0)
+    return objects if int(objects.sum()) >= MIN_OBJECT_TEXTURE_PX else both
+
+
 def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean of ``x`` over the pixels of ``mask`` (same shape): a masked sum, no boolean indexing (which costs a
     nonzero() and a gather per call). Differentiable in ``x``."""
@@ -203,8 +224,9 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
             terms["depth"] = masked_mean(huber(local), keep)
         # Reported even at weight 0 (compare), but then without a graph to back-propagate through.
         terms["pixel"] = masked_mean(huber(err if weights.pixel else err.detach()), both)
-        r_sim, ok = roughness(simd - clean, both)  # both roughness maps are defined on the same pixels
-        r_real, _ = roughness(real - clean, both)
+        textured = texture_pixels(both, frame, weights.plane_nuisance)
+        r_sim, ok = roughness(simd - clean, textured)  # both roughness maps are defined on the same pixels
+        r_real, _ = roughness(real - clean, textured)
         if bool(ok.any()):
             terms["gradient"] = binned_roughness_gap(r_sim, r_real, frame.geometry.clean_depth, ok, zero)
     if bool(region.any()):

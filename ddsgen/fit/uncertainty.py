@@ -149,7 +149,7 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
             out[name] = _entry(key, value, math.nan, f"held: only the ratio eta_c / sigma is identifiable ({snr} fitted)")
             continue
         searched = name == snr
-        w = SEARCH_WEIGHTS if searched else weights
+        w = dataclasses.replace(SEARCH_WEIGHTS, plane_nuisance=weights.plane_nuisance) if searched else weights
         if w not in cache:
             cache[w] = _tile_losses(sensor, frames, tiles, seed, w)
         x0 = float(tensor.detach())
