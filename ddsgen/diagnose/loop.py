@@ -56,7 +56,10 @@ change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches
 matcher's result from a cache keyed by the IR image; validity effects do not move the plane
 either, so their whole search reuses the sensor's front end (IR image, matching, depth:
 :func:`~ddsgen.diagnose.match_cache.reuse_front_ends`) and uses every fit frame; depth effects
-are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames.
+are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames. **Screening** (:data:`SCREEN_FRACTION`):
+each candidate is first searched on one fit frame and judged on the held-out frames at those values; only a
+candidate whose credited fall there reaches a fifth of the acceptance threshold is searched on every search
+frame and judged again (the others cannot be accepted, so the answer is the full search's).
 """
 
 from __future__ import annotations
