@@ -8,16 +8,20 @@ command's default settings (``ddsgen diagnose`` without options) on 2 torch thre
   diagnose_640x480_8frames_s          wall time of the whole diagnosis (target 120 s on 2 cores)
   diagnose_640x480_8frames_cpu_s      its process CPU time
   diagnose_simulations_equivalent     that wall time in units of one simulation of the 8 frames measured in
-                                      the same run (machine-independent: what the loop costs in simulations)
+                                      the same run (median of 3 passes; still follows the load of the moment)
+  diagnose_front_ends                 sensor front ends computed (IR image + matching; cache hits not counted)
+  diagnose_validity_stages            validity stages computed (one per simulation, front end cached or not);
+                                      both counts are machine-independent: what the loop costs in work
   diagnose_named_first                1 when the hidden effect is named first (the answer must stay right)
   diagnose_load_average               the 1-minute load average at the end (timings on a loaded machine lie)
 
-Usage: python bench/bench_diagnose.py [--effect NAME KEY=VALUE ...] [--threads N]
+Usage: python bench/bench_diagnose.py [--effect NAME KEY=VALUE ...] [--threads N] [--screen-frames N]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -50,6 +54,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--effect", nargs="+", default=["disparity_offset", "offset_px=0.3"])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--screen-frames", type=int, default=None,
+                        help="DiagnoseConfig.screen_frames (0: no screening; default: the command's)")
     args = parser.parse_args()
     effect = {"name": args.effect[0], **{k: float(v) for k, v in (a.split("=") for a in args.effect[1:])}}
 
@@ -67,20 +73,41 @@ def main() -> int:
     sensor = DepthSensor(stock)
     with torch.no_grad():
         simulate(sensor, frames[0], 0)  # warm-up: pattern and reference caches
-        start = time.perf_counter()
-        for f in frames:
-            simulate(sensor, f, 0)
-        one_pass = time.perf_counter() - start
+        passes = []
+        for _ in range(3):
+            start = time.perf_counter()
+            for f in frames:
+                simulate(sensor, f, 0)
+            passes.append(time.perf_counter() - start)
+        one_pass = sorted(passes)[1]
 
+    # Count the stages actually computed (installed before diagnose's caches wrap the methods: hits not counted).
+    counts = {"front_end": 0, "validity_stage": 0}
+
+    def counted(name):
+        method = getattr(DepthSensor, name)
+
+        def wrapper(self, *a, **k):
+            counts[name] += 1
+            return method(self, *a, **k)
+
+        return wrapper
+
+    DepthSensor.front_end, DepthSensor.validity_stage = counted("front_end"), counted("validity_stage")
+    config = DiagnoseConfig()
+    if args.screen_frames is not None:
+        config = dataclasses.replace(config, screen_frames=args.screen_frames)
     log: list[str] = []
     wall, cpu = time.perf_counter(), time.process_time()
-    result = diagnose(stock, frames, DiagnoseConfig(), echo=log.append)
+    result = diagnose(stock, frames, config, echo=log.append)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print("\n".join("# " + line for line in log), flush=True)
     bench("diagnose_640x480_8frames_s", wall, "s")
     bench("diagnose_640x480_8frames_vs_target", wall / TARGET_S, "x")
     bench("diagnose_640x480_8frames_cpu_s", cpu, "s")
     bench("diagnose_simulations_equivalent", wall / one_pass, "passes")
+    bench("diagnose_front_ends", counts["front_end"])
+    bench("diagnose_validity_stages", counts["validity_stage"])
     bench("diagnose_named_first", float(bool(result.steps) and result.steps[0].effect == effect["name"]))
     bench("diagnose_load_average", os.getloadavg()[0])
     return 0

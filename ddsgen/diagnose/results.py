@@ -18,6 +18,7 @@ class Candidate:
     gain_low: float = 0.0
     validity_ll_gain: float = 0.0  # change of the held-out validity log-likelihood (nats per pixel)
     sensor: object = None
+    screened: bool = False  # judged at the values of its one-frame screening search (loop.SCREEN_FRACTION)
 
 
 @dataclasses.dataclass
