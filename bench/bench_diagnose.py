@@ -68,6 +68,7 @@ def main() -> int:
         torch.set_num_threads(args.threads)
         frames = prepare_frames(stock, read_scan_folder(Path(tmp) / "scans"), progress=False)
 
+    from ddsgen.diagnose.match_cache import counting_computed_stages
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     sensor = DepthSensor(stock)
@@ -81,25 +82,13 @@ def main() -> int:
             passes.append(time.perf_counter() - start)
         one_pass = sorted(passes)[1]
 
-    # Count the stages actually computed (installed before diagnose's caches wrap the methods: hits not counted).
-    counts = {"front_end": 0, "validity_stage": 0}
-
-    def counted(name):
-        method = getattr(DepthSensor, name)
-
-        def wrapper(self, *a, **k):
-            counts[name] += 1
-            return method(self, *a, **k)
-
-        return wrapper
-
-    DepthSensor.front_end, DepthSensor.validity_stage = counted("front_end"), counted("validity_stage")
     config = DiagnoseConfig()
     if args.screen_frames is not None:
         config = dataclasses.replace(config, screen_frames=args.screen_frames)
     log: list[str] = []
     wall, cpu = time.perf_counter(), time.process_time()
-    result = diagnose(stock, frames, config, echo=log.append)
+    with counting_computed_stages() as counts:  # outside diagnose's caches: what they serve is not counted
+        result = diagnose(stock, frames, config, echo=log.append)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print("\n".join("# " + line for line in log), flush=True)
     bench("diagnose_640x480_8frames_s", wall, "s")

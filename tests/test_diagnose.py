@@ -384,15 +384,15 @@ def test_out_of_library_distortion_is_reported_by_axis_not_named(scans):
 
 
 @pytest.mark.slow
-def test_screening_keeps_the_answer_and_skips_searches(tmp_path, monkeypatch):
+def test_screening_keeps_the_answer_and_skips_searches(tmp_path):
     """The screening rule (loop.SCREEN_FRACTION): the same effect is named with the same value and gap as without
     screening, the candidates that explain nothing are judged at their one-frame values, and fewer simulations run
     (sensor front ends and validity stages actually computed, i.e. not served by the caches)."""
     from ddsgen.diagnose.loop import SCREEN_FRACTION
+    from ddsgen.diagnose.match_cache import counting_computed_stages
     from ddsgen.fit.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.runner import render_dataset
-    from ddsgen.sensor.depth_sensor import DepthSensor
 
     base = small_preset(320, 240, subpixel_level=3)
     truth = base.replace(effects=[CASES["disparity_offset"]], emitted_intensity=base.emitted_intensity * 1.15)
@@ -401,21 +401,6 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path, monkeypatch):
                    progress=False)  # fmt: skip
     torch.set_num_threads(1)
     frames = prepare_frames(base, read_scan_folder(tmp_path / "scans"), progress=False)
-    calls = {"front_end": 0, "validity_stage": 0}
-
-    def counted(name):
-        method = getattr(DepthSensor, name)
-
-        def wrapper(self, *args, **kwargs):
-            calls[name] += 1
-            return method(self, *args, **kwargs)
-
-        return wrapper
-
-    # Installed before diagnose's caches wrap them: only computed stages are counted. Every simulation runs a
-    # validity stage (its front end computed or served from the cache).
-    monkeypatch.setattr(DepthSensor, "front_end", counted("front_end"))
-    monkeypatch.setattr(DepthSensor, "validity_stage", counted("validity_stage"))
     # Not depth_scale: at 320 x 240 with 2 held-out frames it beats the offset with or without screening (measured:
     # 5.68 -> 2.58 mm both ways); the 640 x 480 cases separate the two.
     # The command's grid_frames (4): each depth candidate's full search runs on 4 fit frames, its screening on 1.
@@ -423,9 +408,11 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path, monkeypatch):
         "disparity_offset", "edge_dropout", "grazing_dropout", "lens_distortion", "low_signal_dropout"))  # fmt: skip
     runs = {}
     for screen in (0, 1):
-        calls.update(front_end=0, validity_stage=0)
         log: list[str] = []
-        result = diagnose(base, frames, dataclasses.replace(config, screen_frames=screen), echo=log.append)
+        # Every simulation runs a validity stage (its front end computed or served from the cache); counted
+        # outside diagnose's caches, so only computed stages count.
+        with counting_computed_stages() as calls:
+            result = diagnose(base, frames, dataclasses.replace(config, screen_frames=screen), echo=log.append)
         runs[screen] = (result, calls["validity_stage"], calls["front_end"], "\n".join(log))
     (plain, plain_sims, plain_fronts, plain_log), (screened, sims, fronts, log) = runs[0], runs[1]
     text = f"without screening:\n{plain_log}\nwith screening:\n{log}"

@@ -124,3 +124,33 @@ def reuse_front_ends(size: int = FRONT_END_ENTRIES):
         yield fronts
     finally:
         DepthSensor.draw_noise, DepthSensor.front_end = original_noise, original_front
+
+
+@contextlib.contextmanager
+def counting_computed_stages():
+    """Count the sensor stages actually computed while the context is active: yields a dict
+    ``{"front_end": n, "validity_stage": n}`` that grows with every call of those
+    :class:`~ddsgen.sensor.depth_sensor.DepthSensor` methods. Enter it *before* :func:`reuse_front_ends`
+    wraps them, so that what the caches serve is not counted (machine-independent work, for
+    benchmarks and tests)."""
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    counts = {"front_end": 0, "validity_stage": 0}
+    originals = {name: getattr(DepthSensor, name) for name in counts}
+
+    def counted(name):
+        method = originals[name]
+
+        def wrapper(self, *args, **kwargs):
+            counts[name] += 1
+            return method(self, *args, **kwargs)
+
+        return wrapper
+
+    for name in counts:
+        setattr(DepthSensor, name, counted(name))
+    try:
+        yield counts
+    finally:
+        for name, method in originals.items():
+            setattr(DepthSensor, name, method)
