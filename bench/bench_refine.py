@@ -55,19 +55,27 @@ def _pose(rotvec, t) -> np.ndarray:
     return T
 
 
-def table_scene(n_objects: int, rng: np.random.Generator, spread=(0.3, 0.2), depth=0.75) -> FrameScene:
-    """n objects in random orientations on a grid in front of a tilted table plane."""
+def grid_scene(parts, rng: np.random.Generator, spread=(0.3, 0.2), depth=0.75, table_behind=0.15) -> FrameScene:
+    """``parts`` [(name, mesh)] in random orientations on a grid (``spread`` m wide and high) at ``depth`` m,
+    ``table_behind`` m in front of a tilted table plane."""
     objects = []
-    cols = int(np.ceil(np.sqrt(n_objects * 1.5)))
-    rows = int(np.ceil(n_objects / cols))
-    for i in range(n_objects):
-        name, params = SHAPES[i % len(SHAPES)]
+    cols = int(np.ceil(np.sqrt(len(parts) * 1.5)))
+    rows = int(np.ceil(len(parts) / cols))
+    for i, (name, mesh) in enumerate(parts):
         x = (i % cols - (cols - 1) / 2) * spread[0] / max(cols - 1, 1)
         y = (i // cols - (rows - 1) / 2) * spread[1] / max(rows - 1, 1)
-        objects.append(PlacedObject(i + 1, name, f"shape:{name}", shapes.make_shape(name, params or None),
-                                    _pose(rng.normal(size=3) * 0.8, (x, y, depth + 0.05 * (i % 3))), 0.6))  # fmt: skip
-    plane = PlacedObject(0, "table", "plane:3x3", shapes.plane_mesh(3.0, 3.0), _pose((-0.9, 0, 0), (0, 0.1, depth + 0.15)), 0.6)
+        objects.append(PlacedObject(i + 1, name, name, mesh, _pose(rng.normal(size=3) * 0.8, (x, y, depth + 0.05 * (i % 3))),
+                                    0.6))  # fmt: skip
+    plane = PlacedObject(0, "table", "plane:3x3", shapes.plane_mesh(3.0, 3.0),
+                         _pose((-0.9, 0, 0), (0, 0.1, depth + table_behind)), 0.6)  # fmt: skip
     return FrameScene(objects, [plane], np.eye(4), 0, 0)
+
+
+def table_scene(n_objects: int, rng: np.random.Generator, spread=(0.3, 0.2), depth=0.75) -> FrameScene:
+    """n procedural shapes (cycling through SHAPES) on the grid of :func:`grid_scene`."""
+    parts = [(f"shape:{name}", shapes.make_shape(name, params or None))
+             for name, params in (SHAPES[i % len(SHAPES)] for i in range(n_objects))]  # fmt: skip
+    return grid_scene(parts, rng, spread, depth)
 
 
 def step_time(gradient: str) -> tuple[float, float]:
@@ -106,24 +114,13 @@ def _linemod_meshes() -> list:
     return [(p.stem, load_mesh(str(p), 0.001, source=str(p))) for p in sorted((LINEMOD / "models").glob("obj_*.ply"))]
 
 
-def linemod_scene(meshes, rng: np.random.Generator) -> FrameScene:
-    """The LineMOD-Occluded meshes in random orientations on a 4 x 2 grid at 0.75-0.95 m before a table plane."""
-    depth = rng.uniform(0.75, 0.95)
-    objects = [PlacedObject(i + 1, name, name, mesh, _pose(rng.normal(size=3) * 0.8, ((i % 4 - 1.5) * 0.13, (i // 4 - 0.5) * 0.2,
-                                                                                     depth + 0.05 * (i % 3))), 0.6)
-               for i, (name, mesh) in enumerate(meshes)]  # fmt: skip
-    plane = PlacedObject(0, "table", "plane:3x3", shapes.plane_mesh(3.0, 3.0), _pose((-0.9, 0, 0), (0, 0.1, depth + 0.25)), 0.6)
-    return FrameScene(objects, [plane], np.eye(4), 0, 0)
-
-
-def synthetic_recovery(frames: int = 8, edge_weight: float = 0.0, start=(3.0, 10.0), models: str = "shapes",
-                       real_speckle_seed: int | None = None) -> tuple[float, float]:  # fmt: skip
+def synthetic_recovery(frames: int = 8, edge_weight: float = 0.0, start=(3.0, 10.0),
+                       models: str = "shapes") -> tuple[float, float]:  # fmt: skip
     """Median (deg, mm) error over objects after refining from poses ``start`` = (deg, mm) off the truth.
 
     models="shapes": 4 procedural shapes at 0.7 m in a 320x240 window; "linemod": the 8 LineMOD-Occluded
     meshes at 0.75-0.95 m, 640x480. start=(0, 0) starts at the truth: how far the noise of the one
-    "real" frame moves the estimate (the floor of the metric). The "real" frame's speckle is the scene's
-    own (as on the device), or drawn from ``real_speckle_seed`` (to tell a bias from noise).
+    "real" frame moves the estimate (the floor of the metric).
     """
     preset = load_preset("kinect_v1")
     full = preset.intrinsics
@@ -133,11 +130,13 @@ def synthetic_recovery(frames: int = 8, edge_weight: float = 0.0, start=(3.0, 10
     errors = []
     for frame in range(frames):
         rng = np.random.default_rng(100 + frame)
-        truth = linemod_scene(meshes, rng) if meshes else table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
+        if meshes:  # the LineMOD grid: 4 x 2, 0.13 m apart in x, 0.2 m in y
+            truth = grid_scene(meshes, rng, spread=(0.39, 0.2), depth=rng.uniform(0.75, 0.95), table_behind=0.25)
+        else:
+            truth = table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
         geometry = SensorGeometry.from_hits(cast(truth, intr, 0.075, 0.005))
         with torch.no_grad():
-            noise = None if real_speckle_seed is None else sensor.draw_noise(real_speckle_seed + frame)
-            real = sensor(geometry, seed=50 + frame, noise=noise).depth
+            real = sensor(geometry, seed=50 + frame).depth
         moved = []
         for o in truth.objects:
             centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]

@@ -49,7 +49,7 @@ import torch
 
 from ddsgen.errors import InputError
 from ddsgen.fit.device_keys import device_key_values, is_device_key, mirror, search_device_keys
-from ddsgen.fit.losses import LossWeights, frame_loss
+from ddsgen.fit.losses import LossWeights, frame_loss, snr_search_weights
 from ddsgen.fit.priors import DEFAULT_PRIOR_MM, Priors, SensorParam
 from ddsgen.fit.simulate import FrameData, simulate
 from ddsgen.fit.tiles import step_tiles
@@ -245,7 +245,7 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
     spec = SENSOR_PARAMS[which]
     param = getattr(sensor, spec.attr)
     start = float(param)
-    weights = LossWeights(depth=0.0, gradient=1.0, validity=1.0, plane_nuisance=plane_nuisance)  # = uncertainty's
+    weights = snr_search_weights(plane_nuisance)
     cache: dict[float, float] = {}
 
     def objective(x: float) -> float:

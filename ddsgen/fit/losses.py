@@ -79,6 +79,12 @@ class LossWeights:
 FIT_WEIGHTS = LossWeights(plane_nuisance=True)
 
 
+def snr_search_weights(plane_nuisance: bool = False) -> LossWeights:
+    """The terms the 1-D SNR search (:func:`ddsgen.fit.fitting.search_snr`) and its uncertainty judge: validity
+    and noise texture, no depth; ``plane_nuisance`` as the fit's own weights."""
+    return LossWeights(depth=0.0, gradient=1.0, validity=1.0, plane_nuisance=plane_nuisance)
+
+
 def huber(x: torch.Tensor, delta: float = HUBER_DELTA_MM) -> torch.Tensor:
     """Elementwise Huber penalty in the units of ``x``: x^2/(2 delta) for |x| <= delta, |x| - delta/2 beyond."""
     a = x.abs()

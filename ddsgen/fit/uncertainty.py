@@ -29,7 +29,7 @@ import math
 import torch
 
 from ddsgen.fit.device_keys import integer_key, is_device_key, set_key, stored
-from ddsgen.fit.losses import LossWeights, frame_loss, local_window
+from ddsgen.fit.losses import LossWeights, frame_loss, local_window, snr_search_weights
 from ddsgen.fit.simulate import simulate
 from ddsgen.fit.tiles import crop_frame
 
@@ -39,8 +39,6 @@ TILE_WINDOWS = 6
 MIN_TILE_SHARE = 0.25
 #: Step of unbounded effect raw values.
 EFFECT_STEP = 0.1
-#: The 1-D SNR search's terms (fitting.search_snr).
-SEARCH_WEIGHTS = LossWeights(depth=0.0, gradient=1.0, validity=1.0)
 
 
 def tile_masks(frame) -> list[tuple[torch.Tensor, float]]:
@@ -149,7 +147,7 @@ def estimate_uncertainty(sensor, frames, result, table: dict, *, seed: int = 0, 
             out[name] = _entry(key, value, math.nan, f"held: only the ratio eta_c / sigma is identifiable ({snr} fitted)")
             continue
         searched = name == snr
-        w = dataclasses.replace(SEARCH_WEIGHTS, plane_nuisance=weights.plane_nuisance) if searched else weights
+        w = snr_search_weights(weights.plane_nuisance) if searched else weights
         if w not in cache:
             cache[w] = _tile_losses(sensor, frames, tiles, seed, w)
         x0 = float(tensor.detach())
