@@ -32,7 +32,8 @@ DATA = ROOT.parent / "shared" / "data"
 from ddsgen.depth_statistics import realism_statistics  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
-        "isolated_dropout_share": "", "depth_step_at_1m_mm": "mm"}  # fmt: skip
+        "isolated_dropout_share": "", "depth_step_at_1m_mm": "mm", "jump_holes_left": "",
+        "jump_holes_right": ""}  # fmt: skip
 
 
 def _print(name: str, stats: dict) -> None:

@@ -5,7 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddsgen.depth_statistics import corner_valid_share, depth_step_at_1m, isolated_dropouts, realism_statistics
+from ddsgen.depth_statistics import (corner_valid_share, depth_step_at_1m, holes_at_depth_jumps, isolated_dropouts,
+                                     realism_statistics)
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -48,6 +49,32 @@ def test_depth_step_of_a_quantised_ramp(n_sub, resolution):
     assert depth_step_at_1m(depth, resolution_m=resolution) == pytest.approx(expected, rel=0.03)
 
 
+def box_on_a_wall(hole_left_px: int, hole_right_px: int, rows_with_holes: int = 60) -> np.ndarray:
+    """(100, 120) m: a wall at 1.2 m, a box at 0.8 m over columns 40-79, holes beside the box on some rows."""
+    depth = np.full((100, 120), 1.2)
+    depth[20:80, 40:80] = 0.8
+    depth[20 : 20 + rows_with_holes, 40 - hole_left_px : 40] = 0.0
+    depth[20 : 20 + rows_with_holes, 80 : 80 + hole_right_px] = 0.0
+    return depth
+
+
+def test_holes_at_depth_jumps_tell_the_shadow_side_from_the_other():
+    """A projector-shadow band left of the box: every left jump has a hole, no right one; a hole-free box has none;
+    mirrored, the sides swap; holes on half the rows give half the share."""
+    left, right = holes_at_depth_jumps(box_on_a_wall(12, 0))
+    assert (left, right) == (1.0, 0.0)
+    assert holes_at_depth_jumps(box_on_a_wall(0, 0)) == (0.0, 0.0)
+    assert holes_at_depth_jumps(box_on_a_wall(12, 0)[:, ::-1]) == (0.0, 1.0)
+    assert holes_at_depth_jumps(box_on_a_wall(3, 2, rows_with_holes=30)) == (0.5, 0.5)
+    # Small steps (a 2 % slope break) and a region without the box are no jumps.
+    ramp = np.full((50, 80), 1.0)
+    ramp[:, 40:] = 1.02
+    assert holes_at_depth_jumps(ramp) == (None, None)
+    region = np.zeros((100, 120), bool)
+    region[85:, :] = True
+    assert holes_at_depth_jumps(box_on_a_wall(12, 0), region) == (None, None)
+
+
 @pytest.mark.skipif(not (SHARED / "icbin_primesense_unpaired").is_dir(), reason="../shared/data is absent")
 def test_real_primesense_frames_have_clustered_holes_and_eighth_pixel_steps():
     import cv2
@@ -61,3 +88,6 @@ def test_real_primesense_frames_have_clustered_holes_and_eighth_pixel_steps():
         assert s["isolated_dropout_share"] < 0.01, path
         assert s["corner_valid_share"] < s["valid_share"] - 0.1, path
         assert s["depth_step_at_1m_mm"] == pytest.approx(2.92, rel=0.03), path
+        # Most depth jumps have no hole between the surfaces, on either side (measured 0.09-0.58 left, 0.21-0.49
+        # right): the device fills most of its geometric projector shadow.
+        assert s["jump_holes_left"] < 0.65 and s["jump_holes_right"] < 0.55, path

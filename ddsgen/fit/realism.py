@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from ddsgen.depth_statistics import realism_statistics
+from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 
 SCOPES = {
     "real.region": "real frame, compare region (modelled, visible, plausible pixels)",
@@ -30,8 +30,7 @@ SCOPES = {
                     "is hit; the simulation has no depth elsewhere; with --crop, inside the crop window less the "
                     "border the matcher cannot reach)",
 }  # fmt: skip
-STATISTICS = ("valid_share", "corner_valid_share", "isolated_dropouts", "isolated_dropout_share",
-              "depth_step_at_1m_mm")  # fmt: skip
+STATISTICS = tuple(STATISTIC_LABELS)
 
 
 def full_frame(array, frame, fill=0) -> np.ndarray:
@@ -112,11 +111,8 @@ def _r(x, nd=5):
 
 def table(realism: dict) -> str:
     """Plain-text table: one row per statistic, columns real/sim on the region and whole frame (mean [min-max])."""
-    names = {"valid_share": "valid share", "corner_valid_share": "corner valid share",
-             "isolated_dropouts": "isolated dropouts / frame", "isolated_dropout_share": "  their share of invalid",
-             "depth_step_at_1m_mm": "depth step at 1 m (mm)"}  # fmt: skip
     columns = ("real.region", "sim.region", "real.whole_frame", "sim.modelled")
-    lines = [f"{'realism (mean [min-max])':27s}" + "".join(f"{c:>22s}" for c in columns)]
+    lines = [f"{'realism (mean [min-max])':31s}" + "".join(f"{c:>22s}" for c in columns)]
     for stat in STATISTICS:
         cells = []
         for scope in columns:
@@ -127,5 +123,5 @@ def table(realism: dict) -> str:
                 cells.append(f"{v['mean']:>8.1f} [{v['min']:.0f}-{v['max']:.0f}]".rjust(22))
             else:
                 cells.append(f"{v['mean']:>8.3f} [{v['min']:.3f}-{v['max']:.3f}]".rjust(22))
-        lines.append(f"{names[stat]:27s}" + "".join(cells))
+        lines.append(f"{STATISTIC_LABELS[stat]:31s}" + "".join(cells))
     return "\n".join(lines)

@@ -21,14 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.depth_statistics import realism_statistics
+from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 from ddsgen.fit.unpaired.features import DEPTH_EDGES, ISOLATED_CLASSES, NOISE_BIN_PX, RADIUS_EDGES, summary
 from ddsgen.io.atomic import atomic_path, atomic_write_text
 
 COLOURS = {"real": "black", "stock": "tab:orange", "fitted": "tab:blue"}
 PATCH_PX = 64
-STATISTIC_KEYS = ("valid_share", "corner_valid_share", "isolated_dropouts", "isolated_dropout_share",
-                  "depth_step_at_1m_mm")  # fmt: skip
+STATISTIC_KEYS = tuple(STATISTIC_LABELS)
 
 
 def _plt():
