@@ -230,6 +230,41 @@ def test_one_frame_is_split_into_disjoint_pieces_that_each_cover_the_whole_image
     assert len({f.name for f in fit + held}) == 4
 
 
+def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit():
+    """Border columns with depth in the real frames, where the preset declares a band without (the stock Kinect's
+    8 left columns): the diagnosis uses the measured window (the band is not an effect and no effect adds pixels)
+    and says so; a preset that agrees, one frame, or a crop (its border is not the device's) leave it alone."""
+    from types import SimpleNamespace
+
+    from ddsgen.diagnose.window import with_measured_window
+    from ddsgen.sensor.output_window import OutputWindow
+
+    preset = small_preset(160, 120)
+    assert OutputWindow.of(preset).left == 8
+    intr = preset.intrinsics
+    rng = np.random.default_rng(0)
+
+    def frame(valid, crop=(0, 0, 160, 120)):
+        return SimpleNamespace(real_valid=torch.from_numpy(valid), crop=crop, full_intrinsics=intr)
+
+    device = [rng.random((120, 160)) < 0.9 for _ in range(3)]  # depth up to every border
+    for valid in device:
+        valid[:, -12:] = False  # and a registered device's right band
+    adopted, window, note = with_measured_window(preset, [frame(v) for v in device])
+    assert window == OutputWindow(left=0, right=12) and OutputWindow.of(adopted) == window
+    assert "left 0, right 12" in note and "left 8" in note
+    stock = [v.copy() for v in device]
+    for valid in stock:
+        valid[:, :8] = False
+        valid[:, -12:] = True
+    assert with_measured_window(preset, [frame(v) for v in stock])[1] is None  # agrees with the preset
+    assert with_measured_window(preset, [frame(device[0])])[1] is None  # one frame: its border may be the scene's
+    crops = [frame(v, crop=(20, 10, 160, 120)) for v in device]
+    assert with_measured_window(preset, crops)[1] is None
+    # --apply writes it in the preset's own pixels
+    assert window.rescaled(160, 120, 640, 480) == OutputWindow(left=0, right=48)
+
+
 def _plane_frame(width: int = 160, height: int = 120):
     """A tilted support plane seen by the small Kinect preset, real depth = clean depth (a _Frame)."""
     from ddsgen.fit.simulate import Plane
@@ -526,16 +561,17 @@ def blind_scans(tmp_path, blind_geometry, effect):
     return folder
 
 
-#: Measured shortfalls of the blind cases (fall of the gap beyond the floor, rounded down; why). Measured in session
-#: 12 (320 x 240, 9 frames, one effect accepted): each is named first with the right strength, but the gap beyond the
-#: floor falls only offset 9.91 -> 8.64 mm (-13 %), grazing 8.59 -> 6.07 (-29 %), edge 10.71 -> 7.28 (-32 %); lens
-#: 19.04 -> 9.50 (-50.1 %, and -48 % on CI before this session's changes: on the line). The null case shows why: with
-#: nothing hidden, 7.72 mm beyond the floor remain, along column and radius -- the stock sensor loses pixels at the
-#: left border and in the corners where the independent model (like the real Kinect at the left border) has depth,
-#: and no effect can add pixels.
-BORDER_HOLES = "the stock sensor's border and corner holes remain in the gap (null case: 7.7 mm beyond the floor)"
-BLIND_SHORT = {"disparity_offset": (0.10, BORDER_HOLES), "grazing_dropout": (0.25, BORDER_HOLES),
-               "edge_dropout": (0.28, BORDER_HOLES), "lens_distortion": (0.45, BORDER_HOLES)}  # fmt: skip
+#: Measured shortfalls of the blind cases (fall of the gap beyond the floor, rounded down with a margin for the
+#: spread between machines; why). Each is named first with the right strength. Session 16 (320 x 240, 9 frames, one
+#: effect accepted, the real frames' output window measured and used): offset 8.48 -> 6.87 mm (-19 %), grazing
+#: 7.45 -> 5.22 (-30 %), edge 9.31 -> 6.14 (-34 %), lens 18.41 -> 9.49 (-48 %; it has measured -44.7 % to -50.1 %
+#: on other machines and commits, so its floor is 40 %). The null case shows why: with nothing hidden, 6.74 mm
+#: beyond the floor remain (7.72 before the window was measured), along column and radius: 1.7 mm of it the
+#: matcher's half-block border columns (the independent model has depth up to every border), the rest a locally
+#: systematic depth difference with zero median away from edges and borders that no effect of the library models.
+BORDER_HOLES = "structure the stock sensor and the independent model do not share stays in the gap (null case: 6.7 mm)"
+BLIND_SHORT = {"disparity_offset": (0.15, BORDER_HOLES), "grazing_dropout": (0.25, BORDER_HOLES),
+               "edge_dropout": (0.28, BORDER_HOLES), "lens_distortion": (0.40, BORDER_HOLES)}  # fmt: skip
 
 
 @pytest.mark.slow

@@ -89,7 +89,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
             click.echo(line, err=True)
 
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane,
-                                                     plausible_px=plausible_px, seed=seed, progress=progress, echo=echo_stderr)  # fmt: skip
+                                                     plausible_px=plausible_px, seed=seed, progress=progress, echo=echo_stderr,
+                                                     window_hint=False)  # diagnose measures the window itself  # fmt: skip
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
                             seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames)  # fmt: skip
     result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)
@@ -103,6 +104,9 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         scale = float(sensor.focal_scale.detach())
         values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
         changes = dict(values, effects=[e.to_entry() for e in sensor.effects], name=f"{original.name}_diagnosed")
+        if result.output_window is not None:  # measured on the scans: in the preset's own pixels
+            changes.update(result.output_window.rescaled(camera_preset.width_px, camera_preset.height_px,
+                                                         original.width_px, original.height_px).as_keys())  # fmt: skip
         pattern_path = original.resolve_path(original.pattern)
         if pattern_path.parent.resolve() != PATTERN_DIR.resolve():
             changes["pattern"] = str(pattern_path.resolve())

@@ -2,6 +2,8 @@
 
 The loop (:func:`diagnose`):
 
+0. **Output window** (:mod:`~ddsgen.diagnose.window`): border bands without depth in every real frame are
+   measured and used by the model when they differ from the preset's (not an effect: a format).
 1. **Base fit.** The base sensor parameters are fitted on the fit frames with the fit
    machinery (:func:`ddsgen.fit.fitting.fit_sensor`); the held-out gap (the ``compare``
    metric, :func:`ddsgen.fit.compare.gap`, and its noise floor) of that model is the baseline.
@@ -79,6 +81,7 @@ from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
 from ddsgen.diagnose.split import split_note, split_single_frame
+from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.simulate import simulate
@@ -220,6 +223,10 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     if unknown:
         raise ValueError(f"unknown candidate effect(s) {unknown}")
     notes = []
+    preset, window, window_note = with_measured_window(preset, frames)
+    if window_note:
+        notes.append(window_note)
+        echo("      " + window_note)
     if len(frames) == 1:  # one scan: pieces of it are the units of the fit / held-out split
         fit_frames, held = split_single_frame(frames[0], config.holdout, config.seed)
         notes.append(split_note(frames[0], fit_frames, held))
@@ -350,7 +357,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     maps_baseline = residual_maps(base_sensor, map_frames, held_seed)
     maps_final = residual_maps(sensor, map_frames, held_seed) if steps else maps_baseline
     return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
-                     rounds, maps_baseline, maps_final, notes)  # fmt: skip
+                     rounds, maps_baseline, maps_final, notes, window)  # fmt: skip
 
 
 def _fmt(values: dict) -> str:

@@ -63,6 +63,7 @@ class Diagnosis:
     maps_baseline: list = dataclasses.field(default_factory=list)
     maps_final: list = dataclasses.field(default_factory=list)
     notes: list = dataclasses.field(default_factory=list)  # sentences for the report (e.g. a spatial split)
+    output_window: object = None  # the OutputWindow measured on the real frames and used, when it differs from the preset's
 
     @property
     def baseline_gap(self) -> float:

@@ -33,14 +33,15 @@ def adopt_camera(preset, scan_frames):
 
 
 def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausible_px=2.0, seed=0, progress=True,
-                echo: Callable[[str], None] | None = None):
+                echo: Callable[[str], None] | None = None, window_hint: bool = True):
     """(original preset, preset with the scans' camera, scan frames, prepared FrameData list).
 
     The support plane of each frame is fitted to the real depth with the preset's disparity effects undone
     (:mod:`ddsgen.fit.plane_depth`), so a preset that models its device's disparity errors is compared on
     the table where that device saw it.
 
-    ``echo`` (e.g. ``click.echo`` to stderr) is told when the scans' camera replaces the preset's.
+    ``echo`` (e.g. ``click.echo`` to stderr) is told when the scans' camera replaces the preset's, and (if
+    ``window_hint``) when the real frames' output window differs from the preset's.
     """
     from ddsgen.fit.plane_depth import plane_depth_for
     from ddsgen.fit.simulate import prepare_frames
@@ -60,27 +61,40 @@ def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausi
     plane_depth = plane_depth_for(DepthSensor(camera_preset)) if support_plane else None
     frames = prepare_frames(camera_preset, scans, support_plane=support_plane, crop=crop, plausible_px=plausible_px,
                             seed=seed, progress=progress, plane_depth=plane_depth)  # fmt: skip
-    hint = output_window_hint(camera_preset, scans)
+    hint = output_window_hint(camera_preset, scans) if window_hint else None
     if hint and progress and echo is not None:
         echo(hint)
     return preset, camera_preset, scans, frames
 
 
-def output_window_hint(preset, scans, tolerance_px: int = 2) -> str | None:
-    """One line for the user when the real frames' output window (border bands empty in every frame,
-    :func:`~ddsgen.sensor.output_window.measure_output_window`) differs from the preset's by more
-    than ``tolerance_px`` on a side, else None. Needs two frames of one size (one frame's empty
-    border may be the scene's)."""
-    from ddsgen.sensor.output_window import WINDOW_KEYS, OutputWindow, measure_output_window
+def differing_output_window(preset, valid_maps, tolerance_px: int = 2):
+    """The output window measured on real frames (border bands empty in every frame,
+    :func:`~ddsgen.sensor.output_window.measure_output_window`) when it differs from the preset's by more
+    than ``tolerance_px`` on a side, else None. Needs two maps of one size (one frame's empty border may
+    be the scene's).
 
-    shapes = {scan.depth.shape for scan in scans}
-    if len(scans) < 2 or len(shapes) != 1:
+    Args:
+        preset: the preset at the frames' image size.
+        valid_maps: (H, W) bool maps of the real frames (depth > 0), uncropped.
+    """
+    from ddsgen.sensor.output_window import OutputWindow, measure_output_window
+
+    maps = list(valid_maps)
+    if len(maps) < 2 or len({m.shape for m in maps}) != 1:
         return None
-    measured = measure_output_window([scan.depth > 0 for scan in scans]).as_keys()
+    measured = measure_output_window(maps)
+    return measured if measured.largest_difference(OutputWindow.of(preset)) > tolerance_px else None
+
+
+def output_window_hint(preset, scans, tolerance_px: int = 2) -> str | None:
+    """One line for the user when the real frames' output window differs from the preset's
+    (:func:`differing_output_window`), else None."""
+    from ddsgen.sensor.output_window import OutputWindow
+
+    measured = differing_output_window(preset, [scan.depth > 0 for scan in scans], tolerance_px)
+    if measured is None:
+        return None
     declared = OutputWindow.of(preset).as_keys()
-    differ = {key: px for key, px in measured.items() if abs(px - declared[key]) > tolerance_px}
-    if not differ:
-        return None
-    keys = ", ".join(f"{key}: {px}" for key, px in differ.items() if key in WINDOW_KEYS)
+    keys = ", ".join(f"{key}: {px}" for key, px in measured.as_keys().items() if abs(px - declared[key]) > tolerance_px)
     return (f"the real frames have no depth in other border bands than the preset declares ({keys} measured, "
-            f"in px of these frames): set them in the preset, or run fit --unpaired, which measures them")
+            f"in px of these frames): set them in the preset, or run fit --unpaired or diagnose, which measure them")

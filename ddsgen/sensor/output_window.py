@@ -39,6 +39,21 @@ class OutputWindow:
         """{preset key: width} for ``SensorPreset.replace``."""
         return dict(zip(WINDOW_KEYS, (self.left, self.right, self.top, self.bottom)))
 
+    def rescaled(self, width: int, height: int, to_width: int, to_height: int) -> "OutputWindow":
+        """The same bands in the pixels of an image of ``to_width`` x ``to_height`` (this one's: ``width`` x
+        ``height``), rounded to whole pixels."""
+        sx, sy = to_width / width, to_height / height
+        return OutputWindow(*(int(round(px * s)) for px, s in
+                              ((self.left, sx), (self.right, sx), (self.top, sy), (self.bottom, sy))))  # fmt: skip
+
+    def largest_difference(self, other: "OutputWindow") -> int:
+        """The largest difference of one side's band to ``other``'s (px)."""
+        return max(abs(a - b) for a, b in zip(self.as_keys().values(), other.as_keys().values()))
+
+    def describe(self) -> str:
+        """``left 8, right 0, top 0, bottom 0 px``."""
+        return f"left {self.left}, right {self.right}, top {self.top}, bottom {self.bottom} px"
+
     @property
     def is_full(self) -> bool:
         """True when the device outputs depth up to every border."""

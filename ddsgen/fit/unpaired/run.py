@@ -13,7 +13,7 @@ from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
-from ddsgen.sensor.output_window import measure_output_window
+from ddsgen.sensor.output_window import OutputWindow, measure_output_window
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -65,9 +65,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     }  # fmt: skip
     content = write_report(report, content, pooled, depths, resolution, seed)
     # The window in the preset's own pixels (the fit ran at the real frames' size).
-    scale = {key: (original.height_px / height if "top" in key or "bottom" in key else original.width_px / width)
-             for key in window}  # fmt: skip
-    changes = {**{key: int(round(px * scale[key])) for key, px in window.items()}, **result.after}
+    in_preset_px = OutputWindow(*window.values()).rescaled(width, height, original.width_px, original.height_px)
+    changes = {**in_preset_px.as_keys(), **result.after}
     for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
         name = getattr(original, key)
         if name and not (key == "pattern" and (PATTERN_DIR / name).exists()):
