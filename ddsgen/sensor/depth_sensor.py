@@ -316,7 +316,8 @@ class DepthSensor(nn.Module):
             if effect.stage == "depth":
                 raw_depth = effect(raw_depth, ctx)
 
-        keep = torch.sigmoid((result.confidence - p.min_confidence) / _SOFT_VALIDITY_WIDTH) * lit
+        keep = torch.sigmoid((result.confidence - p.min_confidence) / _SOFT_VALIDITY_WIDTH)
+        keep = keep * (lit if p.shadow_always_invalid else geometry.hit.float())
         return FrontEnd(ir=ir, disparity=disparity, raw_depth=raw_depth, confidence=result.confidence,
                         matched=result.valid, keep=keep, ctx=ctx)  # fmt: skip
 
@@ -329,7 +330,9 @@ class DepthSensor(nn.Module):
             if effect.stage == "validity":
                 keep = keep * effect(raw_depth, ctx)
         in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
-        valid = front.matched & geometry.hit & ~geometry.shadow & in_range & (keep > 0.5)
+        valid = front.matched & geometry.hit & in_range & (keep > 0.5)
+        if p.shadow_always_invalid:
+            valid = valid & ~geometry.shadow
         valid_soft = keep * in_range.float()
         if p.cleanup_speckle_px or p.cleanup_hole_px:
             # A selection: each pixel keeps its own value or copies its nearest valid neighbour's.
