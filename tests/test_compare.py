@@ -318,6 +318,46 @@ def test_unmodelled_shadow_has_the_projector_geometry():
     assert widened[:, first - 4 : 120].all() and not widened[:, : first - 4].any() and not widened[:, 140:].any()
 
 
+def test_the_support_plane_is_the_one_the_objects_rest_on_not_the_largest():
+    """Two planes in view, a table under the object and a larger floor 0.7 m below it: RANSAC alone takes the
+    floor (more inliers); with the object's points it takes the table, whatever the seed."""
+    from ddsgen.fit.simulate import fit_support_plane
+    from ddsgen.preset import Intrinsics
+
+    intr = Intrinsics(640, 480, 572.4, 572.4, 319.5, 239.5)  # the Kinect's: 0.5 px of disparity is ~2 % of z
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+    normal = np.array([0.0, -0.6, -0.8])  # planes seen from above at 37 deg, n.P + d = 0
+    def depth_on(d):
+        return -d / (rays @ normal)
+    table, floor = depth_on(1.0), depth_on(1.7)
+    depth = np.where(v < 180, table, floor).astype(np.float32)  # the floor fills more of the image
+    obj = np.zeros((480, 640), bool)
+    obj[80:120, 280:360] = True
+    # the object's visible points: standing on the table (0-8 cm above it)
+    heights = np.linspace(0.0, 0.08, obj.sum())
+    points = (rays[obj] * table[obj, None]) + heights[:, None] * normal  # n.P + d = height: the camera side
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        largest = fit_support_plane(depth, intr, obj, 572.4 * 0.075, rng)
+        assert abs(largest.offset - 1.7) < 0.02, largest
+        rested = fit_support_plane(depth, intr, obj, 572.4 * 0.075, np.random.default_rng(seed), resting=points)
+        assert abs(rested.offset - 1.0) < 0.02, rested
+
+
+def test_the_cat_frames_support_plane_does_not_depend_on_the_seed(linemod):
+    """The real cat frame holds the table (6209 inliers) and the floor 0.73 m below it (6150): before the objects
+    chose the plane, seeds 1 and 2 modelled the floor and the real frame's isolated dropouts in the compare region
+    went 12 -> 3."""
+    from ddsgen.fit.inputs import load_inputs
+
+    offsets = []
+    for seed in (0, 1, 2):
+        _, _, _, frames = load_inputs("kinect_v1", str(linemod), seed=seed, progress=False)
+        offsets.append(frames[0].plane.offset)
+    assert max(offsets) - min(offsets) < 0.01 and abs(offsets[0] - 0.748) < 0.01, offsets
+
+
 def test_plane_footprint_is_the_real_table_closed_and_filled():
     """The table's real extent: its on-plane pixels with their holes (a dark patch) filled, gaps narrower than a
     block closed, the posed objects with their modelled shadows (here at the table's edge) in; beyond the table's
