@@ -13,7 +13,7 @@ from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
-from ddsgen.sensor.output_window import OutputWindow, measure_output_window
+from ddsgen.sensor.output_window import measure_output_window
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -44,7 +44,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     height, width = real[0].depth.shape
     camera = camera_for(original, width, height)
     # The device's output window is measured, not searched: border columns/rows empty in every real frame.
-    window = measure_output_window([f.depth > 0 for f in real]).as_keys()
+    measured_window = measure_output_window([f.depth > 0 for f in real])
+    window = measured_window.as_keys()
     geometries = cast_scenes(camera, scene_list, sim_frames, seed, progress)
     result = fit_unpaired(camera.replace(**window), real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
                           progress=progress)  # fmt: skip
@@ -65,7 +66,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     }  # fmt: skip
     content = write_report(report, content, pooled, depths, resolution, seed)
     # The window in the preset's own pixels (the fit ran at the real frames' size).
-    in_preset_px = OutputWindow(*window.values()).rescaled(width, height, original.width_px, original.height_px)
+    in_preset_px = measured_window.rescaled(width, height, original.width_px, original.height_px)
     changes = {**in_preset_px.as_keys(), **result.after}
     for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
         name = getattr(original, key)
