@@ -82,6 +82,7 @@ FIELDS: dict[str, Field] = {
     "cleanup_hole_px": Field(int, "device clean-up: invalid holes smaller than this take their nearest valid pixel's disparity (px; 0 = off)", 0, 1_000_000, default=0),
     "output_left_border_px": Field(int, "the device outputs no depth in this many leftmost columns (px; 0 = none)", 0, 16384, default=0),
     "output_right_border_px": Field(int, "the device outputs no depth in this many rightmost columns (px; 0 = none; depth registered to an RGB camera leaves such a band)", 0, 16384, default=0),
+    "ir_margin_right_px": Field(int, "the IR camera sees this many columns beyond the depth image's right edge, so matching windows there are whole (px; 0 = the IR image is the depth image's grid). Takes effect where the caller ray-casts the margin (render, compare, fit, diagnose, study)", 0, 64, default=0),
     "output_top_border_px": Field(int, "the device outputs no depth in this many top rows (px; 0 = none)", 0, 16384, default=0),
     "output_bottom_border_px": Field(int, "the device outputs no depth in this many bottom rows (px; 0 = none)", 0, 16384, default=0),
     "band_rows": Field(int, "rows per matching band (bounds matcher memory)", 1, 16384, default=64),
@@ -153,6 +154,7 @@ class SensorPreset:
     cleanup_hole_px: int
     output_left_border_px: int
     output_right_border_px: int
+    ir_margin_right_px: int
     output_top_border_px: int
     output_bottom_border_px: int
     band_rows: int

@@ -93,14 +93,16 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     from ddsgen.raycast import cast, object_labels
     from ddsgen.scene.sampling import sample_frame
     from ddsgen.sensor.depth_sensor import SensorGeometry
+    from ddsgen.sensor.ir_margin import cast_margin
 
     state = _worker_state(job)
     preset: SensorPreset = state["preset"]
     intrinsics = preset.intrinsics
     scene = sample_frame(state["scenes"], frame, job.seed)
     hits = cast(scene, intrinsics, preset.baseline_m, preset.shadow_bias_m)
+    margin = cast_margin(scene, intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
     with torch.no_grad():
-        output = state["sensor"](SensorGeometry.from_hits(hits), seed=[job.seed, frame, NOISE_STREAM])
+        output = state["sensor"](SensorGeometry.from_hits(hits, ir_margin=margin), seed=[job.seed, frame, NOISE_STREAM])
     depth = output.depth.numpy().astype(np.float32)
     ir = output.ir.numpy()
 

@@ -109,7 +109,7 @@ def reuse_front_ends(size: int = FRONT_END_ENTRIES):
             return original_noise(self, seed, geometry)
         p = self.preset
         key = (tuple(seed) if isinstance(seed, (tuple, list)) else seed, self.intr.height, self.intr.width,
-               p.speckle_shape, p.speckle_grain_px, p.speckle_fixed_to_scene, id(geometry) if geometry is not None
+               self.ir_margin_px, p.speckle_shape, p.speckle_grain_px, p.speckle_fixed_to_scene, id(geometry) if geometry is not None
                else None)  # fmt: skip
         return noises.get(key, lambda: (original_noise(self, seed, geometry), geometry))[0]
 

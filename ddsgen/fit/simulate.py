@@ -270,6 +270,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     """One :class:`FrameData` (see :func:`prepare_frames`)."""
     from ddsgen.raycast import cast
     from ddsgen.sensor.depth_sensor import SensorGeometry
+    from ddsgen.sensor.ir_margin import cast_margin
 
     intr = frame.intrinsics
     real = np.asarray(frame.depth, dtype=np.float32)
@@ -307,6 +308,12 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     box = _crop_box(instance, crop_margin_px, min_size=max(4 * preset.block_size_px, 48)) if crop else (
         0, 0, intr.width, intr.height)  # fmt: skip
     x0, y0, w, h = box
+    # The sensor's geometry: the whole frame and the IR margin beyond its right edge, then the crop's window.
+    margin = cast_margin(frame_scene(frame, albedo, plane), intr, preset.ir_margin_right_px, preset.baseline_m,
+                         preset.shadow_bias_m)  # fmt: skip
+    geometry = SensorGeometry.from_hits(hits, ir_margin=margin)
+    if crop:
+        geometry = geometry.cropped(x0, y0, w, h)
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
     for name in ("depth", "points", "normals", "instance", "hit", "shadow", "albedo"):
         setattr(hits, name, np.ascontiguousarray(getattr(hits, name)[sl]))
@@ -332,7 +339,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
 
     t = torch.from_numpy
     return FrameData(
-        name=frame.name, index=int(index), intrinsics=cintr, crop=box, geometry=SensorGeometry.from_hits(hits),
+        name=frame.name, index=int(index), intrinsics=cintr, crop=box, geometry=geometry,
         instance=t(instance), real_depth=t(real), real_valid=t(real > 0), region=t(region),
         object_region=t(region & (instance > 0)), incidence_deg=t(incidence), radius=t(radius), plane=plane,
         pose_error_mm=pose_error, full_intrinsics=intr,

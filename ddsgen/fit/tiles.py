@@ -50,9 +50,7 @@ def crop_frame(frame: FrameData, box: tuple[int, int, int, int], border: int) ->
     if (w, h) == (frame.shape[1], frame.shape[0]):
         return frame
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
-    geometry = dataclasses.replace(
-        frame.geometry, **{k: getattr(frame.geometry, k)[sl].contiguous()
-                           for k in ("points", "normals", "albedo", "hit", "shadow", "clean_depth")})  # fmt: skip
+    geometry = frame.geometry.cropped(x0, y0, w, h)
     inner = torch.zeros(h, w, dtype=torch.bool)
     inner[border : h - border, border : w - border] = True
     region = frame.region[sl] & inner

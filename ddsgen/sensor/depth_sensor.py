@@ -43,6 +43,8 @@ class SensorGeometry:
     points (H, W, 3) m camera frame; normals (H, W, 3) unit, facing the camera;
     albedo (H, W); hit (H, W) bool; shadow (H, W) bool (projector cannot see the point);
     clean_depth (H, W) m (0 where no hit).
+    ir_margin: the same for the (H, m) strip the IR camera sees beyond the right edge
+    (:mod:`ddsgen.sensor.ir_margin`), or None: then the IR image is the depth image's grid.
     """
 
     points: torch.Tensor
@@ -51,10 +53,12 @@ class SensorGeometry:
     hit: torch.Tensor
     shadow: torch.Tensor
     clean_depth: torch.Tensor
+    ir_margin: "SensorGeometry | None" = None
 
     @classmethod
-    def from_hits(cls, hits, device="cpu") -> "SensorGeometry":
-        """From a :class:`ddsgen.raycast.RayHits` (numpy arrays)."""
+    def from_hits(cls, hits, device="cpu", ir_margin=None) -> "SensorGeometry":
+        """From a :class:`ddsgen.raycast.RayHits` (numpy arrays); ``ir_margin``: the RayHits of the strip
+        beyond the right edge (:func:`ddsgen.sensor.ir_margin.cast_margin`), or None."""
 
         def t(a, dtype=torch.float32):
             return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
@@ -66,11 +70,34 @@ class SensorGeometry:
             hit=t(hits.hit, torch.bool),
             shadow=t(hits.shadow, torch.bool),
             clean_depth=t(hits.depth),
+            ir_margin=None if ir_margin is None else cls.from_hits(ir_margin, device),
         )
 
     @property
     def shape(self) -> tuple[int, int]:
         return tuple(self.clean_depth.shape)
+
+    _FIELDS = ("points", "normals", "albedo", "hit", "shadow", "clean_depth")
+
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> "SensorGeometry":
+        """The window (x0, y0, width, height); its IR margin is the next columns of this geometry's IR image
+        (as many as there are, up to this geometry's margin width)."""
+        whole = self.with_ir_margin()
+        rows = slice(y0, y0 + height)
+        part = {k: getattr(whole, k)[rows, x0 : x0 + width].contiguous() for k in self._FIELDS}
+        m = 0 if self.ir_margin is None else self.ir_margin.shape[1]
+        end = min(x0 + width + m, whole.shape[1])
+        margin = None
+        if end > x0 + width:
+            margin = SensorGeometry(**{k: getattr(whole, k)[rows, x0 + width : end].contiguous() for k in self._FIELDS})
+        return SensorGeometry(**part, ir_margin=margin)
+
+    def with_ir_margin(self) -> "SensorGeometry":
+        """The geometry of the whole IR image: this one and its margin strip side by side, (H, W + m)."""
+        m = self.ir_margin
+        if m is None:
+            return self
+        return SensorGeometry(**{k: torch.cat([getattr(self, k), getattr(m, k)], dim=1) for k in self._FIELDS})
 
 
 @dataclass
@@ -121,9 +148,10 @@ def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pa
 
 @functools.lru_cache(maxsize=8)
 def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                      dot_jitter_px: float, n_sub: int):
+                      dot_jitter_px: float, n_sub: int, ir_width: int):
+    """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin)."""
     field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px)
-    return field.reference_phases(width, height, pad, n_sub)
+    return field.reference_phases(ir_width, height, pad, n_sub)
 
 
 def _log_param(value: float) -> nn.Parameter:
@@ -168,7 +196,10 @@ class DepthSensor(nn.Module):
             self.postprocess = load_postprocess(preset.resolve_path(preset.postprocess))
         # Reference padding: the largest disparity the matcher may search, plus the window.
         self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px
-        self.margin = preset.block_size_px + 2
+        # Columns the IR camera sees beyond the depth image's right edge (ddsgen.sensor.ir_margin).
+        self.ir_margin_px = int(preset.ir_margin_right_px)
+        # The pattern covers the image, the reference padding and this margin (+ the IR margin) on every side.
+        self.margin = preset.block_size_px + 2 + self.ir_margin_px
         self.to(self.device_)
 
     # ---- physical parameter values -------------------------------------------------
@@ -230,9 +261,11 @@ class DepthSensor(nn.Module):
     def pattern_field(self) -> PatternField:
         return _pattern_field(*self._pattern_key()).to(self.device_)
 
-    def reference_phases(self) -> torch.Tensor:
-        """(S, H, W + pad) reference images at infinity, cached once per process and sensor."""
-        return _reference_phases(*self._pattern_key(), self.preset.subpixel_level).to(self.device_)
+    def reference_phases(self, ir_width: int | None = None) -> torch.Tensor:
+        """(S, H, ir_width + pad) reference images at infinity (default ``ir_width``: the image width W),
+        cached once per process and sensor."""
+        width = self.intr.width if ir_width is None else int(ir_width)
+        return _reference_phases(*self._pattern_key(), self.preset.subpixel_level, width).to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
         """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator.
@@ -246,7 +279,8 @@ class DepthSensor(nn.Module):
         speckle_rng = None
         if p.speckle_fixed_to_scene and geometry is not None:
             speckle_rng = np.random.default_rng(scene_seed(geometry.points, geometry.hit))
-        return IRNoise.draw(self.intr.height, self.intr.width, p.speckle_shape, rng, self.device_,
+        # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
+        return IRNoise.draw(self.intr.height, self.intr.width + self.ir_margin_px, p.speckle_shape, rng, self.device_,
                             p.speckle_grain_px, speckle_rng)  # fmt: skip
 
     # ---- the pipeline ---------------------------------------------------------------------
@@ -278,31 +312,41 @@ class DepthSensor(nn.Module):
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
         baseline = self.baseline
-        lit = (geometry.hit & ~geometry.shadow).float()
+        # The IR image: the depth image's grid plus the margin strip the caller cast (same cx, more columns).
+        seen = geometry.with_ir_margin()
+        height, width = geometry.shape
+        ir_width = seen.shape[1]
+        noise = noise.columns(ir_width)
+        lit_seen = (seen.hit & ~seen.shadow).float()
         ir, signal = render_ir(
-            geometry.points, geometry.normals, geometry.albedo, lit, self.pattern_field(),
+            seen.points, seen.normals, seen.albedo, lit_seen, self.pattern_field(),
             fx, fy, intr.cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
             self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
             p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, p.lens_aperture_m,
             p.focus_distance_m,
         )  # fmt: skip
         ctx = {
-            "geometry": geometry, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,
+            "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,
             "baseline": baseline, "ir_max": 2.0**p.ir_bits - 1.0, "noise": noise,
         }  # fmt: skip
         for effect in self.effects:
             if effect.stage == "ir":
                 ir = effect(ir, ctx)
+        lit = lit_seen[:, :width]
 
         # Disparity search range from the current geometry (plain floats: the range is discrete).
         fb = float((fx * baseline).detach())
         d_min = max(fb / p.z_max_m, 0.0)
         d_max = min(fb / p.z_min_m, float(self.pad - p.block_size_px))
         result = match(
-            ir, self.reference_phases(), self.pad, d_min, d_max, p.block_size_px, self.beta,
+            ir, self.reference_phases(ir_width), self.pad, d_min, d_max, p.block_size_px, self.beta,
             p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise,
             confirmed_match_zncc=p.confirmed_match_zncc,
         )  # fmt: skip
+        if ir_width != width:  # back to the depth image's grid
+            result = result.columns(width)
+            ir, signal = ir[:, :width], signal[:, :width]
+            ctx.update(geometry=geometry, signal=signal, noise=noise.columns(width))
         disparity = result.disparity
         for effect in self.effects:
             if effect.stage == "disparity":

@@ -57,6 +57,16 @@ class IRNoise:
     speckle_unit: torch.Tensor
     read_unit: torch.Tensor
 
+    def columns(self, width: int) -> "IRNoise":
+        """The draws of the first ``width`` columns (drawn for the IR image with its margin; see
+        :meth:`ddsgen.sensor.depth_sensor.DepthSensor.draw_noise`)."""
+        if self.read_unit.shape[1] == width:
+            return self
+        if self.read_unit.shape[1] < width:
+            raise ValueError(f"noise drawn for {self.read_unit.shape[1]} columns, the IR image has {width}: "
+                             "draw it with DepthSensor.draw_noise")  # fmt: skip
+        return IRNoise(self.speckle_unit[:, :width], self.read_unit[:, :width])
+
     @classmethod
     def draw(cls, height: int, width: int, speckle_shape: float, rng: np.random.Generator, device="cpu",
              speckle_grain_px: float = 0.0, speckle_rng: np.random.Generator | None = None) -> "IRNoise":
@@ -148,7 +158,7 @@ def render_ir(
             LIT_DOT_INTENSITY units).
         ambient: ambient IR level (counts), added to every pixel.
         speckle_scale, read_noise_mean, read_noise_std: noise parameters (counts).
-        noise: unit noise draws, or None for the noise-free image.
+        noise: unit noise draws (H, >= W: only the first W columns are used), or None for the noise-free image.
         ir_bits: ADC bit depth; the image is clipped to [0, 2^bits - 1] and, if ``quantise``,
             rounded to whole counts (straight-through gradient) when ``noise`` is given.
         quantise: round to whole counts (False only for finite-difference gradient checks).
@@ -187,6 +197,7 @@ def render_ir(
         signal = defocus_blur(signal, defocus_sigma_px(depth, float(fx), lens_aperture_m, focus_distance_m))
     if noise is None:
         return signal + ambient, signal
+    noise = noise.columns(signal.shape[1])  # draws for a wider IR image (an IR margin) serve its first columns
     # Speckle is a property of the coherent laser light only; ambient light is incoherent.
     light = signal * (noise.speckle_unit * speckle_scale) + ambient
     noise_std = read_noise_std

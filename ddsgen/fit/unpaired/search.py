@@ -86,11 +86,14 @@ def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = F
     from ddsgen.raycast import cast
     from ddsgen.scene.sampling import sample_frame
     from ddsgen.sensor.depth_sensor import SensorGeometry
+    from ddsgen.sensor.ir_margin import cast_margin
 
     out = []
     for i in tqdm(range(n_frames), desc="ray cast", unit="frame", disable=not progress, leave=False):
-        hits = cast(sample_frame(scene_list, i, seed), preset.intrinsics, preset.baseline_m, preset.shadow_bias_m)
-        out.append(SensorGeometry.from_hits(hits))
+        scene = sample_frame(scene_list, i, seed)
+        hits = cast(scene, preset.intrinsics, preset.baseline_m, preset.shadow_bias_m)
+        margin = cast_margin(scene, preset.intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
+        out.append(SensorGeometry.from_hits(hits, ir_margin=margin))
     return out
 
 

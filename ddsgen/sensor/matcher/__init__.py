@@ -71,7 +71,7 @@ phases of an ordinary stereo pair).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -115,6 +115,11 @@ class MatchResult:
     second_zncc: torch.Tensor | None = None
     peak_px: torch.Tensor | None = None
     second_peak_px: torch.Tensor | None = None
+
+    def columns(self, width: int) -> "MatchResult":
+        """The first ``width`` columns (an IR image wider than the depth image: ddsgen.sensor.ir_margin)."""
+        return MatchResult(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[:, :width]
+                              for f in fields(self)})  # fmt: skip
 
 
 def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, candidates: torch.Tensor,
