@@ -198,7 +198,7 @@ class DepthSensor(nn.Module):
         self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px
         # Columns the IR camera sees beyond the depth image's right edge (ddsgen.sensor.ir_margin).
         self.ir_margin_px = int(preset.ir_margin_right_px)
-        # The pattern covers the image, the reference padding and this margin (+ the IR margin) on every side.
+        # Columns of pattern beyond the image (and the reference padding) on every side; covers the IR margin.
         self.margin = preset.block_size_px + 2 + self.ir_margin_px
         self.to(self.device_)
 
@@ -314,8 +314,7 @@ class DepthSensor(nn.Module):
         baseline = self.baseline
         # The IR image: the depth image's grid plus the margin strip the caller cast (same cx, more columns).
         seen = geometry.with_ir_margin()
-        height, width = geometry.shape
-        ir_width = seen.shape[1]
+        width, ir_width = geometry.shape[1], seen.shape[1]
         noise = noise.columns(ir_width)
         lit_seen = (seen.hit & ~seen.shadow).float()
         ir, signal = render_ir(
