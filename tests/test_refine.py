@@ -110,6 +110,29 @@ def test_posed_hits_reproduce_the_cast_and_follow_a_move_like_a_recast():
     assert np.abs(moved.detach().numpy()[same] - hits.depth[same]).mean() > 2e-3  # it did move
 
 
+def test_the_ir_margin_strip_is_cast_and_posed_with_the_scene():
+    """The strip the IR camera sees beyond the right edge follows the poses as the image does: posed, it
+    equals a fresh ray cast of the columns right of the image."""
+    from ddsgen.sensor.ir_margin import margin_intrinsics
+
+    intr = crop_camera()
+    scene = RefinableScene(box_scene(), intr, 0.075, 0.005, ir_margin_px=4)
+    tensors = scene.cast()
+    assert tensors.shape == (intr.height, intr.width) and tensors.ir_margin.shape == (intr.height, 4)
+    before = cast(scene.current_scene(), margin_intrinsics(intr, 4), 0.075, 0.005).depth
+    with torch.no_grad():
+        scene.poses.translation[1, 2] = 0.004  # the support plane, which the strip sees, 4 mm away
+    R, t = scene.poses()
+    geometry = posed_geometry(tensors, R, t, scene.poses.albedo)
+    assert geometry.with_ir_margin().shape == (intr.height, intr.width + 4)
+    recast = cast(scene.current_scene(), margin_intrinsics(intr, 4), 0.075, 0.005)
+    same = recast.hit & tensors.ir_margin.hit.numpy()
+    assert same.mean() > 0.9
+    moved = geometry.ir_margin.clean_depth.detach().numpy()
+    assert np.abs(moved[same] - recast.depth[same]).max() < 1e-5
+    assert np.abs(moved[same] - before[same]).mean() > 2e-3  # it did move
+
+
 # ------------------------------------------------------------------------------------------ gradients
 
 

@@ -9,7 +9,8 @@ Python API (tensors in, tensors out)::
 
     from ddsgen.scene_gradients import RefinableScene, render_depth, refine_poses
 
-    scene = RefinableScene(frame_scene, intrinsics, preset.baseline_m, preset.shadow_bias_m)
+    scene = RefinableScene(frame_scene, intrinsics, preset.baseline_m, preset.shadow_bias_m,
+                           ir_margin_px=preset.ir_margin_right_px)
     tensors = scene.cast()                       # SceneTensors: triangle ids of every pixel
     R, t = scene.poses()                         # (N, 3, 3), (N, 3): differentiable
     out = render_depth(sensor, tensors, R, t, scene.poses.albedo)   # SensorOutput, (H, W)

@@ -38,6 +38,7 @@ class SceneTensors:
     hit, shadow: (H, W) bool (shadow as cast: held fixed until the next re-cast);
     instance: (H, W) int32 object ids (0 = background or nothing); n_parts: number of parts.
     triangle (H, W) int32 and barycentric (H, W, 2) float32: the cast's, kept for users.
+    ir_margin: the same for the strip the IR camera sees beyond the right edge, or None.
     """
 
     index: torch.Tensor
@@ -51,6 +52,7 @@ class SceneTensors:
     n_parts: int
     triangle: torch.Tensor
     barycentric: torch.Tensor
+    ir_margin: "SceneTensors | None" = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -126,7 +128,8 @@ def posed_geometry(scene: SceneTensors, rotations: torch.Tensor, translations: t
         out = out.index_copy(0, scene.index, values.reshape(len(scene.index), channels).float())
         return out.reshape(height, width, channels) if channels > 1 else out.reshape(height, width)
 
+    margin = None if scene.ir_margin is None else posed_geometry(scene.ir_margin, rotations, translations, albedo)
     return SensorGeometry(
         points=scatter(points, 3), normals=scatter(normals, 3), albedo=scatter(albedo[owner], 1),
-        hit=scene.hit, shadow=scene.shadow, clean_depth=scatter(z, 1),
+        hit=scene.hit, shadow=scene.shadow, clean_depth=scatter(z, 1), ir_margin=margin,
     )  # fmt: skip

@@ -68,7 +68,7 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
     if sensor is None:
         sensor = DepthSensor(preset, intrinsics=window)
     baseline = float(sensor.baseline.detach())
-    refinable = RefinableScene(scene, window, baseline, preset.shadow_bias_m)
+    refinable = RefinableScene(scene, window, baseline, preset.shadow_bias_m, ir_margin_px=preset.ir_margin_right_px)
     real = prepared.real_depth.clone()
     with frame_camera(sensor, window):
         result = refine_poses(sensor, refinable, real, s, progress=progress)

@@ -22,12 +22,15 @@ class RefinableScene:
         intrinsics: the camera (image (H, W)); may be a crop of a larger image.
         baseline_m, shadow_bias_m: the sensor's projector offset and shadow bias (for the shadow rays).
         refine_background: let the background parts (support plane) move too.
+        ir_margin_px: columns the IR camera sees beyond the right edge (the preset's ``ir_margin_right_px``):
+            cast and posed like the image, so the sensor's last columns have whole windows.
     """
 
     def __init__(self, scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
-                 refine_background: bool = True):  # fmt: skip
+                 refine_background: bool = True, ir_margin_px: int = 0):  # fmt: skip
         self.scene = scene
         self.intrinsics = intrinsics
+        self.ir_margin_px = int(ir_margin_px)
         self.baseline_m = float(baseline_m)
         self.shadow_bias_m = float(shadow_bias_m)
         self.parts = list(scene.objects) + list(scene.background)
@@ -52,8 +55,16 @@ class RefinableScene:
         """Ray-cast the scene at the current poses (visibility, triangle ids, projector shadows)."""
         from ddsgen.raycast import cast, ray_directions
 
-        hits = cast(self.current_scene(), self.intrinsics, self.baseline_m, self.shadow_bias_m)
-        return scene_tensors([p.mesh for p in self.parts], hits, ray_directions(self.intrinsics))
+        from ddsgen.sensor.ir_margin import margin_intrinsics
+
+        scene, meshes = self.current_scene(), [p.mesh for p in self.parts]
+        hits = cast(scene, self.intrinsics, self.baseline_m, self.shadow_bias_m)
+        tensors = scene_tensors(meshes, hits, ray_directions(self.intrinsics))
+        if self.ir_margin_px > 0:
+            strip = margin_intrinsics(self.intrinsics, self.ir_margin_px)
+            margin_hits = cast(scene, strip, self.baseline_m, self.shadow_bias_m)
+            tensors.ir_margin = scene_tensors(meshes, margin_hits, ray_directions(strip))
+        return tensors
 
     def object_poses(self) -> np.ndarray:
         """(n_objects, 4, 4) current ``cam_T_obj`` of the objects (m)."""
