@@ -67,6 +67,7 @@ _WORKER: dict = {}
 def _worker_state(job: RenderJob):
     if _WORKER.get("job") != job:
         import torch
+        from threadpoolctl import threadpool_limits
 
         from ddsgen.cache import configure_torch_compile_cache
         from ddsgen.sensor.depth_sensor import DepthSensor
@@ -75,6 +76,10 @@ def _worker_state(job: RenderJob):
         # One intra-op thread per worker: parallelism comes from workers, and results do not
         # depend on how a reduction was split over threads.
         torch.set_num_threads(1)
+        # The same for numpy's BLAS (the ray cast's matrix products): OpenBLAS otherwise keeps a thread per
+        # core that spins after each call, ~95 ms of CPU per frame beside a 125-ms sensor, and its results
+        # could depend on the machine's core count.
+        threadpool_limits(1, user_api="blas")
         preset = load_preset(job.preset_path)
         _WORKER.clear()
         _WORKER.update(
