@@ -18,11 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
 from ddsgen.preset import Intrinsics
-
-_ARRAYS = ("depth", "points", "normals", "instance", "hit", "shadow", "albedo")
 
 
 def margin_intrinsics(intrinsics: Intrinsics, margin_px: int) -> Intrinsics:
@@ -38,27 +34,3 @@ def cast_margin(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: float
     from ddsgen.raycast import cast
 
     return cast(scene, margin_intrinsics(intrinsics, margin_px), baseline_m, shadow_bias_m)
-
-
-def column_slice(hits, x0: int, x1: int, rows: slice = slice(None)):
-    """A RayHits of columns [x0, x1) (and ``rows``) of ``hits``: the per-pixel arrays only."""
-    return _PixelArrays(**{name: np.ascontiguousarray(getattr(hits, name)[rows, x0:x1]) for name in _ARRAYS})
-
-
-def concat_columns(left, right):
-    """The per-pixel arrays of ``left`` then ``right`` side by side (same rows)."""
-    return _PixelArrays(**{name: np.concatenate([getattr(left, name), getattr(right, name)], axis=1)
-                           for name in _ARRAYS})  # fmt: skip
-
-
-@dataclasses.dataclass
-class _PixelArrays:
-    """The per-pixel arrays of a RayHits (what :meth:`SensorGeometry.from_hits` reads)."""
-
-    depth: np.ndarray
-    points: np.ndarray
-    normals: np.ndarray
-    instance: np.ndarray
-    hit: np.ndarray
-    shadow: np.ndarray
-    albedo: np.ndarray
