@@ -278,7 +278,7 @@ class DepthSensor(nn.Module):
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         speckle_rng = None
         if p.speckle_fixed_to_scene and geometry is not None:
-            speckle_rng = np.random.default_rng(scene_seed(geometry.clean_depth, geometry.hit))
+            speckle_rng = np.random.default_rng(scene_seed(geometry.points, geometry.hit))
         # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
         return IRNoise.draw(self.intr.height, self.intr.width + self.ir_margin_px, p.speckle_shape, rng, self.device_,
                             p.speckle_grain_px, speckle_rng)  # fmt: skip
