@@ -95,19 +95,17 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     """Render frame ``frame`` and write its files; return its manifest record."""
     import torch
 
-    from ddsgen.raycast import cast, object_labels
+    from ddsgen.raycast import object_labels
     from ddsgen.scene.sampling import sample_frame
-    from ddsgen.sensor.depth_sensor import SensorGeometry
-    from ddsgen.sensor.ir_margin import cast_margin
+    from ddsgen.sensor.ir_margin import cast_for_sensor
 
     state = _worker_state(job)
     preset: SensorPreset = state["preset"]
     intrinsics = preset.intrinsics
     scene = sample_frame(state["scenes"], frame, job.seed)
-    hits = cast(scene, intrinsics, preset.baseline_m, preset.shadow_bias_m)
-    margin = cast_margin(scene, intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
+    hits, geometry = cast_for_sensor(scene, intrinsics, preset)
     with torch.no_grad():
-        output = state["sensor"](SensorGeometry.from_hits(hits, ir_margin=margin), seed=[job.seed, frame, NOISE_STREAM])
+        output = state["sensor"](geometry, seed=[job.seed, frame, NOISE_STREAM])
     depth = output.depth.numpy().astype(np.float32)
     ir = output.ir.numpy()
 

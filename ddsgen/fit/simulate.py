@@ -289,7 +289,8 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         plane = fit_support_plane(plane_input, intr, exclude, fb, np.random.default_rng([seed, index, 5]),
                                   resting=resting)  # fmt: skip
         if plane is not None:
-            hits = cast(frame_scene(frame, albedo, plane), intr, preset.baseline_m, preset.shadow_bias_m)
+            scene = frame_scene(frame, albedo, plane)
+            hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
 
     instance = hits.instance.astype(np.int32)
     object_px = instance > 0
@@ -309,8 +310,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         0, 0, intr.width, intr.height)  # fmt: skip
     x0, y0, w, h = box
     # The sensor's geometry: the whole frame and the IR margin beyond its right edge, then the crop's window.
-    margin = cast_margin(frame_scene(frame, albedo, plane), intr, preset.ir_margin_right_px, preset.baseline_m,
-                         preset.shadow_bias_m)  # fmt: skip
+    margin = cast_margin(scene, intr, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
     geometry = SensorGeometry.from_hits(hits, ir_margin=margin)
     if crop:
         geometry = geometry.cropped(x0, y0, w, h)

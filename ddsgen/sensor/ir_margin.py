@@ -9,8 +9,9 @@ them (the ``output_left_border_px`` band: LineMOD cat columns 0-6 empty, the las
 valid, like the rest of the frame).
 
 Preset key ``ir_margin_right_px`` (m): the caller ray-casts an (H, m) strip beyond the right edge
-(:func:`cast_margin`) and hands it to :meth:`SensorGeometry.from_hits`; the sensor renders and matches
-the (H, W + m) IR image and returns the (H, W) depth image. The strip is cast on its own, so the
+(:func:`cast_margin`; image and strip at once: :func:`cast_for_sensor`) and hands it to
+:meth:`SensorGeometry.from_hits`; the sensor renders and matches the (H, W + m) IR image and returns the
+(H, W) depth image. The strip is cast on its own, so the
 depth image's own hits (clean depth, masks, labels) are exactly those of a plain cast.
 """
 
@@ -34,3 +35,14 @@ def cast_margin(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: float
     from ddsgen.raycast import cast
 
     return cast(scene, margin_intrinsics(intrinsics, margin_px), baseline_m, shadow_bias_m)
+
+
+def cast_for_sensor(scene, intrinsics: Intrinsics, preset):
+    """Ray-cast ``scene`` for the sensor: ``(hits, geometry)``, the image's RayHits and the
+    :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` with the preset's IR margin strip."""
+    from ddsgen.raycast import cast
+    from ddsgen.sensor.depth_sensor import SensorGeometry
+
+    hits = cast(scene, intrinsics, preset.baseline_m, preset.shadow_bias_m)
+    margin = cast_margin(scene, intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
+    return hits, SensorGeometry.from_hits(hits, ir_margin=margin)

@@ -358,9 +358,8 @@ def run_noise_study(
     """
     import torch
 
-    from ddsgen.raycast import cast
-    from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry
-    from ddsgen.sensor.ir_margin import cast_margin
+    from ddsgen.sensor.depth_sensor import DepthSensor
+    from ddsgen.sensor.ir_margin import cast_for_sensor
 
     if frames < 1:
         raise InputError(f"--frames: must be >= 1, got {frames}")
@@ -370,10 +369,7 @@ def run_noise_study(
     for z in zs:
         step_floor = float(quantisation_step(z, intr.fx, preset.baseline_m, preset.subpixel_level))
         for angle in angles_deg:
-            scene = plane_scene(z, angle, albedo)
-            hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
-            margin = cast_margin(scene, intr, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
-            geometry = SensorGeometry.from_hits(hits, ir_margin=margin)
+            hits, geometry = cast_for_sensor(plane_scene(z, angle, albedo), intr, preset)
             roi = region_of_interest(hits.depth, hits.hit & ~hits.shadow, z)
             acc = _Accumulator(hits.depth, roi, step_floor)
             for k in range(frames):

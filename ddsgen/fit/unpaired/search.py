@@ -83,17 +83,12 @@ def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = F
     list of :class:`~ddsgen.sensor.depth_sensor.SensorGeometry`."""
     from tqdm import tqdm
 
-    from ddsgen.raycast import cast
     from ddsgen.scene.sampling import sample_frame
-    from ddsgen.sensor.depth_sensor import SensorGeometry
-    from ddsgen.sensor.ir_margin import cast_margin
+    from ddsgen.sensor.ir_margin import cast_for_sensor
 
     out = []
     for i in tqdm(range(n_frames), desc="ray cast", unit="frame", disable=not progress, leave=False):
-        scene = sample_frame(scene_list, i, seed)
-        hits = cast(scene, preset.intrinsics, preset.baseline_m, preset.shadow_bias_m)
-        margin = cast_margin(scene, preset.intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
-        out.append(SensorGeometry.from_hits(hits, ir_margin=margin))
+        out.append(cast_for_sensor(sample_frame(scene_list, i, seed), preset.intrinsics, preset)[1])
     return out
 
 
