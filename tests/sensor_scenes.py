@@ -16,7 +16,8 @@ def small_kinect(width: int = 160, height: int = 120, **changes):
     base = load_preset("kinect_v1")
     scale = width / base.width_px
     return base.replace(width_px=width, height_px=height, focal_px=base.focal_px * scale,
-                        focal_y_px=base.focal_y_px * scale, cx_px=None, cy_px=None, **changes)  # fmt: skip
+                        focal_y_px=base.focal_y_px * scale, cx_px=None, cy_px=None,
+                        registration_shift_px=base.registration_shift_px * scale, **changes)  # fmt: skip
 
 
 def plane_geometry(intr: Intrinsics, z: float, tilt_deg: float = 0.0, albedo: float = 0.8) -> SensorGeometry:

@@ -269,15 +269,15 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
                   crop: bool = False, crop_margin_px: int = 24, seed: int = 0, plane_depth=None) -> FrameData:  # fmt: skip
     """One :class:`FrameData` (see :func:`prepare_frames`)."""
     from ddsgen.raycast import cast
-    from ddsgen.sensor.depth_sensor import SensorGeometry
-    from ddsgen.sensor.ir_margin import cast_margin
+    from ddsgen.sensor.ir_margin import sensor_geometry
+    from ddsgen.sensor.registration import output_projector_x_m
 
     intr = frame.intrinsics
     real = np.asarray(frame.depth, dtype=np.float32)
     real = np.where(np.isfinite(real) & (real > 0), real, 0.0).astype(np.float32)
     fb = intr.fx * preset.baseline_m
     scene = frame_scene(frame, albedo)
-    hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
+    hits = cast(scene, intr, output_projector_x_m(preset), preset.shadow_bias_m)
     plane = None
     if support_plane:
         # Exclude the objects' silhouettes grown by a few px (their rims are mixed pixels).
@@ -290,7 +290,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
                                   resting=resting)  # fmt: skip
         if plane is not None:
             scene = frame_scene(frame, albedo, plane)
-            hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
+            hits = cast(scene, intr, output_projector_x_m(preset), preset.shadow_bias_m)
 
     instance = hits.instance.astype(np.int32)
     object_px = instance > 0
@@ -309,9 +309,9 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     box = _crop_box(instance, crop_margin_px, min_size=max(4 * preset.block_size_px, 48)) if crop else (
         0, 0, intr.width, intr.height)  # fmt: skip
     x0, y0, w, h = box
-    # The sensor's geometry: the whole frame and the IR margin beyond its right edge, then the crop's window.
-    margin = cast_margin(scene, intr, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
-    geometry = SensorGeometry.from_hits(hits, ir_margin=margin)
+    # The sensor's geometry: the whole frame (the IR margin beyond its right edge; a registered device's IR
+    # view), then the crop's window.
+    geometry = sensor_geometry(scene, intr, preset, hits)
     if crop:
         geometry = geometry.cropped(x0, y0, w, h)
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))

@@ -27,6 +27,7 @@ from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
+from ddsgen.sensor.registration import cropped_index, register
 from ddsgen.sensor.speckle import scene_seed
 
 # Fraction of disparity range added to the reference padding, so that fitting the
@@ -45,6 +46,10 @@ class SensorGeometry:
     clean_depth (H, W) m (0 where no hit).
     ir_margin: the same for the (H, m) strip the IR camera sees beyond the right edge
     (:mod:`ddsgen.sensor.ir_margin`), or None: then the IR image is the depth image's grid.
+    registration: for depth registered to an RGB camera (:mod:`ddsgen.sensor.registration`), (H, W) int64:
+    each output pixel's flat index into this (IR-frame) image, -1 where it gets no depth; the fields above
+    are then the IR camera's view, whose principal point is ``registration_shift_px`` left of the output's.
+    None: the output image is the IR camera's.
     """
 
     points: torch.Tensor
@@ -54,11 +59,15 @@ class SensorGeometry:
     shadow: torch.Tensor
     clean_depth: torch.Tensor
     ir_margin: "SensorGeometry | None" = None
+    registration: torch.Tensor | None = None
+    registration_shift_px: float = 0.0
 
     @classmethod
-    def from_hits(cls, hits, device="cpu", ir_margin=None) -> "SensorGeometry":
+    def from_hits(cls, hits, device="cpu", ir_margin=None, registration=None,
+                  registration_shift_px: float = 0.0) -> "SensorGeometry":  # fmt: skip
         """From a :class:`ddsgen.raycast.RayHits` (numpy arrays); ``ir_margin``: the RayHits of the strip
-        beyond the right edge (:func:`ddsgen.sensor.ir_margin.cast_margin`), or None."""
+        beyond the right edge (:func:`ddsgen.sensor.ir_margin.cast_margin`), or None; ``registration``: the
+        (H, W) index map of :func:`ddsgen.sensor.registration.registration_index`, or None."""
 
         def t(a, dtype=torch.float32):
             return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
@@ -71,6 +80,8 @@ class SensorGeometry:
             shadow=t(hits.shadow, torch.bool),
             clean_depth=t(hits.depth),
             ir_margin=None if ir_margin is None else cls.from_hits(ir_margin, device),
+            registration=None if registration is None else t(registration, torch.int64),
+            registration_shift_px=float(registration_shift_px),
         )
 
     @property
@@ -81,7 +92,8 @@ class SensorGeometry:
 
     def cropped(self, x0: int, y0: int, width: int, height: int) -> "SensorGeometry":
         """The window (x0, y0, width, height); its IR margin is the next columns of this geometry's IR image
-        (as many as there are, up to this geometry's margin width)."""
+        (as many as there are, up to this geometry's margin width); a registered output keeps the sources
+        inside the same window of the IR image."""
         whole = self.with_ir_margin()
         rows = slice(y0, y0 + height)
         part = {k: getattr(whole, k)[rows, x0 : x0 + width].contiguous() for k in self._FIELDS}
@@ -90,7 +102,11 @@ class SensorGeometry:
         margin = None
         if end > x0 + width:
             margin = SensorGeometry(**{k: getattr(whole, k)[rows, x0 + width : end].contiguous() for k in self._FIELDS})
-        return SensorGeometry(**part, ir_margin=margin)
+        registration = None
+        if self.registration is not None:
+            registration = cropped_index(self.registration, self.shape[1], x0, y0, width, height)
+        return SensorGeometry(**part, ir_margin=margin, registration=registration,
+                              registration_shift_px=self.registration_shift_px)  # fmt: skip
 
     def with_ir_margin(self) -> "SensorGeometry":
         """The geometry of the whole IR image: this one and its margin strip side by side, (H, W + m)."""
@@ -311,6 +327,7 @@ class DepthSensor(nn.Module):
         p, intr = self.preset, self.intr
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
+        cx = intr.cx - geometry.registration_shift_px  # the IR camera's (registered: left of the output's)
         baseline = self.baseline
         # The IR image: the depth image's grid plus the margin strip the caller cast (same cx, more columns).
         seen = geometry.with_ir_margin()
@@ -319,13 +336,13 @@ class DepthSensor(nn.Module):
         lit_seen = (seen.hit & ~seen.shadow).float()
         ir, signal = render_ir(
             seen.points, seen.normals, seen.albedo, lit_seen, self.pattern_field(),
-            fx, fy, intr.cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
+            fx, fy, cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
             self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
             p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, p.lens_aperture_m,
             p.focus_distance_m,
         )  # fmt: skip
         ctx = {
-            "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": intr.cx, "cy": intr.cy,
+            "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": cx, "cy": intr.cy,
             "baseline": baseline, "ir_max": 2.0**p.ir_bits - 1.0, "noise": noise,
         }  # fmt: skip
         for effect in self.effects:
@@ -401,12 +418,11 @@ class DepthSensor(nn.Module):
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         if self.postprocess is not None:
             depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)
-        return SensorOutput(
-            depth=depth,
-            valid=valid,
-            valid_soft=valid_soft,
-            ir=front.ir,
-            disparity=torch.where(valid, disparity, torch.zeros_like(disparity)),
-            confidence=front.confidence,
-            raw_depth=raw_depth,
-        )
+        disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
+        confidence = front.confidence
+        if geometry.registration is not None:  # the IR camera's depth, written in the RGB camera's image
+            index = geometry.registration
+            depth, valid, valid_soft, disparity, confidence, raw_depth = (
+                register(x, index) for x in (depth, valid, valid_soft, disparity, confidence, raw_depth))  # fmt: skip
+        return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
+                            confidence=confidence, raw_depth=raw_depth)  # fmt: skip
