@@ -20,6 +20,7 @@ def small_preset(width: int = 160, height: int = 120, **changes):
     """The Kinect V1 preset scaled down to a small image (same field of view and baseline)."""
     base = load_preset("kinect_v1")
     scale = width / base.width_px
+    changes = {"registration_shift_px": base.registration_shift_px * scale, **changes}
     return base.replace(width_px=width, height_px=height, focal_px=base.focal_px * scale, focal_y_px=None,
                         cx_px=None, cy_px=None, band_rows=height, **changes)  # fmt: skip
 

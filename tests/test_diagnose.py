@@ -174,6 +174,12 @@ class _Frame:
     plane: object
     name: str = "scan/000000"
     object_region: torch.Tensor | None = None
+    clean_depth: torch.Tensor | None = None
+    hit: torch.Tensor | None = None
+
+    def __post_init__(self):  # the image is the geometry's (not registered), as in FrameData
+        self.clean_depth = self.geometry.clean_depth if self.clean_depth is None else self.clean_depth
+        self.hit = self.geometry.hit if self.hit is None else self.hit
 
     @property
     def shape(self):
@@ -239,7 +245,8 @@ def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit(
     from ddsgen.diagnose.window import with_measured_window
     from ddsgen.sensor.output_window import OutputWindow
 
-    preset = small_preset(160, 120)
+    registered = small_preset(160, 120)
+    preset = registered.replace(registration_ir_offset_m=0.0, registration_shift_px=0.0)
     assert OutputWindow.of(preset).left == 8
     intr = preset.intrinsics
     rng = np.random.default_rng(0)
@@ -263,6 +270,9 @@ def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit(
     assert with_measured_window(preset, crops)[1] is None
     # --apply writes it in the preset's own pixels
     assert window.rescaled(160, 120, 640, 480) == OutputWindow(left=0, right=48)
+    # A preset registered to an RGB camera models its left band (it moves with depth): only the others are measured.
+    adopted, window, _ = with_measured_window(registered, [frame(v) for v in device])
+    assert window == OutputWindow(left=8, right=12) and OutputWindow.of(adopted) == window
 
 
 def _plane_frame(width: int = 160, height: int = 120):
@@ -526,7 +536,9 @@ BLIND_CASES = {
 
 
 def blind_stock():
-    return small_preset(*BLIND_SIZE, subpixel_level=3)
+    """The stock sensor of the blind cases. Not registered to an RGB camera: the independent model measures the
+    clean depth in the camera's own image, as a device that writes its IR-frame depth."""
+    return small_preset(*BLIND_SIZE, subpixel_level=3, registration_ir_offset_m=0.0, registration_shift_px=0.0)
 
 
 @pytest.fixture(scope="module")

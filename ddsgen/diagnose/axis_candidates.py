@@ -60,7 +60,7 @@ def effect_axis_values(axis: str, frame, sim) -> torch.Tensor:
         xn, yn = normalised_coordinates(h, w, intr.fx, intr.fy, intr.cx, intr.cy)
         return {"radius": torch.sqrt(xn * xn + yn * yn), "row": yn, "column": xn}[axis]
     if axis == "edge_distance":
-        return edge_distance(frame.geometry.clean_depth)
+        return edge_distance(frame.clean_depth)
     if axis == "incidence":
         return frame.incidence_deg
     if axis == "signal":

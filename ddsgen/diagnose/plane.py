@@ -34,14 +34,12 @@ def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
     if frame.plane is None:
         return frame
     g = frame.geometry
-    on_plane = g.hit & (frame.instance == 0)
+    on_plane = frame.hit & (frame.instance == 0)
     use = on_plane & frame.region & sim.valid & frame.real_valid
     if int(use.sum()) < min_pixels:
         return frame
     intr = frame.intrinsics
-    h, w = frame.shape
-    xn = ((torch.arange(w, dtype=torch.float64) - intr.cx) / intr.fx)[None, :].expand(h, w)
-    yn = ((torch.arange(h, dtype=torch.float64) - intr.cy) / intr.fy)[:, None].expand(h, w)
+    xn, yn = _normalised(intr, *frame.shape)
     r = (1.0 / sim.depth.double()[use] - 1.0 / frame.real_depth.double()[use]).numpy()
     a = np.stack([np.ones_like(r), xn[use].numpy(), yn[use].numpy()], 1)
     keep = np.ones(r.shape, bool)
@@ -56,22 +54,53 @@ def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
     abc = -n / d - np.array([coef[1], coef[2], coef[0]])
     norm = float(np.linalg.norm(abc))
     new_n, new_d = -abc / norm, 1.0 / norm
-    inv = abc[2] + abc[0] * xn + abc[1] * yn
-    ok = on_plane & (inv > 1e-6)
-    z = torch.where(ok, 1.0 / inv.clamp_min(1e-6), torch.zeros_like(inv)).float()
+
+    # The image's own depth and incidence, then the sensor's geometry (for a registered device, the IR camera's
+    # view: its points are the image's moved by +b_r along x, its principal point registration_shift_px left).
+    z, ok = _plane_depth(new_n, new_d, xn, yn, on_plane)
+    clean = torch.where(ok, z, frame.clean_depth)
+    xyz = torch.stack([xn.float() * z, yn.float() * z, z], -1)
+    ray = -xyz / torch.linalg.vector_norm(xyz, dim=-1, keepdim=True).clamp_min(1e-9)
+    cos = (ray * torch.tensor(new_n, dtype=torch.float32)).sum(-1).clamp(-1.0, 1.0).abs()
+    hit = frame.hit & (ok | ~on_plane)
+    incidence = torch.where(ok, torch.rad2deg(torch.acos(cos)), torch.where(hit, frame.incidence_deg, 90.0))
+    plane = Plane(normal=new_n, offset=new_d, inliers=frame.plane.inliers, candidates=frame.plane.candidates)
+    return dataclasses.replace(frame, geometry=_replaned_geometry(g, intr, n, d, new_n, new_d, on_plane),
+                               incidence_deg=incidence.float(), plane=plane, clean_depth=clean, hit=hit)  # fmt: skip
+
+
+def _normalised(intr, height: int, width: int, shift_px: float = 0.0):
+    """(H, W) float64 normalised image coordinates x_n, y_n of a camera (principal point ``shift_px`` left)."""
+    xn = ((torch.arange(width, dtype=torch.float64) - (intr.cx - shift_px)) / intr.fx)[None, :].expand(height, width)
+    yn = ((torch.arange(height, dtype=torch.float64) - intr.cy) / intr.fy)[:, None].expand(height, width)
+    return xn, yn
+
+
+def _plane_depth(normal, offset: float, xn, yn, pixels):
+    """(z float32 (H, W) m, ok bool (H, W)): the depth of the plane n.X + d = 0 along each pixel's ray, on
+    ``pixels`` where it lies in front of the camera."""
+    inv = -(normal[0] * xn + normal[1] * yn + normal[2]) / offset
+    ok = pixels & (inv > 1e-6)
+    return torch.where(ok, 1.0 / inv.clamp_min(1e-6), torch.zeros_like(inv)).float(), ok
+
+
+def _replaned_geometry(g, intr, n, d, new_n, new_d, on_plane):
+    """The sensor's geometry with its plane pixels moved from plane (n, d) to (new_n, new_d) (image frame)."""
+    b_r = g.registration_offset_m
+    if g.registration is None:
+        pixels = g.hit & on_plane
+    else:  # the IR view's plane pixels: on the old plane (in the IR frame its offset is d - n_x b_r), facing as it
+        pixels = g.hit & ((g.points.double() @ torch.tensor(n) + (d - n[0] * b_r)).abs() < 1e-3)
+        pixels &= (g.normals.double() @ torch.tensor(n)) > 0.999
+    xn, yn = _normalised(intr, *g.shape, g.registration_shift_px)
+    z, ok = _plane_depth(new_n, new_d - new_n[0] * b_r, xn, yn, pixels)
     points = g.points.clone()
     normals = g.normals.clone()
     xyz = torch.stack([xn.float() * z, yn.float() * z, z], -1)
     points[ok] = xyz[ok]
     normals[ok] = torch.tensor(new_n, dtype=torch.float32)
     clean = torch.where(ok, z, g.clean_depth)
-    geometry = dataclasses.replace(g, points=points, normals=normals, clean_depth=clean,
-                                   hit=g.hit & (ok | ~on_plane))  # fmt: skip
-    ray = -points / torch.linalg.vector_norm(points, dim=-1, keepdim=True).clamp_min(1e-9)
-    cos = (ray * normals).sum(-1).clamp(-1.0, 1.0).abs()
-    incidence = torch.where(geometry.hit, torch.rad2deg(torch.acos(cos)), torch.full_like(cos, 90.0))
-    plane = Plane(normal=new_n, offset=new_d, inliers=frame.plane.inliers, candidates=frame.plane.candidates)
-    return dataclasses.replace(frame, geometry=geometry, incidence_deg=incidence.float(), plane=plane)
+    return dataclasses.replace(g, points=points, normals=normals, clean_depth=clean, hit=g.hit & (ok | ~pixels))
 
 
 def replane_all(sensor, frames, seed: int) -> list:

@@ -75,13 +75,13 @@ def frame_axes(frame, sim) -> dict[str, torch.Tensor]:
     xn, yn = normalised_coordinates(h, w, intr.fx, intr.fy, intr.cx, intr.cy)
     cache = getattr(frame, "_diagnose_edge_distance", None)
     if cache is None:
-        cache = edge_distance(frame.geometry.clean_depth)
+        cache = edge_distance(frame.clean_depth)
         try:
             frame._diagnose_edge_distance = cache
         except AttributeError:  # pragma: no cover - slotted dataclass
             pass
     return {
-        "depth": frame.geometry.clean_depth,
+        "depth": frame.clean_depth,
         "incidence": frame.incidence_deg,
         "radius": torch.sqrt(xn * xn + yn * yn),
         "row": yn,

@@ -4,6 +4,7 @@ real frames prepared for simulation. Below the commands, so that no command modu
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 from ddsgen.errors import InputError
@@ -26,8 +27,9 @@ def adopt_camera(preset, scan_frames):
     if same:
         return preset, False
     try:
-        return preset.replace(width_px=c.width, height_px=c.height, focal_px=c.fx, focal_y_px=c.fy, cx_px=c.cx,
-                              cy_px=c.cy), True  # fmt: skip
+        # The registration's principal-point shift is an angle: in this camera's pixels it scales with fx.
+        return preset.replace(width_px=c.width, height_px=c.height, focal_px=c.fx, focal_y_px=c.fy, cx_px=c.cx, cy_px=c.cy,
+                              registration_shift_px=p.registration_shift_px * c.fx / p.focal_px), True  # fmt: skip
     except InputError as error:
         raise InputError(f"{scan_frames[0].source_depth_path}: the scans' camera does not fit the preset: {error}") from None
 
@@ -78,11 +80,16 @@ def differing_output_window(preset, valid_maps, tolerance_px: int = 2):
         valid_maps: (H, W) bool maps of the real frames (depth > 0), uncropped.
     """
     from ddsgen.sensor.output_window import OutputWindow, measure_output_window
+    from ddsgen.sensor.registration import is_registered
 
     maps = list(valid_maps)
     if len(maps) < 2 or len({m.shape for m in maps}) != 1:
         return None
     measured = measure_output_window(maps)
+    if is_registered(preset):
+        # A registered device's left band moves with depth (output_left_border_px + shift - f b_r / z: the IR
+        # frame's band seen from the RGB camera); the preset models it, so only the other sides are measured.
+        measured = dataclasses.replace(measured, left=OutputWindow.of(preset).left)
     return measured if measured.largest_difference(OutputWindow.of(preset)) > tolerance_px else None
 
 

@@ -214,7 +214,7 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
     """
     region = frame.region
     real = frame.real_depth * 1000.0
-    clean = frame.geometry.clean_depth * 1000.0
+    clean = frame.clean_depth * 1000.0
     simd = sim.depth * 1000.0
     both = region & sim.valid & frame.real_valid
     k = local_window(frame.intrinsics.fx)
@@ -234,7 +234,7 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
         r_sim, ok = roughness(simd - clean, textured)  # both roughness maps are defined on the same pixels
         r_real, _ = roughness(real - clean, textured)
         if bool(ok.any()):
-            terms["gradient"] = binned_roughness_gap(r_sim, r_real, frame.geometry.clean_depth, ok, zero)
+            terms["gradient"] = binned_roughness_gap(r_sim, r_real, frame.clean_depth, ok, zero)
     if bool(region.any()):
         soft = sim.valid_soft.to(simd.dtype)
         ls, _ = masked_local_mean(soft, region, k)

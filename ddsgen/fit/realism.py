@@ -65,7 +65,7 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
             (half a block + 1 px; the compare region leaves it out too), not counted as modelled.
     """
     region = full_frame(region, frame, False)
-    hit = np.asarray(frame.geometry.hit).copy()
+    hit = np.asarray(frame.hit).copy()
     if crop_border_px:
         b = crop_border_px
         hit[:b], hit[-b:], hit[:, :b], hit[:, -b:] = False, False, False, False

@@ -88,7 +88,7 @@ class SimFolderWriter:
         intrinsics = frame.full_intrinsics or frame.intrinsics
         depth = full_frame(sim.depth.detach().numpy(), frame, 0.0).astype(np.float32)
         instance = full_frame(frame.instance.numpy(), frame, 0)
-        files = write_frame_files(self.tmp, index, depth, full_frame(frame.geometry.clean_depth.numpy(), frame, 0.0),
+        files = write_frame_files(self.tmp, index, depth, full_frame(frame.clean_depth.numpy(), frame, 0.0),
                                   full_frame(sim.ir.detach().numpy(), frame, 0.0), 2.0**self.preset.ir_bits - 1.0,
                                   instance)  # fmt: skip
         # bbox and visible_fraction as render labels them (the support plane is background, id 0).

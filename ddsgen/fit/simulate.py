@@ -78,6 +78,8 @@ class FrameData:
     plane: the fitted support plane, or None. pose_error_mm: median |real - clean| on the
         objects' pixels where the real depth is valid (a check of the ground-truth poses).
     full_intrinsics: the camera of the uncropped frame.
+    clean_depth: float32 m, the image's ray-cast depth (0 = no hit); hit: bool. For a device registered to an
+        RGB camera the geometry is the IR camera's view, these are the image's; default: the geometry's.
     """
 
     name: str
@@ -95,6 +97,14 @@ class FrameData:
     plane: Plane | None = None
     pose_error_mm: float = float("nan")
     full_intrinsics: Intrinsics | None = None
+    clean_depth: torch.Tensor | None = None
+    hit: torch.Tensor | None = None
+
+    def __post_init__(self):
+        if self.clean_depth is None:
+            self.clean_depth = self.geometry.clean_depth
+        if self.hit is None:
+            self.hit = self.geometry.hit
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -342,7 +352,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         name=frame.name, index=int(index), intrinsics=cintr, crop=box, geometry=geometry,
         instance=t(instance), real_depth=t(real), real_valid=t(real > 0), region=t(region),
         object_region=t(region & (instance > 0)), incidence_deg=t(incidence), radius=t(radius), plane=plane,
-        pose_error_mm=pose_error, full_intrinsics=intr,
+        pose_error_mm=pose_error, full_intrinsics=intr, clean_depth=t(hits.depth), hit=t(hits.hit),
     )  # fmt: skip
 
 

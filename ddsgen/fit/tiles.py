@@ -60,6 +60,7 @@ def crop_frame(frame: FrameData, box: tuple[int, int, int, int], border: int) ->
         frame, intrinsics=crop_intrinsics(frame.intrinsics, box), crop=(fx0 + x0, fy0 + y0, w, h), geometry=geometry,
         instance=instance, real_depth=frame.real_depth[sl], real_valid=frame.real_valid[sl], region=region,
         object_region=region & (instance > 0), incidence_deg=frame.incidence_deg[sl], radius=frame.radius[sl],
+        clean_depth=frame.clean_depth[sl], hit=frame.hit[sl],
     )  # fmt: skip
 
 

@@ -27,7 +27,7 @@ from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
-from ddsgen.sensor.registration import cropped_index, register
+from ddsgen.sensor.registration import cropped_index, register, splat_fill_index
 from ddsgen.sensor.speckle import scene_seed
 
 # Fraction of disparity range added to the reference padding, so that fitting the
@@ -48,8 +48,9 @@ class SensorGeometry:
     (:mod:`ddsgen.sensor.ir_margin`), or None: then the IR image is the depth image's grid.
     registration: for depth registered to an RGB camera (:mod:`ddsgen.sensor.registration`), (H, W) int64:
     each output pixel's flat index into this (IR-frame) image, -1 where it gets no depth; the fields above
-    are then the IR camera's view, whose principal point is ``registration_shift_px`` left of the output's.
-    None: the output image is the IR camera's.
+    are then the IR camera's view, whose principal point is ``registration_shift_px`` left of the output's and
+    whose centre is ``registration_offset_m`` left (-x) of the output camera's. None: the output image is the
+    IR camera's.
     """
 
     points: torch.Tensor
@@ -61,10 +62,11 @@ class SensorGeometry:
     ir_margin: "SensorGeometry | None" = None
     registration: torch.Tensor | None = None
     registration_shift_px: float = 0.0
+    registration_offset_m: float = 0.0
 
     @classmethod
-    def from_hits(cls, hits, device="cpu", ir_margin=None, registration=None,
-                  registration_shift_px: float = 0.0) -> "SensorGeometry":  # fmt: skip
+    def from_hits(cls, hits, device="cpu", ir_margin=None, registration=None, registration_shift_px: float = 0.0,
+                  registration_offset_m: float = 0.0) -> "SensorGeometry":  # fmt: skip
         """From a :class:`ddsgen.raycast.RayHits` (numpy arrays); ``ir_margin``: the RayHits of the strip
         beyond the right edge (:func:`ddsgen.sensor.ir_margin.cast_margin`), or None; ``registration``: the
         (H, W) index map of :func:`ddsgen.sensor.registration.registration_index`, or None."""
@@ -82,6 +84,7 @@ class SensorGeometry:
             ir_margin=None if ir_margin is None else cls.from_hits(ir_margin, device),
             registration=None if registration is None else t(registration, torch.int64),
             registration_shift_px=float(registration_shift_px),
+            registration_offset_m=float(registration_offset_m),
         )
 
     @property
@@ -106,7 +109,8 @@ class SensorGeometry:
         if self.registration is not None:
             registration = cropped_index(self.registration, self.shape[1], x0, y0, width, height)
         return SensorGeometry(**part, ir_margin=margin, registration=registration,
-                              registration_shift_px=self.registration_shift_px)  # fmt: skip
+                              registration_shift_px=self.registration_shift_px,
+                              registration_offset_m=self.registration_offset_m)  # fmt: skip
 
     def with_ir_margin(self) -> "SensorGeometry":
         """The geometry of the whole IR image: this one and its margin strip side by side, (H, W + m)."""
@@ -424,5 +428,9 @@ class DepthSensor(nn.Module):
             index = geometry.registration
             depth, valid, valid_soft, disparity, confidence, raw_depth = (
                 register(x, index) for x in (depth, valid, valid_soft, disparity, confidence, raw_depth))  # fmt: skip
+            if p.registration_dense:  # the device's 2x2 splat closes 1-px holes
+                index = splat_fill_index(valid)
+                depth, valid, valid_soft, disparity, confidence, raw_depth = (
+                    register(x, index) for x in (depth, valid, valid_soft, disparity, confidence, raw_depth))  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
                             confidence=confidence, raw_depth=raw_depth)  # fmt: skip

@@ -63,4 +63,5 @@ def sensor_geometry(scene, intrinsics: Intrinsics, preset, hits):
     margin = cast_margin(ir_scene, ir_intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
     index = registration_index(hits, ir_hits, intrinsics, preset)
     return SensorGeometry.from_hits(ir_hits, ir_margin=margin, registration=index,
-                                    registration_shift_px=preset.registration_shift_px)  # fmt: skip
+                                    registration_shift_px=preset.registration_shift_px,
+                                    registration_offset_m=preset.registration_ir_offset_m)  # fmt: skip

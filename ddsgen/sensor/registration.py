@@ -108,3 +108,26 @@ def register(image: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     Differentiable in ``image``."""
     gathered = image.reshape(-1)[index.clamp(min=0).reshape(-1)].reshape(index.shape)
     return torch.where(index >= 0, gathered, torch.zeros_like(gathered))
+
+
+def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:
+    """(H, W) int64: for each pixel of a registered image, the flat index of the pixel whose depth it shows after
+    the device's dense registration, -1 where none. OpenNI's registration (Apply1080 with dense registration)
+    writes each depth to its target pixel and to the target's west, north and north-west neighbours, so a pixel
+    without depth of its own shows that of its lower-right, lower or right neighbour (the later writers, in
+    that order): holes shrink by a pixel from their right and lower sides, and 1-px cracks close. Real LineMOD
+    cat, one pixel outside the silhouette: 97-100 % valid on every side, carrying the cat's depth above 78 %,
+    left 57 %, right 48 %, below 39 %.
+
+    Args:
+        valid: (H, W) bool, the registered image's valid pixels.
+    """
+    height, width = valid.shape
+    flat = torch.arange(height * width, device=valid.device).reshape(height, width)
+    index = torch.where(valid, flat, torch.full_like(flat, -1))
+    for dy, dx in ((1, 1), (1, 0), (0, 1)):
+        neighbour = torch.full_like(flat, -1)
+        neighbour[: height - dy, : width - dx] = torch.where(valid[dy:, dx:], flat[dy:, dx:], -1)
+        index = torch.where(index < 0, neighbour, index)
+    return index
+

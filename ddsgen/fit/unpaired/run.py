@@ -42,8 +42,12 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     real = read_depth_folder(real_dir, depth_scale)
 
     height, width = real[0].depth.shape
-    camera = camera_for(original, width, height)
-    # The device's output window is measured, not searched: border columns/rows empty in every real frame.
+    # The device's output window is measured, not searched: border columns/rows empty in every real frame. It
+    # stands for a registered device's bands too, so the preset's registration model is switched off (its
+    # IR-frame window would count the registered band twice).
+    unregistered = {"registration_ir_offset_m": 0.0, "registration_shift_px": 0.0}
+    stock_camera = camera_for(original, width, height)
+    camera = stock_camera.replace(**unregistered)
     measured_window = measure_output_window([f.depth > 0 for f in real])
     window = measured_window.as_keys()
     geometries = cast_scenes(camera, scene_list, sim_frames, seed, progress)
@@ -61,13 +65,14 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
         "assumed_intrinsics": camera.intrinsics.as_dict(), "sim_frames": sim_frames, **result.to_dict(),
-        "output_window": {"stock": {key: getattr(camera, key) for key in window}, "measured": window,
+        "output_window": {"stock": {key: getattr(stock_camera, key) for key in (*window, *unregistered)},
+                          "measured": {**window, **unregistered},
                           "rule": "border columns (rows) valid in at most 1 % of the real frames' pixels"},
     }  # fmt: skip
     content = write_report(report, content, pooled, depths, resolution, seed)
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = measured_window.rescaled(width, height, original.width_px, original.height_px)
-    changes = {**in_preset_px.as_keys(), **result.after}
+    changes = {**unregistered, **in_preset_px.as_keys(), **result.after}
     for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
         name = getattr(original, key)
         if name and not (key == "pattern" and (PATTERN_DIR / name).exists()):
