@@ -426,11 +426,10 @@ class DepthSensor(nn.Module):
         confidence = front.confidence
         if geometry.registration is not None:  # the IR camera's depth, written in the RGB camera's image
             index = geometry.registration
+            if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
+                fill = splat_fill_index(register(valid, index))
+                index = torch.where(fill >= 0, torch.take(index, fill.clamp(min=0)), -1)
             depth, valid, valid_soft, disparity, confidence, raw_depth = (
                 register(x, index) for x in (depth, valid, valid_soft, disparity, confidence, raw_depth))  # fmt: skip
-            if p.registration_dense:  # the device's 2x2 splat closes 1-px holes
-                index = splat_fill_index(valid)
-                depth, valid, valid_soft, disparity, confidence, raw_depth = (
-                    register(x, index) for x in (depth, valid, valid_soft, disparity, confidence, raw_depth))  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
                             confidence=confidence, raw_depth=raw_depth)  # fmt: skip

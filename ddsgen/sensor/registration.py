@@ -72,26 +72,22 @@ def registration_index(hits, ir_hits, intrinsics: Intrinsics, preset) -> np.ndar
         intrinsics: the output camera's.
     """
     height, width = hits.depth.shape
-    b_r, shift = float(preset.registration_ir_offset_m), float(preset.registration_shift_px)
-    points = hits.points.astype(np.float64)
-    z = np.where(hits.hit, points[..., 2], 1.0)
-    u_ir = intrinsics.fx * (points[..., 0] + b_r) / z + intrinsics.cx - shift
-    column = np.rint(u_ir).astype(np.int64)
-    rows = np.broadcast_to(np.arange(height)[:, None], (height, width))
+    b_r, shift, fx = float(preset.registration_ir_offset_m), float(preset.registration_shift_px), intrinsics.fx
+    x, y = hits.points[..., 0] + np.float32(b_r), hits.points[..., 1]  # the point in the IR camera's frame
+    z = np.where(hits.hit, hits.points[..., 2], np.float32(1.0))
+    column = np.rint(np.float32(fx) * x / z + np.float32(intrinsics.cx - shift)).astype(np.int64)
     inside = hits.hit & (column >= 0) & (column < width)
-    column = np.clip(column, 0, width - 1)
-    ir_depth = ir_hits.depth[rows, column].astype(np.float64)
-    # Half a pixel along the surface changes the depth by |dZ/du| / 2 = Z^2 |n_x| / (2 fx |n . P_ir|).
-    normals = hits.normals.astype(np.float64)
-    facing = np.abs(normals[..., 0] * (points[..., 0] + b_r) + normals[..., 1] * points[..., 1]
-                    + normals[..., 2] * points[..., 2])  # fmt: skip
+    flat = (np.arange(height, dtype=np.int64) * width)[:, None] + np.clip(column, 0, width - 1)
+    ir_depth, ir_hit = ir_hits.depth.ravel()[flat], ir_hits.hit.ravel()[flat]
+    # Half a pixel along the surface changes the depth by |dZ/du| / 2 = Z^2 |n_x| / (2 fx |n . P_ir|), capped (a
+    # surface seen edge-on is no reason to accept whatever the IR pixel shows; fmin also takes the cap for 0/0).
+    n = hits.normals
+    facing = np.abs(n[..., 0] * x + n[..., 1] * y + n[..., 2] * z)
     with np.errstate(divide="ignore", invalid="ignore"):
-        slope = z * z * np.abs(normals[..., 0]) / (2.0 * intrinsics.fx * facing)
-    # (capped: a surface seen edge-on is no reason to accept whatever the IR pixel shows)
-    tolerance = np.minimum(np.nan_to_num(slope, nan=np.inf, posinf=np.inf), _SLOPE_CAP * z)
-    tolerance = tolerance + _SAME_SURFACE_REL * z + _SAME_SURFACE_ABS
-    seen = inside & ir_hits.hit[rows, column] & (np.abs(ir_depth - z) <= tolerance)
-    return np.where(seen, rows * width + column, -1)
+        half_pixel = z * z * np.abs(n[..., 0]) / (np.float32(2.0 * fx) * facing)
+    tolerance = np.fmin(half_pixel, np.float32(_SLOPE_CAP) * z) + np.float32(_SAME_SURFACE_REL) * z + _SAME_SURFACE_ABS
+    seen = inside & ir_hit & (np.abs(ir_depth - z) <= tolerance)
+    return np.where(seen, flat, -1)
 
 
 def cropped_index(index: torch.Tensor, full_width: int, x0: int, y0: int, width: int, height: int) -> torch.Tensor:
@@ -106,8 +102,8 @@ def cropped_index(index: torch.Tensor, full_width: int, x0: int, y0: int, width:
 def register(image: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """(H, W) IR-frame image -> (H, W) output image: ``image`` at ``index``, 0 (False) where the index is -1.
     Differentiable in ``image``."""
-    gathered = image.reshape(-1)[index.clamp(min=0).reshape(-1)].reshape(index.shape)
-    return torch.where(index >= 0, gathered, torch.zeros_like(gathered))
+    gathered = torch.take(image, index.clamp(min=0))
+    return torch.where(index >= 0, gathered, torch.zeros((), dtype=gathered.dtype, device=gathered.device))
 
 
 def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:
@@ -123,11 +119,14 @@ def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:
         valid: (H, W) bool, the registered image's valid pixels.
     """
     height, width = valid.shape
-    flat = torch.arange(height * width, device=valid.device).reshape(height, width)
-    index = torch.where(valid, flat, torch.full_like(flat, -1))
-    for dy, dx in ((1, 1), (1, 0), (0, 1)):
-        neighbour = torch.full_like(flat, -1)
-        neighbour[: height - dy, : width - dx] = torch.where(valid[dy:, dx:], flat[dy:, dx:], -1)
-        index = torch.where(index < 0, neighbour, index)
+    index = torch.arange(height * width, device=valid.device).reshape(height, width)
+    rows, cols = torch.nonzero(~valid, as_tuple=True)  # only the holes (a few % of the pixels) look around
+    source = torch.full_like(rows, -1)
+    for dy, dx in ((0, 1), (1, 0), (1, 1)):  # lowest priority first: a later writer wins
+        r, c = rows + dy, cols + dx
+        inside = (r < height) & (c < width)
+        seen = torch.zeros_like(inside)
+        seen[inside] = valid[r[inside], c[inside]]
+        source = torch.where(seen, r * width + c, source)
+    index[rows, cols] = source
     return index
-
