@@ -98,6 +98,7 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     from ddsgen.raycast import object_labels
     from ddsgen.scene.sampling import sample_frame
     from ddsgen.sensor.ir_margin import cast_for_sensor
+    from ddsgen.sensor.registration import ir_camera_record
 
     state = _worker_state(job)
     preset: SensorPreset = state["preset"]
@@ -110,6 +111,7 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     ir = output.ir.numpy()
 
     files = write_frame_files(job.out, frame, depth, hits.depth, ir, 2.0**preset.ir_bits - 1.0, hits.instance)
+    ir_camera = ir_camera_record(intrinsics, preset)  # registered: the IR image is this camera's, not the depth's
     return {
         "frame": frame,
         **files,
@@ -119,6 +121,7 @@ def render_frame(job: RenderJob, frame: int) -> dict:
         "objects": object_labels(scene, hits, intrinsics),
         "seed": job.seed,
         "valid_fraction": round(float((depth > 0).mean()), 6),
+        **({"ir_camera": ir_camera} if ir_camera else {}),
     }
 
 

@@ -76,6 +76,11 @@ def test_reference_is_a_real_dataset(reference):
     out, hashes = reference
     records = read_manifest(out / MANIFEST)
     assert all(0.3 < r["valid_fraction"] <= 1.0 for r in records)  # a real depth image, not all-invalid
+    # registered to an RGB camera: the IR image is the IR camera's, 27 mm left, principal point 17.4 px (at 640) left
+    for r in records:
+        ir = r["ir_camera"]
+        assert ir["cam_T_ir"][0][3] == pytest.approx(-0.027)
+        assert ir["intrinsics"]["cx"] == pytest.approx(r["intrinsics"]["cx"] - 17.4 * r["intrinsics"]["width"] / 640)
     assert all(r["objects"] for r in records)
     assert len(set(hashes.values())) > N_FRAMES  # frames differ from each other
 

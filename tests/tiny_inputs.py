@@ -16,8 +16,10 @@ KINECT_FOCAL_PX_AT_640 = 572.41
 
 
 def tiny_preset_yaml(width: int, height: int, name: str = "tiny") -> str:
-    """A preset of ``width`` x ``height`` px with kinect_v1's field of view, 1/4 px sub-pixel steps."""
+    """A preset of ``width`` x ``height`` px with kinect_v1's field of view, 1/4 px sub-pixel steps, its depth
+    registered to an RGB camera as kinect_v1's (a second ray cast per frame, the gather and the splat)."""
     focal = KINECT_FOCAL_PX_AT_640 * width / 640
+    shift = 17.4 * width / 640
     return f"""\
 name: {name}
 width_px: {width}
@@ -31,6 +33,9 @@ emitted_intensity: 1.5e6
 shadow_bias_m: 0.005
 softargmax_beta: 15.0
 subpixel_level: 2
+registration_ir_offset_m: 0.027
+registration_shift_px: {shift:.4f}
+registration_dense: true
 """
 
 

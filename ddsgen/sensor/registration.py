@@ -62,6 +62,17 @@ def ir_view(scene, intrinsics: Intrinsics, preset):
     return ir_scene, ir_intrinsics
 
 
+def ir_camera_record(intrinsics: Intrinsics, preset) -> dict | None:
+    """The IR camera of a registered preset as a manifest entry: ``{"intrinsics": ..., "cam_T_ir": 4x4}`` (the IR
+    camera's pose in the output camera's frame, m), or None when the output image is the IR camera's."""
+    if not is_registered(preset):
+        return None
+    cam_T_ir = np.eye(4)
+    cam_T_ir[0, 3] = -float(preset.registration_ir_offset_m)
+    ir_intrinsics = dataclasses.replace(intrinsics, cx=intrinsics.cx - float(preset.registration_shift_px))
+    return {"intrinsics": ir_intrinsics.as_dict(), "cam_T_ir": cam_T_ir.tolist()}
+
+
 def registration_index(hits, ir_hits, intrinsics: Intrinsics, preset) -> np.ndarray:
     """(H, W) int64: for each output pixel, the flat index (v * W + u) of the IR-frame pixel whose depth it
     shows, or -1 where the IR camera does not see its surface point (or it has none).
