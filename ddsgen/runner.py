@@ -97,7 +97,7 @@ def render_frame(job: RenderJob, frame: int) -> dict:
 
     from ddsgen.raycast import object_labels
     from ddsgen.scene.sampling import sample_frame
-    from ddsgen.sensor.ir_margin import cast_for_sensor
+    from ddsgen.sensor.sensor_cast import cast_for_sensor
     from ddsgen.sensor.registration import ir_camera_record
 
     state = _worker_state(job)

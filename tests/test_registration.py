@@ -14,7 +14,7 @@ from ddsgen.preset import load_preset
 from ddsgen.scene.sampling import FrameScene, PlacedObject
 from ddsgen.scene.shapes import plane_mesh
 from ddsgen.sensor.depth_sensor import DepthSensor
-from ddsgen.sensor.ir_margin import cast_for_sensor
+from ddsgen.sensor.sensor_cast import cast_for_sensor
 from ddsgen.sensor.registration import cropped_index, output_projector_x_m, register, splat_fill_index
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -279,7 +279,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
                   crop: bool = False, crop_margin_px: int = 24, seed: int = 0, plane_depth=None) -> FrameData:  # fmt: skip
     """One :class:`FrameData` (see :func:`prepare_frames`)."""
     from ddsgen.raycast import cast
-    from ddsgen.sensor.ir_margin import sensor_geometry
+    from ddsgen.sensor.sensor_cast import sensor_geometry
     from ddsgen.sensor.registration import output_projector_x_m
 
     intr = frame.intrinsics

@@ -13,7 +13,8 @@ Two things follow that an unregistered simulation lacks. The IR frame's blind le
 L + s - f b_r / Z; and RGB-view pixels the IR camera does not see (background just right of a near
 object) have no depth. Measured on the real LineMOD cat frame: first valid column 24.4 - 15.6 / Z
 (median column per 5 cm depth bin, 0.9-1.85 m, 11 bins within 1 px but one), so f b_r = 15.6 px m
-(b_r = 27 mm at f = 572 px; the Kinect's IR-RGB spacing is about 25 mm) and s = 24.4 - 8 = 16.4 px.
+(b_r = 27 mm at f = 572 px; the Kinect's IR-RGB spacing is about 25 mm) and s = 24.4 - 8 = 16.4 px, or
+17.4 px with the dense splat (:func:`splat_fill_index`), which fills the band's last column.
 
 Model (:func:`ir_view`, :func:`registration_index`): the output camera (the user's pose and
 intrinsics) is the RGB camera; the sensor simulates the IR camera's view (its own ray cast, pose
@@ -43,22 +44,26 @@ _SLOPE_CAP = 0.1
 
 def is_registered(preset) -> bool:
     """True when the preset's device writes depth registered to an RGB camera."""
-    return float(getattr(preset, "registration_ir_offset_m", 0.0) or 0.0) > 0.0 or float(
-        getattr(preset, "registration_shift_px", 0.0) or 0.0) != 0.0  # fmt: skip
+    return preset.registration_ir_offset_m > 0.0 or preset.registration_shift_px != 0.0
 
 
 def output_projector_x_m(preset) -> float:
     """The projector's x in the output camera's frame (m): +baseline from the IR camera, which sits at -b_r."""
-    return float(preset.baseline_m) - float(getattr(preset, "registration_ir_offset_m", 0.0) or 0.0)
+    return float(preset.baseline_m) - float(preset.registration_ir_offset_m)
+
+
+def _ir_camera(intrinsics: Intrinsics, preset) -> tuple[np.ndarray, Intrinsics]:
+    """``(cam_T_ir, ir_intrinsics)``: the IR camera's pose in the output camera's frame (moved by -b_r along x)
+    and its intrinsics (same size and focal lengths, cx - s)."""
+    cam_T_ir = np.eye(4)
+    cam_T_ir[0, 3] = -float(preset.registration_ir_offset_m)
+    return cam_T_ir, dataclasses.replace(intrinsics, cx=intrinsics.cx - float(preset.registration_shift_px))
 
 
 def ir_view(scene, intrinsics: Intrinsics, preset):
-    """``(ir_scene, ir_intrinsics)``: the scene seen from the IR camera (pose moved by -b_r along the output
-    camera's x) and its intrinsics (same size and focal lengths, cx - s)."""
-    offset = np.eye(4)
-    offset[0, 3] = -float(preset.registration_ir_offset_m)
-    ir_scene = dataclasses.replace(scene, world_T_cam=np.asarray(scene.world_T_cam, dtype=np.float64) @ offset)
-    ir_intrinsics = dataclasses.replace(intrinsics, cx=intrinsics.cx - float(preset.registration_shift_px))
+    """``(ir_scene, ir_intrinsics)``: the scene as the IR camera sees it, and that camera's intrinsics."""
+    cam_T_ir, ir_intrinsics = _ir_camera(intrinsics, preset)
+    ir_scene = dataclasses.replace(scene, world_T_cam=np.asarray(scene.world_T_cam, dtype=np.float64) @ cam_T_ir)
     return ir_scene, ir_intrinsics
 
 
@@ -67,9 +72,7 @@ def ir_camera_record(intrinsics: Intrinsics, preset) -> dict | None:
     camera's pose in the output camera's frame, m), or None when the output image is the IR camera's."""
     if not is_registered(preset):
         return None
-    cam_T_ir = np.eye(4)
-    cam_T_ir[0, 3] = -float(preset.registration_ir_offset_m)
-    ir_intrinsics = dataclasses.replace(intrinsics, cx=intrinsics.cx - float(preset.registration_shift_px))
+    cam_T_ir, ir_intrinsics = _ir_camera(intrinsics, preset)
     return {"intrinsics": ir_intrinsics.as_dict(), "cam_T_ir": cam_T_ir.tolist()}
 
 

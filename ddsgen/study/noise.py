@@ -359,7 +359,7 @@ def run_noise_study(
     import torch
 
     from ddsgen.sensor.depth_sensor import DepthSensor
-    from ddsgen.sensor.ir_margin import cast_for_sensor
+    from ddsgen.sensor.sensor_cast import cast_for_sensor
 
     if frames < 1:
         raise InputError(f"--frames: must be >= 1, got {frames}")

@@ -84,7 +84,7 @@ def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = F
     from tqdm import tqdm
 
     from ddsgen.scene.sampling import sample_frame
-    from ddsgen.sensor.ir_margin import cast_for_sensor
+    from ddsgen.sensor.sensor_cast import cast_for_sensor
 
     out = []
     for i in tqdm(range(n_frames), desc="ray cast", unit="frame", disable=not progress, leave=False):
