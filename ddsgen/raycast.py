@@ -38,7 +38,7 @@ class RayHits:
     normals: np.ndarray  # float32 (H, W, 3): unit normal, camera frame, towards the camera; 0 where no hit
     instance: np.ndarray  # uint16 (H, W): object id, 0 = background / nothing
     hit: np.ndarray  # bool (H, W)
-    shadow: np.ndarray  # bool (H, W): hit point not seen by the projector at (+b, 0, 0)
+    shadow: np.ndarray | None  # bool (H, W): hit point not seen by the projector at (+b, 0, 0); None if not cast
     albedo: np.ndarray  # float32 (H, W): IR reflectance of the hit surface, 0 where no hit
     coverage: dict = dataclasses.field(default_factory=dict)  # object id -> pixels it covers when cast alone
     # Which triangle each ray hit, for recomputing the hits from posed vertices (ddsgen.scene_gradients):
@@ -202,7 +202,7 @@ def _segment_blocked_by_polygon(polygon: _Polygon, starts: np.ndarray, end: np.n
     return blocked
 
 
-def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float) -> RayHits:
+def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float, shadows: bool = True) -> RayHits:
     """Ray-cast a :class:`~ddsgen.scene.sampling.FrameScene` for a pinhole camera.
 
     Args:
@@ -210,6 +210,8 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
         intrinsics: image size and K (px); pixel centres at integer coordinates.
         baseline_m: projector offset b along the camera's +x axis (m).
         shadow_bias_m: shadow-ray origin offset xi along the normal (m).
+        shadows: False skips the shadow rays (``RayHits.shadow`` is then None): for a view the sensor does
+            not run on (the RGB camera of a registered device).
 
     Returns:
         RayHits with arrays of shape (H, W) / (H, W, 3).
@@ -297,7 +299,31 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
     instance = ids[owner]
     albedo = albedos[owner]
 
-    # --- shadow rays from the biased hit points S towards the projector at (+b, 0, 0), capped before it.
+    shadow = None
+    if shadows:
+        shadow = _shadow_rays(points, normals, hit, polygons, meshes, intrinsics, baseline_m, shadow_bias_m)
+
+    shape2, shape3 = (height, width), (height, width, 3)
+    return RayHits(
+        depth=depth.reshape(shape2),
+        points=points.reshape(shape3),
+        normals=normals.reshape(shape3),
+        instance=instance.reshape(shape2),
+        hit=hit.reshape(shape2),
+        shadow=None if shadow is None else shadow.reshape(shape2),
+        albedo=albedo.reshape(shape2),
+        coverage=coverage,
+        owner=owner.reshape(shape2),
+        triangle=triangle.reshape(shape2),
+        barycentric=barycentric.reshape(height, width, 2),
+    )
+
+
+def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics, baseline_m: float,
+                 shadow_bias_m: float) -> np.ndarray:  # fmt: skip
+    """(H*W,) bool: hit points the projector at (+b, 0, 0) does not see (facing away, or a segment from the
+    biased point S towards the projector, capped before it, crosses a polygon or mesh). ``points``, ``normals``:
+    (H*W, 3) float32 in the camera frame; ``hit`` (H*W,) bool."""
     # Computed on all pixels (no gathers) and masked with `hit` at the end.
     projector = np.array([baseline_m, 0.0, 0.0], dtype=np.float64)
     start = points + np.float32(shadow_bias_m) * normals
@@ -334,22 +360,7 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float)
             )
             blocked[todo] |= occluded >= 0
             open_rays[todo] &= ~(occluded >= 0)
-    shadow = blocked & hit
-
-    shape2, shape3 = (height, width), (height, width, 3)
-    return RayHits(
-        depth=depth.reshape(shape2),
-        points=points.reshape(shape3),
-        normals=normals.reshape(shape3),
-        instance=instance.reshape(shape2),
-        hit=hit.reshape(shape2),
-        shadow=shadow.reshape(shape2),
-        albedo=albedo.reshape(shape2),
-        coverage=coverage,
-        owner=owner.reshape(shape2),
-        triangle=triangle.reshape(shape2),
-        barycentric=barycentric.reshape(height, width, 2),
-    )
+    return blocked & hit
 
 
 def _image_box(vertices_cam: np.ndarray, intrinsics: Intrinsics):

@@ -104,7 +104,7 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     preset: SensorPreset = state["preset"]
     intrinsics = preset.intrinsics
     scene = sample_frame(state["scenes"], frame, job.seed)
-    hits, geometry = cast_for_sensor(scene, intrinsics, preset)
+    hits, geometry = cast_for_sensor(scene, intrinsics, preset, output_shadows=False)
     with torch.no_grad():
         output = state["sensor"](geometry, seed=[job.seed, frame, NOISE_STREAM])
     depth = output.depth.numpy().astype(np.float32)

@@ -240,3 +240,19 @@ def test_replaning_a_registered_frame_moves_the_plane_in_the_image_and_in_the_ir
     u_ir = intr.fx * ir_points[:, 0] / ir_points[:, 2] + intr.cx - preset.registration_shift_px
     cols = torch.arange(intr.width, dtype=torch.float64).expand(*shape)[g.hit]
     assert float((u_ir - cols).abs().max()) < 1e-3
+
+
+def test_the_registered_output_view_can_skip_its_shadow_rays_without_changing_the_sensor_input():
+    """Render skips the RGB view's shadow rays (the sensor runs on the IR camera's view): the geometry the sensor
+    gets is the same array for array; an unregistered view is the sensor's own and keeps its shadows."""
+    preset = _strip()
+    scene = _scene(1.5, 0.9)
+    with_shadows, geometry = cast_for_sensor(scene, preset.intrinsics, preset)
+    without, lean = cast_for_sensor(scene, preset.intrinsics, preset, output_shadows=False)
+    assert without.shadow is None and with_shadows.shadow.any()  # the box shadows the wall
+    np.testing.assert_array_equal(without.depth, with_shadows.depth)
+    for name in ("points", "hit", "shadow", "registration"):
+        assert torch.equal(getattr(lean, name), getattr(geometry, name)), name
+    unregistered = preset.replace(registration_ir_offset_m=0.0, registration_shift_px=0.0)
+    hits, _ = cast_for_sensor(scene, preset.intrinsics, unregistered, output_shadows=False)
+    assert hits.shadow is not None and hits.shadow.any()

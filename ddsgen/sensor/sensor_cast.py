@@ -11,13 +11,18 @@ from ddsgen.preset import Intrinsics
 from ddsgen.sensor.ir_margin import cast_margin
 
 
-def cast_for_sensor(scene, intrinsics: Intrinsics, preset):
+def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool = True):
     """Ray-cast ``scene`` for the sensor: ``(hits, geometry)``, the output image's RayHits and the
-    :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` (:func:`sensor_geometry`)."""
-    from ddsgen.raycast import cast
-    from ddsgen.sensor.registration import output_projector_x_m
+    :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` (:func:`sensor_geometry`).
 
-    hits = cast(scene, intrinsics, output_projector_x_m(preset), preset.shadow_bias_m)
+    ``output_shadows=False``: a registered device's output view skips its shadow rays (``hits.shadow`` is None;
+    the sensor runs on the IR camera's view, which has its own): 25-30 ms of a 640x480 frame. An unregistered
+    device's output view is the sensor's, so it always has them."""
+    from ddsgen.raycast import cast
+    from ddsgen.sensor.registration import is_registered, output_projector_x_m
+
+    shadows = output_shadows or not is_registered(preset)
+    hits = cast(scene, intrinsics, output_projector_x_m(preset), preset.shadow_bias_m, shadows=shadows)
     return hits, sensor_geometry(scene, intrinsics, preset, hits)
 
 

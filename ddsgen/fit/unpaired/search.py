@@ -88,7 +88,8 @@ def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = F
 
     out = []
     for i in tqdm(range(n_frames), desc="ray cast", unit="frame", disable=not progress, leave=False):
-        out.append(cast_for_sensor(sample_frame(scene_list, i, seed), preset.intrinsics, preset)[1])
+        scene = sample_frame(scene_list, i, seed)
+        out.append(cast_for_sensor(scene, preset.intrinsics, preset, output_shadows=False)[1])
     return out
 
 
