@@ -92,7 +92,7 @@ def _translation(xyz) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Resting poses and footprints (cached per process, per mesh)
+# Resting poses and footprints (cached per process, per mesh; the stable poses also on disk: stable_poses.py)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,9 +112,8 @@ def _convex_polygon(points: np.ndarray) -> np.ndarray:
 @functools.lru_cache(maxsize=256)
 def _rest_poses(mesh_ref: str, scale: float, rest: str) -> tuple[tuple[_RestPose, ...], np.ndarray]:
     """Resting poses of a mesh and their probabilities."""
-    import trimesh
-
     from ddsgen.scene.meshes import load_mesh
+    from ddsgen.scene.stable_poses import stable_poses
 
     mesh = load_mesh(mesh_ref, scale)
     hull = mesh.convex_hull
@@ -122,7 +121,7 @@ def _rest_poses(mesh_ref: str, scale: float, rest: str) -> tuple[tuple[_RestPose
         rotations, probs = np.eye(4)[None], np.ones(1)
     else:
         center = mesh.center_mass if (mesh.is_watertight and mesh.volume > 0) else hull.center_mass
-        rotations, probs = trimesh.poses.compute_stable_poses(mesh, center_mass=center)
+        rotations, probs = stable_poses(mesh, center)
         keep = probs > 1e-3  # tiny-probability facets (e.g. the rim of a tessellated cylinder) are not useful
         if np.any(keep):
             rotations, probs = rotations[keep], probs[keep]
