@@ -251,8 +251,9 @@ def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit(
     intr = preset.intrinsics
     rng = np.random.default_rng(0)
 
-    def frame(valid, crop=(0, 0, 160, 120)):
-        return SimpleNamespace(real_valid=torch.from_numpy(valid), crop=crop, full_intrinsics=intr)
+    def frame(valid, crop=(0, 0, 160, 120)):  # depth 1.2 m where valid
+        return SimpleNamespace(real_depth=torch.from_numpy(np.where(valid, 1.2, 0.0).astype(np.float32)), crop=crop,
+                               full_intrinsics=intr)  # fmt: skip
 
     device = [rng.random((120, 160)) < 0.9 for _ in range(3)]  # depth up to every border
     for valid in device:
@@ -270,9 +271,12 @@ def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit(
     assert with_measured_window(preset, crops)[1] is None
     # --apply writes it in the preset's own pixels
     assert window.rescaled(160, 120, 640, 480) == OutputWindow(left=0, right=48)
-    # A preset registered to an RGB camera models its left band (it moves with depth): only the others are measured.
+    # A preset registered to an RGB camera declares its IR frame's bands, which the registration moves by
+    # f b_r / Z - s: the output's band at 1.2 m is that much narrower on the right, and the IR frame shows depth
+    # from column 0 (+1: the dense splat fills the band's last column).
     adopted, window, _ = with_measured_window(registered, [frame(v) for v in device])
-    assert window == OutputWindow(left=8, right=12) and OutputWindow.of(adopted) == window
+    moved = registered.focal_px * registered.registration_ir_offset_m / 1.2 - registered.registration_shift_px
+    assert window == OutputWindow(left=1, right=12 - round(moved)) and OutputWindow.of(adopted) == window
 
 
 def _plane_frame(width: int = 160, height: int = 120):

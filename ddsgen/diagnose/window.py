@@ -26,7 +26,7 @@ def with_measured_window(preset, frames, tolerance_px: int = 2):
     needed), the measured :class:`OutputWindow` and one sentence for the report; else ``(preset, None, None)``."""
     if not all(uncropped(f) for f in frames):
         return preset, None, None
-    measured = differing_output_window(preset, [f.real_valid.numpy() for f in frames], tolerance_px)
+    measured = differing_output_window(preset, [f.real_depth.numpy() for f in frames], tolerance_px)
     if measured is None:
         return preset, None, None
     note = (f"Output window measured on the {len(frames)} real frames (border bands without depth in every frame): "

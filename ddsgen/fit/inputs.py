@@ -4,8 +4,9 @@ real frames prepared for simulation. Below the commands, so that no command modu
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Callable
+
+import numpy as np
 
 from ddsgen.errors import InputError
 
@@ -69,27 +70,22 @@ def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausi
     return preset, camera_preset, scans, frames
 
 
-def differing_output_window(preset, valid_maps, tolerance_px: int = 2):
+def differing_output_window(preset, depth_maps, tolerance_px: int = 2):
     """The output window measured on real frames (border bands empty in every frame,
-    :func:`~ddsgen.sensor.output_window.measure_output_window`) when it differs from the preset's by more
-    than ``tolerance_px`` on a side, else None. Needs two maps of one size (one frame's empty border may
-    be the scene's).
+    :func:`~ddsgen.sensor.output_window.measure_device_window`: for a registered preset in its IR frame) when it
+    differs from the preset's by more than ``tolerance_px`` on a side, else None. Needs two maps of one size
+    (one frame's empty border may be the scene's).
 
     Args:
         preset: the preset at the frames' image size.
-        valid_maps: (H, W) bool maps of the real frames (depth > 0), uncropped.
+        depth_maps: (H, W) depth of the real frames (m, 0 = invalid), uncropped.
     """
-    from ddsgen.sensor.output_window import OutputWindow, measure_output_window
-    from ddsgen.sensor.registration import is_registered
+    from ddsgen.sensor.output_window import OutputWindow, measure_device_window
 
-    maps = list(valid_maps)
+    maps = [np.asarray(d) for d in depth_maps]
     if len(maps) < 2 or len({m.shape for m in maps}) != 1:
         return None
-    measured = measure_output_window(maps)
-    if is_registered(preset):
-        # A registered device's left band moves with depth (output_left_border_px + shift - f b_r / z: the IR
-        # frame's band seen from the RGB camera); the preset models it, so only the other sides are measured.
-        measured = dataclasses.replace(measured, left=OutputWindow.of(preset).left)
+    measured = measure_device_window(maps, preset)
     return measured if measured.largest_difference(OutputWindow.of(preset)) > tolerance_px else None
 
 
@@ -98,7 +94,7 @@ def output_window_hint(preset, scans, tolerance_px: int = 2) -> str | None:
     (:func:`differing_output_window`), else None."""
     from ddsgen.sensor.output_window import OutputWindow
 
-    measured = differing_output_window(preset, [scan.depth > 0 for scan in scans], tolerance_px)
+    measured = differing_output_window(preset, [scan.depth for scan in scans], tolerance_px)
     if measured is None:
         return None
     declared = OutputWindow.of(preset).as_keys()

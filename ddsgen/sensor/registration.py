@@ -144,3 +144,20 @@ def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:
         source = torch.where(seen, r * width + c, source)
     index[rows, cols] = source
     return index
+
+
+def ir_frame_validity(depth_m: np.ndarray, preset) -> np.ndarray:
+    """(H, W) bool: the IR-frame pixels a registered depth image (H, W, m, 0 = invalid; in the preset's camera)
+    shows, each valid output pixel (u, v, Z) marking IR pixel (round(u + f b_r / Z - s), v): the map
+    :func:`registration_index` follows, inverted. The device's IR-frame border bands (the preset's
+    ``output_*_border_px``) are then measured on these maps as on an unregistered device's
+    (:func:`~ddsgen.sensor.output_window.measure_device_window`)."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    height, width = depth.shape
+    rows, cols = np.nonzero(depth > 0)
+    shift = preset.focal_px * preset.registration_ir_offset_m / depth[rows, cols] - preset.registration_shift_px
+    ir_cols = np.rint(cols + shift).astype(np.int64)
+    inside = (ir_cols >= 0) & (ir_cols < width)
+    seen = np.zeros((height, width), dtype=bool)
+    seen[rows[inside], ir_cols[inside]] = True
+    return seen
