@@ -238,7 +238,9 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     """The device keys: a hidden kinect_v1 with a steeper beam fall-off (cos^12, stock cos^4) and
     no hole filling (stock fills holes below 8 px), targets on scene list A, fit on the built-in
     list. The fall-off is found from validity by image radius alone, the hole filling from the
-    hole-size histogram (1-px holes exist only without it)."""
+    hole-size histogram (1-px holes exist only without it). Unregistered: a registered device's dense
+    splat closes 1-px holes itself, and then 0, 2 and 4 px of filling give the same frames (measured:
+    a flat profile, 0.03303 at all three)."""
     from ddsgen.fit.unpaired.realfolder import RealDepthFrame
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
     from ddsgen.preset import load_preset
@@ -246,7 +248,7 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
 
     torch = pytest.importorskip("torch")
     torch.set_num_threads(1)
-    stock = camera_for(load_preset("kinect_v1"), W, H)
+    stock = camera_for(load_preset("kinect_v1"), W, H).replace(registration_ir_offset_m=0.0, registration_shift_px=0.0)
     hidden = {"projector_falloff_exponent": 12.0, "cleanup_hole_px": 0}
     device = stock.replace(**hidden)
     scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
@@ -291,3 +293,59 @@ def test_joint_uncertainty_sees_a_trade_off_that_the_profiles_do_not():
     x = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1]], float)
     _, clipped = quadratic_minimum(x, x[:, 0] ** 2 - x[:, 1] ** 2, limit=4.0)
     assert clipped
+
+
+# ---- the device's window, registered or not -------------------------------------------------------
+@pytest.fixture(scope="module")
+def registered_device():
+    """kinect_v1 (registered to its RGB camera) at 320x240 with an IR-frame window, 6 frames on scene list A."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
+    from ddsgen.preset import load_preset
+
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    stock = camera_for(load_preset("kinect_v1"), 320, 240)
+    window = {"output_left_border_px": 12, "output_right_border_px": 9, "output_top_border_px": 6,
+              "output_bottom_border_px": 3}  # fmt: skip
+    device = stock.replace(**window)
+    scenes = _scene_list(("box", "can", "mug"), [0.6, 1.3], wall=False)
+    depths = render_depths(device, cast_scenes(device, scenes, 6, seed=21), seed=21)
+    return stock, window, [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+
+
+def test_a_registered_device_window_is_measured_in_its_ir_frame(registered_device):
+    """The registered output's left band narrows with depth (L + s - f b_r / Z): measured in the output image it
+    is neither the IR frame's band nor one width; mapped back into the IR frame every side is the device's."""
+    from ddsgen.sensor.output_window import OutputWindow, measure_device_window, measure_output_window
+
+    stock, window, real = registered_device
+    depths = [f.depth for f in real]
+    assert stock.registration_shift_px == pytest.approx(17.4 / 2)  # the shift scales with the image
+    assert measure_device_window(depths, stock) == OutputWindow(12, 9, 6, 3)
+    in_output = measure_output_window([d > 0 for d in depths])
+    assert in_output.left != 12  # what the registration does to the band
+    first = [np.flatnonzero(row)[0] for d in depths for row in d[20:-20] > 0 if row.any()]
+    assert np.ptp(np.percentile(first, [10, 90])) >= 1  # and it is not one width
+
+
+def test_the_fit_reads_registered_frames_with_the_registration_and_plain_frames_without(registered_device):
+    """Model choice by measurement: frames of the registered device are closer to the registered reading;
+    the same device without registration (the window as its own output's) is closer to the plain one."""
+    from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import cast_scenes, render_depths
+    from ddsgen.scene.scenelist import load_scene_list
+
+    stock, window, real = registered_device
+    scenes = load_scene_list(None)
+    chosen, candidates = choose_window_model(stock, real, scenes, 4, seed=0)
+    assert [m.name for m in candidates] == ["unregistered", "registered"]
+    assert chosen.name == "registered" and chosen.window.as_keys() == window
+    plain = stock.replace(**UNREGISTERED, **window)
+    scenes_a = _scene_list(("box", "can", "mug"), [0.6, 1.3], wall=False)
+    depths = render_depths(plain, cast_scenes(plain, scenes_a, 6, seed=21), seed=21)
+    plain_real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    chosen, candidates = choose_window_model(stock, plain_real, scenes, 4, seed=0)
+    assert chosen.name == "unregistered" and chosen.window.as_keys() == window
+    assert candidates[0].distance < candidates[1].distance

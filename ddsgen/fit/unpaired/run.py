@@ -12,8 +12,8 @@ from ddsgen.errors import InputError
 from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
-from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
-from ddsgen.sensor.output_window import measure_output_window
+from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
+from ddsgen.fit.unpaired.search import camera_for, fit_unpaired, render_depths
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -42,37 +42,40 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     real = read_depth_folder(real_dir, depth_scale)
 
     height, width = real[0].depth.shape
-    # The device's output window is measured, not searched: border columns/rows empty in every real frame. It
-    # stands for a registered device's bands too, so the preset's registration model is switched off (its
-    # IR-frame window would count the registered band twice).
-    unregistered = {"registration_ir_offset_m": 0.0, "registration_shift_px": 0.0}
+    # The device's output window is measured, not searched: border columns/rows without depth in every real
+    # frame; read through the preset's registration or without it, whichever renders closer (device_window.py).
     stock_camera = camera_for(original, width, height)
-    camera = stock_camera.replace(**unregistered)
-    measured_window = measure_output_window([f.depth > 0 for f in real])
-    window = measured_window.as_keys()
-    geometries = cast_scenes(camera, scene_list, sim_frames, seed, progress)
-    result = fit_unpaired(camera.replace(**window), real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
+    model, candidates = choose_window_model(stock_camera, real, scene_list, sim_frames, seed, progress)
+    camera, geometries, window = model.camera, model.geometries, model.window.as_keys()
+    result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
                           progress=progress)  # fmt: skip
 
     resolution = max(f.resolution_m for f in real)
     fb = camera.focal_px * camera.baseline_m
     depths = {"real": [f.depth for f in real]}
-    for label, values in (("stock", result.before), ("fitted", {**window, **result.after})):
-        rendered = render_depths(camera.replace(**values), geometries, seed + 1)  # fresh noise: not the fit's
+    # The stock preset as it is (its own window and registration: the last candidate's geometry) and the fit.
+    for label, preset, scenes_cast in (("stock", stock_camera, candidates[-1].geometries),
+                                       ("fitted", camera.replace(**result.after), geometries)):  # fmt: skip
+        rendered = render_depths(preset, scenes_cast, seed + 1)  # fresh noise: not the fit's
         depths[label] = [round_like(d, resolution) for d in rendered]
     pooled = {label: pool([frame_features(d, fb) for d in ds]) for label, ds in depths.items()}
     content = {
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
         "assumed_intrinsics": camera.intrinsics.as_dict(), "sim_frames": sim_frames, **result.to_dict(),
-        "output_window": {"stock": {key: getattr(stock_camera, key) for key in (*window, *unregistered)},
-                          "measured": {**window, **unregistered},
-                          "rule": "border columns (rows) valid in at most 1 % of the real frames' pixels"},
+        "output_window": {"stock": {key: getattr(stock_camera, key) for key in (*window, *UNREGISTERED)},
+                          "measured": {**window, **model.registration_keys},
+                          "rule": "border columns (rows) valid in at most 1 % of the real frames' pixels (a "
+                                  "registered device's: mapped back into its IR frame; its left band: the most "
+                                  "common first IR column of a row)",
+                          "model": model.name,
+                          "stock_radius_distance": {m.name: m.distance for m in candidates}},
     }  # fmt: skip
     content = write_report(report, content, pooled, depths, resolution, seed)
     # The window in the preset's own pixels (the fit ran at the real frames' size).
-    in_preset_px = measured_window.rescaled(width, height, original.width_px, original.height_px)
-    changes = {**unregistered, **in_preset_px.as_keys(), **result.after}
+    in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
+    registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
+    changes = {**registration, **in_preset_px.as_keys(), **result.after}
     for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
         name = getattr(original, key)
         if name and not (key == "pattern" and (PATTERN_DIR / name).exists()):
@@ -98,6 +101,10 @@ def print_summary(content: dict) -> None:
         sigma = content["uncertainty"][key]
         click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} +- {bound}{sigma:.2g}{note}")
     stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
+    window = content["output_window"]
+    distances = ", ".join(f"{name} {d:.4f}" for name, d in window["stock_radius_distance"].items() if d is not None)
+    click.echo(f"  depth registration: {window['model']}"
+               + (f" (validity by radius, stock values: {distances})" if distances else ""))
     click.echo("  output window (measured; px without depth at the left, right, top, bottom): "
-               f"{tuple(stock.values())} -> {tuple(measured.values())}")  # fmt: skip
+               f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")

@@ -73,9 +73,11 @@ def camera_for(preset, width: int, height: int):
     if (width, height) == (preset.width_px, preset.height_px):
         return preset
     sx, sy = width / preset.width_px, height / preset.height_px
+    # The registration's principal-point shift is in pixels: it scales with the image, as the focal length does.
     return preset.replace(width_px=width, height_px=height, focal_px=preset.focal_px * sx,
                           focal_y_px=preset.focal_y_px * sy, cx_px=(preset.cx_px + 0.5) * sx - 0.5,
-                          cy_px=(preset.cy_px + 0.5) * sy - 0.5)  # fmt: skip
+                          cy_px=(preset.cy_px + 0.5) * sy - 0.5,
+                          registration_shift_px=preset.registration_shift_px * sx)  # fmt: skip
 
 
 def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = False) -> list:
