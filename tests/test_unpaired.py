@@ -349,3 +349,20 @@ def test_the_fit_reads_registered_frames_with_the_registration_and_plain_frames_
     chosen, candidates = choose_window_model(stock, plain_real, scenes, 4, seed=0)
     assert chosen.name == "unregistered" and chosen.window.as_keys() == window
     assert candidates[0].distance < candidates[1].distance
+
+
+def test_the_reading_can_be_given_instead_of_measured(registered_device):
+    """--registration registered / unregistered: one candidate, no measurement; registered needs a registered
+    preset (one clear line)."""
+    from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
+    from ddsgen.scene.scenelist import load_scene_list
+
+    stock, window, real = registered_device
+    scenes = load_scene_list(None)
+    chosen, candidates = choose_window_model(stock, real, scenes, 2, seed=0, reading="unregistered")
+    assert [m.name for m in candidates] == ["unregistered"] and chosen.distance is None
+    assert chosen.registration_keys == UNREGISTERED
+    chosen, candidates = choose_window_model(stock, real, scenes, 2, seed=0, reading="registered")
+    assert [m.name for m in candidates] == ["registered"] and chosen.window.as_keys() == window
+    with pytest.raises(InputError, match="--registration registered: the preset .* writes unregistered depth"):
+        choose_window_model(stock.replace(**UNREGISTERED), real, scenes, 2, seed=0, reading="registered")

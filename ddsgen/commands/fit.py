@@ -50,14 +50,23 @@ from ddsgen.errors import InputError
               help="REAL_DIR is any folder of depth images (16-bit PNG, EXR in m), no poses: fit the sensor by "
                    "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md). "
                    "The output window (border columns/rows empty in every frame) is measured from the folder: "
-                   "give frames of varied views, or a camera that always sees nothing at one border gets a band.")
+                   "give frames of varied views, or a camera that always sees nothing at one border gets a band. "
+                   "For a preset registered to an RGB camera see --registration.")
 @click.option("--scenes", type=click.Path(dir_okay=False), default=None,
               help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
 @click.option("--depth-scale", type=float, default=0.001, show_default=True,
               help="With --unpaired: metres per PNG unit of the real depth images.")
+@click.option("--registration", type=click.Choice(["auto", "registered", "unregistered"]), default="auto",
+              show_default=True,
+              help="With --unpaired and a preset whose depth is registered to an RGB camera (kinect_v1): read the "
+                   "real depth as registered the same way (its IR frame's border bands measured through the "
+                   "registration), as unregistered (the bands measured as they are, registration switched off in "
+                   "the fitted preset), or auto: render both at the stock values and take the one whose validity "
+                   "by image radius is closer to the real frames'.")
 @common_options
 def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
-        pose_steps, unpaired, scenes, depth_scale, no_plane, crop, plausible_px, region, seed, quiet):  # fmt: skip
+        pose_steps, unpaired, scenes, depth_scale, registration, no_plane, crop, plausible_px, region, seed,
+        quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
     Whole scenes are held out (frames when there is one scene, half the region when there is
@@ -74,7 +83,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
 
         content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
-                                   report_dir=report_dir, seed=seed, progress=not quiet)  # fmt: skip
+                                   report_dir=report_dir, seed=seed, registration=registration,
+                                   progress=not quiet)  # fmt: skip
         print_summary(content)
         return
     import dataclasses

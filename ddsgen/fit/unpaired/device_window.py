@@ -59,19 +59,34 @@ def _stock_radius_distance(model: WindowModel, real_features: list, resolution_m
     return float(distance_terms(pool(simulated), pool(real_features))["radius"])
 
 
+#: The readings ``--registration`` offers; "auto" measures which one the frames show.
+READINGS = ("auto", "registered", "unregistered")
+
+
 def choose_window_model(stock_camera, real: list[RealDepthFrame], scene_list, sim_frames: int, seed: int,
-                        progress: bool = False) -> tuple[WindowModel, list[WindowModel]]:  # fmt: skip
+                        progress: bool = False,
+                        reading: str = "auto") -> tuple[WindowModel, list[WindowModel]]:  # fmt: skip
     """``(chosen, candidates)``: the device reading the fit uses (see the module docstring).
 
     Args:
         stock_camera: the preset at the real frames' image size (:func:`~.search.camera_for`).
         real: the real frames; scene_list, sim_frames, seed: the fit scenes (:func:`~.search.cast_scenes`).
+        reading: one of :data:`READINGS`; "registered" or "unregistered" skips the measurement (the user knows
+            what the frames are). "registered" needs a registered preset (InputError otherwise).
     """
+    from ddsgen.errors import InputError
     from ddsgen.fit.unpaired.search import cast_scenes
 
+    if reading not in READINGS:
+        raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
+    if reading == "registered" and not is_registered(stock_camera):
+        raise InputError(f"--registration registered: the preset {stock_camera.name} writes unregistered depth "
+                         f"(registration_ir_offset_m and registration_shift_px are 0)")  # fmt: skip
     depths = [f.depth for f in real]
-    cameras = [("unregistered", stock_camera.replace(**UNREGISTERED))]
-    if is_registered(stock_camera):
+    cameras = []
+    if reading != "registered":
+        cameras.append(("unregistered", stock_camera.replace(**UNREGISTERED)))
+    if reading != "unregistered" and is_registered(stock_camera):
         cameras.append(("registered", stock_camera))
     candidates = []
     for name, camera in cameras:

@@ -22,10 +22,11 @@ DEFAULT_SIM_FRAMES = 8
 def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Path | None = None,
                      depth_scale: float = 0.001, out: str | Path = "fitted.yaml", report_dir: str | Path | None = None,
                      seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200, keys=None,
-                     progress: bool = True) -> dict:  # fmt: skip
+                     registration: str = "auto", progress: bool = True) -> dict:  # fmt: skip
     """Fit the preset to the real depth frames below ``real_dir``; write OUT and the report.
 
     ``keys``: fit only these keys of the table (default: all; see :mod:`.parameters`).
+    ``registration``: how to read the frames' depth (:data:`~.device_window.READINGS`; "auto" measures it).
     Returns the report's JSON content.
     """
     from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
@@ -45,7 +46,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # The device's output window is measured, not searched: border columns/rows without depth in every real
     # frame; read through the preset's registration or without it, whichever renders closer (device_window.py).
     stock_camera = camera_for(original, width, height)
-    model, candidates = choose_window_model(stock_camera, real, scene_list, sim_frames, seed, progress)
+    model, candidates = choose_window_model(stock_camera, real, scene_list, sim_frames, seed, progress,
+                                            reading=registration)  # fmt: skip
     camera, geometries, window = model.camera, model.geometries, model.window.as_keys()
     result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
                           progress=progress)  # fmt: skip
