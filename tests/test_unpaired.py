@@ -366,3 +366,39 @@ def test_the_reading_can_be_given_instead_of_measured(registered_device):
     assert [m.name for m in candidates] == ["registered"] and chosen.window.as_keys() == window
     with pytest.raises(InputError, match="--registration registered: the preset .* writes unregistered depth"):
         choose_window_model(stock.replace(**UNREGISTERED), real, scenes, 2, seed=0, reading="registered")
+
+
+def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_as_it_is(registered_device, tmp_path,
+                                                                                          monkeypatch):  # fmt: skip
+    """--registration unregistered with the registered kinect_v1: the fitted preset has the registration off and the
+    frames' own window; the report's stock column is still the stock preset, registered, on its own ray casts."""
+    import json
+
+    from ddsgen.cli import main
+    from ddsgen.depth_statistics import realism_statistics
+    from ddsgen.fit.unpaired import parameters
+    from ddsgen.fit.unpaired.run import DEFAULT_SIM_FRAMES
+    from ddsgen.fit.unpaired.search import cast_scenes, render_depths
+    from ddsgen.io.png import write_depth_png
+    from ddsgen.preset import load_preset, save_preset
+    from ddsgen.scene.scenelist import load_scene_list
+    from ddsgen.sensor.output_window import measure_output_window
+
+    monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS",
+                        {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]})  # fmt: skip
+    stock, window, real = registered_device
+    for frame in real:
+        write_depth_png(tmp_path / "real" / frame.name, frame.depth)
+    save_preset(stock, tmp_path / "stock.yaml")
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--registration",
+                 "unregistered", "--out", str(out), "--quiet", "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+    fitted = load_preset(out)
+    assert fitted.registration_ir_offset_m == 0 and fitted.registration_shift_px == 0
+    own = measure_output_window([f.depth > 0 for f in real]).as_keys()
+    assert {key: getattr(fitted, key) for key in own} == own
+    report = json.loads((tmp_path / "report" / "unpaired_report.json").read_text())
+    assert report["output_window"]["model"] == "unregistered"
+    depths = render_depths(stock, cast_scenes(stock, load_scene_list(None), DEFAULT_SIM_FRAMES, 0), 1)
+    isolated = np.median([realism_statistics(round_like(d, 0.001))["isolated_dropouts"] for d in depths])
+    assert report["realism_statistics"]["stock"]["isolated_dropouts"] == isolated

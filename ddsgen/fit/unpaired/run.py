@@ -13,7 +13,7 @@ from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
-from ddsgen.fit.unpaired.search import camera_for, fit_unpaired, render_depths
+from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -55,8 +55,12 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     resolution = max(f.resolution_m for f in real)
     fb = camera.focal_px * camera.baseline_m
     depths = {"real": [f.depth for f in real]}
-    # The stock preset as it is (its own window and registration: the last candidate's geometry) and the fit.
-    for label, preset, scenes_cast in (("stock", stock_camera, candidates[-1].geometries),
+    # The stock preset as it is (its own window and registration, so its own ray casts) and the fit.
+    stock_keys = {key: getattr(stock_camera, key) for key in UNREGISTERED}
+    stock_geometries = next((m.geometries for m in candidates if m.registration_keys == stock_keys), None)
+    if stock_geometries is None:  # --registration unregistered with a registered preset
+        stock_geometries = cast_scenes(stock_camera, scene_list, sim_frames, seed)
+    for label, preset, scenes_cast in (("stock", stock_camera, stock_geometries),
                                        ("fitted", camera.replace(**result.after), geometries)):  # fmt: skip
         rendered = render_depths(preset, scenes_cast, seed + 1)  # fresh noise: not the fit's
         depths[label] = [round_like(d, resolution) for d in rendered]
