@@ -230,7 +230,7 @@ def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys, 
     assert stock.output_right_border_px == 0
     printed = capsys.readouterr().out
     assert "+-" in printed and "output window" in printed
-    for name in ("distributions.png", "patches.png", "frames.png", "unpaired_report.json"):
+    for name in ("distributions.png", "patches.png", "frames.png", "profiles.png", "unpaired_report.json"):
         assert (tmp_path / "report" / name).stat().st_size > 1000
 
 
@@ -258,7 +258,10 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
                           keys=tuple(hidden), progress=False)  # fmt: skip
     assert result.after["cleanup_hole_px"] == 0
     falloff, sigma = result.after["projector_falloff_exponent"], result.uncertainty["projector_falloff_exponent"]
-    assert abs(falloff - 12.0) < max(2.5 * sigma, 2.0) and sigma < 3.0  # stock: 4
+    # The value moves from the stock's 4 to within 3 of the hidden 12, and the reported spread covers the rest. (At
+    # 160x120 over 8 real frames the radius term varies by 2e-4 over the whole range, so a resample of the frames
+    # moves its minimum by several units: measured sigma 5.5, from the bootstrap over the whole range.)
+    assert abs(falloff - 12.0) < 3.0 and abs(falloff - 12.0) <= 2 * sigma
     assert result.distance_after["radius"] < 0.5 * result.distance_before["radius"]
 
 
@@ -402,3 +405,30 @@ def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_a
     depths = render_depths(stock, cast_scenes(stock, load_scene_list(None), DEFAULT_SIM_FRAMES, 0), 1)
     isolated = np.median([realism_statistics(round_like(d, 0.001))["isolated_dropouts"] for d in depths])
     assert report["realism_statistics"]["stock"]["isolated_dropouts"] == isolated
+
+
+def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined():
+    """At a high IR signal (eta 5e7) the beam's fall-off darkens the corners without losing a dot:
+    validity by radius does not move (hidden-device draw 1: 9 % of a tiny term over 0-16). The fit
+    must not claim a value there: the hidden cos^8 lies within its reported 2 sigma, which spans the
+    range, and the key is flagged as weakly identified (a bootstrap of +-1/2 step around the minimum
+    reported 16 +- 2.5 for a hidden 7)."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+    from ddsgen.preset import load_preset
+    from ddsgen.scene.scenelist import load_scene_list
+
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    stock = camera_for(load_preset("kinect_v1"), W, H).replace(registration_ir_offset_m=0.0, registration_shift_px=0.0,
+                                                               emitted_intensity=5.0e7)  # fmt: skip
+    device = stock.replace(projector_falloff_exponent=8.0)
+    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
+    depths = render_depths(device, cast_scenes(device, scenes_a, 8, seed=11), seed=11)
+    real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    result = fit_unpaired(stock, real, cast_scenes(stock, load_scene_list(None), 6, seed=3), seed=0, bootstrap=40,
+                          keys=("projector_falloff_exponent",), progress=False)  # fmt: skip
+    falloff, sigma = result.after["projector_falloff_exponent"], result.uncertainty["projector_falloff_exponent"]
+    spread = result.bootstrap["projector_falloff_exponent"]
+    assert abs(falloff - 8.0) <= 2 * sigma and sigma >= 4.0
+    assert spread["lower_bound"]

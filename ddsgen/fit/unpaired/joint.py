@@ -22,6 +22,8 @@ from itertools import combinations
 
 import numpy as np
 
+from ddsgen.fit.unpaired.spread import search_std
+
 #: Design half-width, in coarse grid steps of each key (the profiles' inner points).
 DESIGN_STEP = 0.5
 #: Minima farther than this (coarse steps) from the fitted values are clipped: the quadratic is local.
@@ -82,7 +84,7 @@ def joint_uncertainty(params: list, values: dict, objective, resamples: list) ->
         resamples: the bootstrap's (real_idx, sim_idx) pairs.
 
     Returns:
-        {key: {"std": value units, "p05", "p95", "clipped": share of resamples clipped,
+        {key: {"std": value units, "std_search": search coordinate, "p05", "p95", "clipped": share of resamples clipped,
         "lower_bound": bool}}; empty when fewer than two keys are continuous.
     """
     keys = [p for p in params if not p.integer and not p.choices]
@@ -107,6 +109,7 @@ def joint_uncertainty(params: list, values: dict, objective, resamples: list) ->
         clipped.append(was_clipped)
     draws = np.array(draws, float)
     share = float(np.mean(clipped))
-    return {p.key: {"std": float(draws[:, i].std()), "p05": float(np.percentile(draws[:, i], 5)),
+    return {p.key: {"std": float(draws[:, i].std()), "std_search": search_std(p, draws[:, i]),
+                    "p05": float(np.percentile(draws[:, i], 5)),
                     "p95": float(np.percentile(draws[:, i], 95)), "clipped": share, "lower_bound": share > 0.2}
             for i, p in enumerate(keys)}  # fmt: skip

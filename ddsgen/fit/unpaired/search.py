@@ -12,13 +12,19 @@
    the total): a coarse grid over each parameter's bounds on half the frames; a local walk on
    all frames (+-1 coarse step, moving while it improves: the parameters interact, e.g. a
    lower SNR and a higher confidence threshold both make holes); then a profile of 5 points
-   (+-1/2 coarse step) around the best value, whose parabola vertex is the fitted value.
+   (+-1/2 coarse step) around the best value, and the key's whole coarse grid, all on every
+   frame with the other keys at their fitted values: the parabola vertex around the lowest
+   point is the fitted value.
 4. Uncertainty: a bootstrap over real *and* simulated frames re-sums the cached per-frame
-   features of each profile (no new rendering) and takes the parabola vertex again; the
-   standard deviation of the vertices is the reported uncertainty (conditional on the other
-   parameters at their fitted values). When more than 20 % of the vertices sit on the
-   profile's ends, the profile is too flat to bound the value and the spread is flagged as a
-   lower bound (``bootstrap[key]["lower_bound"]``). The continuous keys are then bootstrapped
+   features of those points (no new rendering) and takes the lowest point and its vertex
+   again; the standard deviation of the vertices is the reported uncertainty (conditional on
+   the other parameters at their fitted values). The whole range enters because a key that
+   barely changes the frames has a distance that is flat next to the real frames' own
+   scatter, and a resample of other real frames then puts its minimum anywhere: measured on
+   hidden devices, a profile of +-1/2 step reported the fall-off as 16 +- 2 for a hidden 7
+   whose fall-off moved the corner validity by 0.003 (docs/unpaired_fit.md). When more than
+   20 % of the vertices sit on the search bounds, the spread is flagged as a lower bound
+   (``bootstrap[key]["lower_bound"]``). The continuous keys are then bootstrapped
    together on a quadratic response surface (:mod:`.joint`: trade-offs between keys widen it);
    the reported uncertainty is the larger of the two spreads.
 """
@@ -35,6 +41,7 @@ from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool
 from ddsgen.fit.unpaired.joint import design_offsets, joint_uncertainty
 from ddsgen.fit.unpaired.parameters import UnpairedParameter, parameters_for
 from ddsgen.fit.unpaired.realfolder import RealDepthFrame, round_like
+from ddsgen.fit.unpaired.spread import scene_content_interval, scene_content_scale, search_std
 
 #: Noise stream of the fit's renders (never render's 1 or simulate's 7919).
 UNPAIRED_STREAM = 6143
@@ -45,8 +52,10 @@ PROFILE_OFFSETS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 class UnpairedResult:
     """Outcome of :func:`fit_unpaired`.
 
-    before/after: fitted keys' values; uncertainty: bootstrap std per key (search units: the
-    value's own unit); distance_before/after: distance terms; evaluations: number of value sets
+    before/after: fitted keys' values; uncertainty: std per key in the value's own unit, the
+    largest of the bootstrap's, the joint bootstrap's and the scene-content interval's
+    (:mod:`.spread`); uncertainty_search: the same in the search coordinate (natural log of the
+    value for log-scale keys: the value is known within a factor exp(std)); distance_before/after: distance terms; evaluations: number of value sets
     rendered; frames_rendered: frames rendered in all; history: one dict per evaluation
     (values, frames, terms); profiles: per key the profile points, their objective and its
     terms; seconds: wall time.
@@ -55,6 +64,7 @@ class UnpairedResult:
     before: dict
     after: dict
     uncertainty: dict
+    uncertainty_search: dict
     bootstrap: dict
     distance_before: dict
     distance_after: dict
@@ -155,6 +165,18 @@ def _vertex(xs: np.ndarray, ys: np.ndarray) -> float:
     return float(np.clip(-b / (2 * a), xs.min(), xs.max()))
 
 
+def _lowest_vertex(xs: np.ndarray, ys: np.ndarray, span: float) -> float:
+    """Vertex of the parabola through the points (xs, ys) within ``span`` of the lowest one
+    (least squares: a grid point next to a profile point is harmless)."""
+    near = np.abs(xs - xs[int(np.argmin(ys))]) <= span * (1 + 1e-9)
+    return _vertex(xs[near], ys[near])
+
+
+def _scan_points(param: UnpairedParameter, value: float) -> list:
+    """The key's profile around ``value`` merged with its whole coarse grid, sorted."""
+    return sorted(set(_profile_points(param, value, 0.5 * param.step())) | set(param.coarse_grid()))
+
+
 def _profile_points(param: UnpairedParameter, value: float, width: float) -> list:
     if param.choices:
         return param.neighbours(value)
@@ -207,10 +229,11 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     real_features = [frame_features(f.depth, fb) for f in real]
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
-    profile = sum(3 if p.integer else len(PROFILE_OFFSETS) for p in params)  # at most: near bounds, fewer
+    walk = 2 * len(params)  # a typical walk: one move, two neighbours (the total is reset after the walk)
+    profile = sum(len(_scan_points(p, getattr(preset, p.key))) for p in params)
     continuous = sum(not (p.integer or p.choices) for p in params)
     design = len(design_offsets(continuous)) if continuous >= 2 else 0
-    bar = tqdm(total=coarse * coarse_frames + (1 + 2 * profile + design) * sim_frames, desc="unpaired fit",
+    bar = tqdm(total=coarse * coarse_frames + (1 + walk + profile + design) * sim_frames, desc="unpaired fit",
                unit="frame", disable=not progress)  # fmt: skip
     ev = _Evaluator(preset, geometries, real_features, resolution, seed, bar)
     values = {p.key: getattr(preset, p.key) for p in params}
@@ -224,38 +247,49 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     for p in params:  # local: the parameters interact (SNR and threshold both make holes)
         values[p.key] = _walk(p, values, lambda v: p.objective(ev.distance(v)))
 
-    profiles, uncertainty, boots = {}, {}, {}
+    # What is left, at most (a profile point or design point may be cached already): the bar's end.
+    bar.total = bar.n + (sum(len(_scan_points(p, values[p.key])) for p in params) + design) * sim_frames
+    bar.refresh()
+    profiles, uncertainty, spread_search, boots = {}, {}, {}, {}
     rng = np.random.default_rng(seed)
     resamples = [(rng.integers(0, len(real), len(real)), rng.integers(0, sim_frames, sim_frames))
                  for _ in range(bootstrap)]  # fmt: skip
-    for p in params:  # fine: a profile around the coarse best; the parabola vertex is the value
-        points = _profile_points(p, values[p.key], 0.5 * p.step())
+    for p in params:  # fine: a profile around the walk's value plus the whole grid; the vertex is the value
+        points = _scan_points(p, values[p.key])
         xs = np.array([p.to_unit(v) for v in points])
+
+        def lowest(ys, p=p, points=points, xs=xs):  # +-1 coarse step: the neighbouring grid points and the profile
+            return points[int(np.argmin(ys))] if p.integer else p.from_unit(_lowest_vertex(xs, ys, p.step()))
+
         totals = np.array([p.objective(ev.distance({**values, p.key: v})) for v in points])
-        best = p.from_unit(_vertex(xs, totals)) if not p.integer else points[int(np.argmin(totals))]
-        draws = []
-        for real_idx, sim_idx in resamples:
-            ys = np.array([p.objective(ev.distance({**values, p.key: v}, real_idx, sim_idx)) for v in points])
-            draws.append(p.from_unit(_vertex(xs, ys)) if not p.integer else points[int(np.argmin(ys))])
+        best = lowest(totals)
+        draws = [lowest(np.array([p.objective(ev.distance({**values, p.key: v}, real_idx, sim_idx)) for v in points]))
+                 for real_idx, sim_idx in resamples]  # fmt: skip
         values[p.key] = best
         profiles[p.key] = {"points": [float(v) for v in points], "distance": totals.tolist(), "terms": list(p.terms)}
         draws = np.array(draws, float)
-        uncertainty[p.key] = float(draws.std())
-        # Vertices on the profile's ends: the distance is flat or still falling there, so the
+        scene = scene_content_interval(p, points, totals, best, scene_content_scale(
+            p, ev.features({**values, p.key: points[int(np.argmin(totals))]}), len(real)))  # fmt: skip
+        uncertainty[p.key] = max(float(draws.std()), scene["std"])
+        spread_search[p.key] = max(search_std(p, draws), scene["std_search"])
+        # Vertices on the search bounds: the distance is flat or still falling there, so the
         # spread is a lower bound (e.g. eta_c at high SNR, where speckle, not read noise, rules).
-        at_end = np.isclose(draws, min(points)) | np.isclose(draws, max(points))
+        at_end = np.isclose(draws, p.low) | np.isclose(draws, p.high)
         boots[p.key] = {"p05": float(np.percentile(draws, 5)), "p95": float(np.percentile(draws, 95)),
-                        "at_profile_end": float(at_end.mean()), "lower_bound": bool(at_end.mean() > 0.2)}  # fmt: skip
+                        "std": float(draws.std()), "at_bound": float(at_end.mean()), "scene_content": scene,
+                        "lower_bound": bool(at_end.mean() > 0.2 or scene["at_bound"])}  # fmt: skip
     # Joint: the continuous keys together (their profiles above are conditional on each other).
     joint = joint_uncertainty(params, values, lambda v, r: ev.distance(v, *r)["total"], resamples)
     for key, spread in joint.items():
         boots[key]["joint"] = spread
         uncertainty[key] = max(uncertainty[key], spread["std"])
+        spread_search[key] = max(spread_search[key], spread["std_search"])
         boots[key]["lower_bound"] = boots[key]["lower_bound"] or spread["lower_bound"]
     distance_after = ev.distance(values)
     bar.close()
     return UnpairedResult(
-        before=before, after=dict(values), uncertainty=uncertainty, bootstrap=boots,
+        before=before, after=dict(values), uncertainty=uncertainty, uncertainty_search=spread_search,
+        bootstrap=boots,
         distance_before=distance_before, distance_after=distance_after, evaluations=len(ev.cache),
         frames_rendered=ev.frames_rendered,
         history=ev.history, profiles=profiles, seconds=time.time() - start,
