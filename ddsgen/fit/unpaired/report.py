@@ -9,6 +9,10 @@ Files written into the report folder (each atomically):
   renders (not the same scenes: unpaired), each in its own colour range, invalid black.
 * ``frames.png``: whole frames, real next to stock and fitted renders (the same fit scene in
   both sim columns), invalid black: hole structure, corners and left border at a glance.
+* ``profiles.png``: per fitted key, its search objective over the key's range with the other
+  keys at their fitted values; the fitted value, and shaded the scene-content interval
+  (:mod:`.spread`: values the frames cannot tell from it). A flat panel is a key the frames
+  do not determine.
 * ``unpaired_report.json``: fitted values with bootstrap uncertainties, distances before and
   after, feature summaries, the hole/validity/quantisation statistics of
   :mod:`ddsgen.depth_statistics` (median over frames) for real, stock and fitted renders.
@@ -83,6 +87,31 @@ def plot_distributions(pooled: dict[str, dict], path: Path) -> None:
     _save(fig, path)
 
 
+def plot_profiles(content: dict, path: Path) -> None:
+    """One panel per fitted key: objective against value (``content``: :class:`.search.UnpairedResult` as a dict)."""
+    from matplotlib import ticker
+
+    from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
+
+    plt = _plt()
+    keys = list(content["profiles"])
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.0 * len(keys), 3.0), constrained_layout=True, squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        profile, scene = content["profiles"][key], content["bootstrap"][key]["scene_content"]
+        ax.plot(profile["points"], profile["distance"], "o-", color="black", ms=3)
+        ax.axvspan(scene["low"], scene["high"], color=COLOURS["fitted"], alpha=0.15, label="fits as well")
+        ax.axvline(content["after"][key], color=COLOURS["fitted"], label="fitted")
+        ax.axvline(content["before"][key], color=COLOURS["stock"], ls="--", label="stock")
+        if UNPAIRED_PARAMETERS.get(key) is not None and UNPAIRED_PARAMETERS[key].log:
+            ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(ticker.NullFormatter())  # decades only: minor labels overlap
+        ax.set_title(key, fontsize=9)
+        ax.set_xlabel("value")
+    axes[0][0].set_ylabel("search objective")
+    axes[0][0].legend(fontsize=7)
+    _save(fig, path)
+
+
 def _patch_origins(depth: np.ndarray, count: int, rng: np.random.Generator) -> list[tuple[int, int]]:
     """Patch corners on mostly valid surface with some holes (where the sensor's texture shows)."""
     h, w = depth.shape
@@ -151,5 +180,6 @@ def write_report(folder: str | Path, content: dict, pooled: dict[str, dict], dep
     plot_distributions(pooled, folder / "distributions.png")
     plot_patches(depths, folder / "patches.png", seed=seed)
     plot_frames(depths, folder / "frames.png")
+    plot_profiles(content, folder / "profiles.png")
     atomic_write_text(folder / "unpaired_report.json", json.dumps(content, indent=1, default=float) + "\n")
     return content

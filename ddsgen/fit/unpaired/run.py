@@ -6,10 +6,12 @@ fitted preset is written last, after the report.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from ddsgen.errors import InputError
 from ddsgen.fit.unpaired.features import frame_features, pool
+from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
@@ -103,9 +105,13 @@ def print_summary(content: dict) -> None:
                f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
         bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
-        note = "  (flat profile: weakly identified)" if bound else ""
-        sigma = content["uncertainty"][key]
-        click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} +- {bound}{sigma:.2g}{note}")
+        scene = content["bootstrap"][key]["scene_content"]
+        note = f"  (weakly identified: {scene['low']:.3g}..{scene['high']:.3g} fit as well)" if bound else ""
+        if UNPAIRED_PARAMETERS[key].log:  # a log-scale key is known within a factor
+            spread = f"x/ {bound}{math.exp(content['uncertainty_search'][key]):.2g}"
+        else:
+            spread = f"+- {bound}{content['uncertainty'][key]:.2g}"
+        click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} {spread}{note}")
     stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
     window = content["output_window"]
     distances = ", ".join(f"{name} {d:.4f}" for name, d in window["stock_radius_distance"].items() if d is not None)
