@@ -137,10 +137,14 @@ def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS, window: int = 
             measured = content["output_window"]["measured"][key]
             print(f"bench: unpaired_{key} hidden {value} stock {getattr(stock, key)} measured {measured}")
             continue
-        fitted, sigma = content["after"][key], content["uncertainty"][key]
-        inside = abs(fitted - value) <= max(2 * sigma, 1e-9)
+        # Within 2 sigma in the key's search coordinate: a log-scale key's sigma is a factor.
+        param, fitted = UNPAIRED_PARAMETERS[key], content["after"][key]
+        sigma, sigma_search = content["uncertainty"][key], content["uncertainty_search"][key]
+        inside = abs(param.to_unit(fitted) - param.to_unit(value)) <= max(2 * sigma_search, 1e-9)
+        spread = f"x/ {np.exp(sigma_search):.2g}" if param.log else f"+- {sigma:.2g}"
+        scene = content["bootstrap"][key]["scene_content"]
         print(f"bench: unpaired_{key} hidden {value:.4g} stock {content['before'][key]:.4g} fitted {fitted:.4g} "
-              f"+- {sigma:.2g} within_2sigma {inside}")
+              f"{spread} within_2sigma {inside} scene_interval {scene['low']:.4g}..{scene['high']:.4g}")
     shutil.rmtree(work)
 
 
