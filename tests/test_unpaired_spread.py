@@ -47,13 +47,15 @@ def _frame(valid_share_outer: float) -> dict:
             "radius_valid": valid, "radius_all": np.full(rings, 1000, np.int64)}  # fmt: skip
 
 
-def test_the_scale_is_the_distance_between_halves_of_the_fit_scenes_scaled_to_the_pools():
+def test_the_scale_is_the_distance_between_the_two_halves_of_the_fit_scenes_scaled_to_the_pools():
     same = [_frame(0.5)] * 8
     assert scene_content_scale(FALLOFF, same, real_frames=16) == 0.0  # identical scenes: nothing to tell apart
-    split = [_frame(0.4)] * 4 + [_frame(0.6)] * 4
-    halves = FALLOFF.objective(_terms(split[:4], split[4:]))
+    # The built-in list deals its frames in blocks of one scene type (4 tabletop, then 4 against a wall): the halves
+    # are two scene types, the shift between scene lists that the bootstrap over frames cannot see.
+    blocks = [_frame(0.4)] * 4 + [_frame(0.6)] * 4
+    halves = FALLOFF.objective(_terms(blocks[:4], blocks[4:]))
     # 8 fit frames against 16 real: (1/8 + 1/16) / (1/4 + 1/4) of the half-against-half distance
-    assert scene_content_scale(FALLOFF, split, real_frames=16) == pytest.approx(0.375 * halves)
+    assert scene_content_scale(FALLOFF, blocks, real_frames=16) == pytest.approx(0.375 * halves)
     assert halves > 0
 
 

@@ -107,6 +107,7 @@ def print_summary(content: dict) -> None:
         bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
         scene = content["bootstrap"][key]["scene_content"]
         note = f"  (weakly identified: {scene['low']:.3g}..{scene['high']:.3g} fit as well)" if bound else ""
+        note += "  (kept: the input's value fits as well)" if scene["kept_input_value"] else ""
         if UNPAIRED_PARAMETERS[key].log:  # a log-scale key is known within a factor
             spread = f"x/ {bound}{math.exp(content['uncertainty_search'][key]):.2g}"
         else:

@@ -14,7 +14,10 @@
    lower SNR and a higher confidence threshold both make holes); then a profile of 5 points
    (+-1/2 coarse step) around the best value, and the key's whole coarse grid, all on every
    frame with the other keys at their fitted values: the parabola vertex around the lowest
-   point is the fitted value.
+   point is the fitted value -- unless the input preset's value fits as well (its distance within
+   the scene-content scale of the lowest, :mod:`.spread`): then the input's value is kept, as a
+   move the frames cannot tell from scene content is not evidence (measured on hidden devices:
+   the fall-off went to a bound, 0 or 16, wherever its profile was flat).
 4. Uncertainty: a bootstrap over real *and* simulated frames re-sums the cached per-frame
    features of those points (no new rendering) and takes the lowest point and its vertex
    again; the standard deviation of the vertices is the reported uncertainty (conditional on
@@ -172,9 +175,9 @@ def _lowest_vertex(xs: np.ndarray, ys: np.ndarray, span: float) -> float:
     return _vertex(xs[near], ys[near])
 
 
-def _scan_points(param: UnpairedParameter, value: float) -> list:
-    """The key's profile around ``value`` merged with its whole coarse grid, sorted."""
-    return sorted(set(_profile_points(param, value, 0.5 * param.step())) | set(param.coarse_grid()))
+def _scan_points(param: UnpairedParameter, value: float, stock: float) -> list:
+    """The key's profile around ``value`` merged with its whole coarse grid and the ``stock`` value, sorted."""
+    return sorted(set(_profile_points(param, value, 0.5 * param.step())) | set(param.coarse_grid()) | {stock})
 
 
 def _profile_points(param: UnpairedParameter, value: float, width: float) -> list:
@@ -230,7 +233,7 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
     walk = 2 * len(params)  # a typical walk: one move, two neighbours (the total is reset after the walk)
-    profile = sum(len(_scan_points(p, getattr(preset, p.key))) for p in params)
+    profile = sum(len(_scan_points(p, getattr(preset, p.key), getattr(preset, p.key))) for p in params)
     continuous = sum(not (p.integer or p.choices) for p in params)
     design = len(design_offsets(continuous)) if continuous >= 2 else 0
     bar = tqdm(total=coarse * coarse_frames + (1 + walk + profile + design) * sim_frames, desc="unpaired fit",
@@ -248,14 +251,14 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
         values[p.key] = _walk(p, values, lambda v: p.objective(ev.distance(v)))
 
     # What is left, at most (a profile point or design point may be cached already): the bar's end.
-    bar.total = bar.n + (sum(len(_scan_points(p, values[p.key])) for p in params) + design) * sim_frames
+    bar.total = bar.n + (sum(len(_scan_points(p, values[p.key], before[p.key])) for p in params) + design) * sim_frames
     bar.refresh()
     profiles, uncertainty, spread_search, boots = {}, {}, {}, {}
     rng = np.random.default_rng(seed)
     resamples = [(rng.integers(0, len(real), len(real)), rng.integers(0, sim_frames, sim_frames))
                  for _ in range(bootstrap)]  # fmt: skip
     for p in params:  # fine: a profile around the walk's value plus the whole grid; the vertex is the value
-        points = _scan_points(p, values[p.key])
+        points = _scan_points(p, values[p.key], before[p.key])
         xs = np.array([p.to_unit(v) for v in points])
 
         def lowest(ys, p=p, points=points, xs=xs):  # +-1 coarse step: the neighbouring grid points and the profile
@@ -265,11 +268,14 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
         best = lowest(totals)
         draws = [lowest(np.array([p.objective(ev.distance({**values, p.key: v}, real_idx, sim_idx)) for v in points]))
                  for real_idx, sim_idx in resamples]  # fmt: skip
+        scale = scene_content_scale(p, ev.features({**values, p.key: points[int(np.argmin(totals))]}), len(real))
+        # The input's value where it fits as well: a move the frames cannot tell from scene content is not made.
+        kept = bool(totals[points.index(before[p.key])] - totals.min() <= scale)
+        best = before[p.key] if kept else best
         values[p.key] = best
         profiles[p.key] = {"points": [float(v) for v in points], "distance": totals.tolist(), "terms": list(p.terms)}
         draws = np.array(draws, float)
-        scene = scene_content_interval(p, points, totals, best, scene_content_scale(
-            p, ev.features({**values, p.key: points[int(np.argmin(totals))]}), len(real)))  # fmt: skip
+        scene = {**scene_content_interval(p, points, totals, best, scale), "kept_input_value": kept}
         uncertainty[p.key] = max(float(draws.std()), scene["std"])
         spread_search[p.key] = max(search_std(p, draws), scene["std_search"])
         # Vertices on the search bounds: the distance is flat or still falling there, so the

@@ -8,11 +8,15 @@ Measured on hidden devices (docs/unpaired_fit.md): the beam fall-off moved the r
 draw 1 by 9 % over its whole range 0-16 and the bootstrap still reported 16 +- 2.5 for a hidden 7.
 
 The scale of scene content is measured on the fit's own frames: the key's objective between
-the first and the second half of the fit scenes, both rendered with the fitted values (the same
-sensor, other scenes), scaled from two half pools to the pools the fit compares (the distance's
-scene-sampling part falls with the number of frames). Every value whose objective lies within that scale of the lowest is
-indistinguishable from it; the interval spans them, and its half-width from the fitted value to
-its farther end is read as two standard deviations.
+the first and the second half of the fit scenes as the scene list deals them, both rendered with
+the fitted values (the same sensor, other scenes), scaled from two half pools to the pools the
+fit compares (the distance's scene-sampling part falls with the number of frames). On the
+built-in list the halves are two scene types (4 frames of a tabletop, 4 against a wall); on a
+one-scene list, two layouts. Measured on the hidden devices, this split covers the hidden values
+in 20 of 20 cases; even against odd frames (the same scene types in both halves: a sampling
+spread, which the bootstrap already has) in 18 of 20. Every value whose objective lies within
+that scale of the lowest is indistinguishable from it; the interval spans them, and its
+half-width from the fitted value to its farther end is read as two standard deviations.
 """
 
 from __future__ import annotations
@@ -24,16 +28,16 @@ from ddsgen.fit.unpaired.parameters import UnpairedParameter
 
 
 def scene_content_scale(param: UnpairedParameter, features: list[dict], real_frames: int) -> float:
-    """The key's objective between the first and second half of ``features`` (per-frame features
+    """The key's objective between the first and the second half of ``features`` (per-frame features
     of the fit scenes rendered with one set of values), scaled to the pools the fit compares.
 
     The distance terms are squared differences of pooled rates and shares (log ratios, Hellinger),
     so their scene-sampling part falls as 1/n_a + 1/n_b: two halves of h1, h2 frames are scaled by
     (1/n_sim + 1/real_frames) / (1/h1 + 1/h2) to the n_sim simulated against ``real_frames`` real frames.
     """
-    half = len(features) // 2
-    ratio = (1 / len(features) + 1 / real_frames) / (1 / half + 1 / (len(features) - half))
-    return ratio * param.objective(distance_terms(pool(features[:half]), pool(features[half:])))
+    first, second = features[: len(features) // 2], features[len(features) // 2 :]
+    ratio = (1 / len(features) + 1 / real_frames) / (1 / len(first) + 1 / len(second))
+    return ratio * param.objective(distance_terms(pool(first), pool(second)))
 
 
 def scene_content_interval(param: UnpairedParameter, points: list, totals, fitted: float, scale: float) -> dict:
