@@ -51,6 +51,8 @@ from ddsgen.errors import InputError
                    "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md). "
                    "The output window (border columns/rows empty in every frame) is measured from the folder: "
                    "give frames of varied views, or a camera that always sees nothing at one border gets a band. "
+                   "Each value is reported with the range that fits as well against the scene content of the fit "
+                   "scenes; where PRESET's value is in that range it is kept. "
                    "For a preset registered to an RGB camera see --registration.")
 @click.option("--scenes", type=click.Path(dir_okay=False), default=None,
               help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
