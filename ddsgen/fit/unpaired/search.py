@@ -28,8 +28,9 @@
    whose fall-off moved the corner validity by 0.003 (docs/unpaired_fit.md). When more than
    20 % of the vertices sit on the search bounds, the spread is flagged as a lower bound
    (``bootstrap[key]["lower_bound"]``). The continuous keys are then bootstrapped
-   together on a quadratic response surface (:mod:`.joint`: trade-offs between keys widen it);
-   the reported uncertainty is the larger of the two spreads.
+   together on a quadratic response surface (:mod:`.joint`: trade-offs between keys widen it).
+   The reported uncertainty is the largest of the two spreads and the scene-content interval's
+   (:mod:`.spread`: the values that fit as well against two halves of the fit scenes).
 """
 
 from __future__ import annotations
@@ -58,8 +59,8 @@ class UnpairedResult:
     before/after: fitted keys' values; uncertainty: std per key in the value's own unit, the
     largest of the bootstrap's, the joint bootstrap's and the scene-content interval's
     (:mod:`.spread`); uncertainty_search: the same in the search coordinate (natural log of the
-    value for log-scale keys: the value is known within a factor exp(std)); distance_before/after: distance terms; evaluations: number of value sets
-    rendered; frames_rendered: frames rendered in all; history: one dict per evaluation
+    value for log-scale keys: the value is known within a factor exp(std));
+    distance_before/after: distance terms; evaluations: number of value sets rendered; frames_rendered: frames rendered in all; history: one dict per evaluation
     (values, frames, terms); profiles: per key the profile points, their objective and its
     terms; seconds: wall time.
     """
