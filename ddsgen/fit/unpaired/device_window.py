@@ -64,8 +64,8 @@ READINGS = ("auto", "registered", "unregistered")
 
 
 def choose_window_model(stock_camera, real: list[RealDepthFrame], scene_list, sim_frames: int, seed: int,
-                        progress: bool = False,
-                        reading: str = "auto") -> tuple[WindowModel, list[WindowModel]]:  # fmt: skip
+                        progress: bool = False, reading: str = "auto",
+                        real_features: list | None = None) -> tuple[WindowModel, list[WindowModel]]:  # fmt: skip
     """``(chosen, candidates)``: the device reading the fit uses (see the module docstring).
 
     Args:
@@ -73,6 +73,8 @@ def choose_window_model(stock_camera, real: list[RealDepthFrame], scene_list, si
         real: the real frames; scene_list, sim_frames, seed: the fit scenes (:func:`~.search.cast_scenes`).
         reading: one of :data:`READINGS`; "registered" or "unregistered" skips the measurement (the user knows
             what the frames are). "registered" needs a registered preset (InputError otherwise).
+        real_features: :func:`.features.frame_features` of ``real`` with the preset's f b, when the caller has
+            them already.
     """
     from ddsgen.errors import InputError
     from ddsgen.fit.unpaired.search import cast_scenes
@@ -96,8 +98,9 @@ def choose_window_model(stock_camera, real: list[RealDepthFrame], scene_list, si
                                                                         progress)))  # fmt: skip
     if len(candidates) == 1:
         return candidates[0], candidates
-    fb = stock_camera.focal_px * stock_camera.baseline_m
-    real_features = [frame_features(f.depth, fb) for f in real]
+    if real_features is None:
+        fb = stock_camera.focal_px * stock_camera.baseline_m
+        real_features = [frame_features(f.depth, fb) for f in real]
     resolution = max(f.resolution_m for f in real)
     for model in candidates:
         model.distance = _stock_radius_distance(model, real_features, resolution, seed)

@@ -48,14 +48,17 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # The device's output window is measured, not searched: border columns/rows without depth in every real
     # frame; read through the preset's registration or without it, whichever renders closer (device_window.py).
     stock_camera = camera_for(original, width, height)
+    # The real frames' features once: the window choice, the fit and the report compare against them (the
+    # candidates differ in window and registration, not in f b).
+    fb = stock_camera.focal_px * stock_camera.baseline_m
+    real_features = [frame_features(f.depth, fb) for f in real]
     model, candidates = choose_window_model(stock_camera, real, scene_list, sim_frames, seed, progress,
-                                            reading=registration)  # fmt: skip
+                                            reading=registration, real_features=real_features)  # fmt: skip
     camera, geometries, window = model.camera, model.geometries, model.window.as_keys()
     result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
-                          progress=progress)  # fmt: skip
+                          real_features=real_features, progress=progress)  # fmt: skip
 
     resolution = max(f.resolution_m for f in real)
-    fb = camera.focal_px * camera.baseline_m
     depths = {"real": [f.depth for f in real]}
     # The stock preset as it is (its own window and registration, so its own ray casts) and the fit.
     stock_keys = {key: getattr(stock_camera, key) for key in UNREGISTERED}
@@ -66,7 +69,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                                        ("fitted", camera.replace(**result.after), geometries)):  # fmt: skip
         rendered = render_depths(preset, scenes_cast, seed + 1)  # fresh noise: not the fit's
         depths[label] = [round_like(d, resolution) for d in rendered]
-    pooled = {label: pool([frame_features(d, fb) for d in ds]) for label, ds in depths.items()}
+    pooled = {"real": pool(real_features),
+              **{label: pool([frame_features(d, fb) for d in depths[label]]) for label in ("stock", "fitted")}}
     content = {
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],

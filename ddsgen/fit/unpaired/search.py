@@ -60,9 +60,9 @@ class UnpairedResult:
     largest of the bootstrap's, the joint bootstrap's and the scene-content interval's
     (:mod:`.spread`); uncertainty_search: the same in the search coordinate (natural log of the
     value for log-scale keys: the value is known within a factor exp(std));
-    distance_before/after: distance terms; evaluations: number of value sets rendered; frames_rendered: frames rendered in all; history: one dict per evaluation
-    (values, frames, terms); profiles: per key the profile points, their objective and its
-    terms; seconds: wall time.
+    distance_before/after: distance terms; evaluations: number of value sets rendered;
+    frames_rendered: frames rendered in all; history: one dict per evaluation (values, frames, terms);
+    profiles: per key the profile points, their objective and its terms; seconds: wall time.
     """
 
     before: dict
@@ -207,7 +207,8 @@ def _walk(param: UnpairedParameter, values: dict, objective, max_moves: int = 4)
 
 
 def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: int = 0, bootstrap: int = 200,
-                 keys=None, coarse_frames: int | None = None, progress: bool = True) -> UnpairedResult:  # fmt: skip
+                 keys=None, coarse_frames: int | None = None, real_features: list | None = None,
+                 progress: bool = True) -> UnpairedResult:  # fmt: skip
     """Fit the table's parameters of ``preset`` to the real frames' feature distribution.
 
     Args:
@@ -219,6 +220,8 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
         coarse_frames: frames rendered per candidate of the coarse pass (default half of the
             geometries, at least 2): it only has to find the right grid cell; the local pass and
             the profiles (whose values are reported) use every frame.
+        real_features: :func:`.features.frame_features` of ``real`` with the preset's f b, when the caller
+            has them already (computed here otherwise).
 
     Returns:
         :class:`UnpairedResult` (``after``: the fitted values as preset keys).
@@ -230,7 +233,8 @@ def fit_unpaired(preset, real: list[RealDepthFrame], geometries: list, *, seed: 
     sim_frames = len(geometries)
     coarse_frames = min(max(2, sim_frames // 2) if coarse_frames is None else coarse_frames, sim_frames)
     fb = preset.focal_px * preset.baseline_m
-    real_features = [frame_features(f.depth, fb) for f in real]
+    if real_features is None:
+        real_features = [frame_features(f.depth, fb) for f in real]
     resolution = max(f.resolution_m for f in real)
     coarse = sum(len(p.coarse_grid()) for p in params)
     walk = 2 * len(params)  # a typical walk: one move, two neighbours (the total is reset after the walk)
