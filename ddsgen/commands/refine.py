@@ -27,9 +27,14 @@ from ddsgen.errors import InputError
               help="Weight of the depth-edge term (the objects' outlines pulled onto the real depth discontinuities; "
                    "pins in-plane slides and turns depth cannot see). 0: depth only (for simulated scans).")
 @click.option("--no-plane", is_flag=True, help="Do not fit and refine a support plane.")
+@click.option("--static-scene", is_flag=True,
+              help="Frames that show one static scene (BOP: a scene folder; ddsgen: consecutive frames with the same "
+                   "objects at the same world poses) are refined together, each object's correction shared by "
+                   "all of them: their noise averages out. Objects are matched by their order in each frame.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, seed, quiet):
+def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, static_scene,
+           seed, quiet):  # fmt: skip
     """Refine every annotated object's pose (and the support plane) in REAL_DIR with the sensor PRESET.
 
     Each frame's objects are moved until the simulated depth matches the real one (Huber loss on the
@@ -45,8 +50,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     from ddsgen.preset import load_preset
     from ddsgen.scene_gradients.refine import RefineSettings
     from ddsgen.scene_gradients.report import write_report
-    from ddsgen.fit.inputs import adopt_camera
-    from ddsgen.scene_gradients.scan import refine_scan_frame
+    from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan
 
     if steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--steps")
@@ -66,22 +70,66 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     settings = RefineSettings(steps=steps, recast_every=recast_every, band_m=band_mm / 1000.0, seed=seed,
                               gradient=gradient, edge_weight=edge_weight)  # fmt: skip
     refinements = []
-    for index, frame in enumerate(tqdm(frames, desc="frames", unit="frame", disable=quiet)):
-        try:
-            sensor_preset, _ = adopt_camera(base, [frame])
-        except InputError as error:
-            raise InputError(f"{frame.source_depth_path}: the scan's camera does not fit the preset: {error}") from None
-        refinements.append(refine_scan_frame(sensor_preset, frame, index, settings, support_plane=not no_plane,
-                                             progress=not quiet))  # fmt: skip
+    if static_scene:
+        for first, scene_frames in tqdm(_scenes(frames), desc="scenes", unit="scene", disable=quiet):
+            sensor_preset = _camera_preset(base, scene_frames)
+            refinements += refine_static_scan(sensor_preset, scene_frames, settings, support_plane=not no_plane,
+                                              progress=not quiet, first_index=first)  # fmt: skip
+            for frame in scene_frames:
+                frame.release()
+    for index, frame in enumerate(tqdm([] if static_scene else frames, desc="frames", unit="frame", disable=quiet)):
+        refinements.append(refine_scan_frame(_camera_preset(base, [frame]), frame, index, settings,
+                                             support_plane=not no_plane, progress=not quiet))  # fmt: skip
         frame.release()
     refined = {r.name: {obj_id: r.result.refined[k] for k, obj_id in enumerate(r.object_ids)} for r in refinements}
     out = Path(out_dir)
     written = write_refined_poses(frames, refined, out)
     report = write_report(refinements, out / "report", {"preset": str(preset), "real_dir": str(real_dir),
-                          **{k: v for k, v in vars(settings).items()}})  # fmt: skip
+                          "static_scene": bool(static_scene), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
     for r in refinements:
         for change in r.object_changes():
             click.echo(f"{r.name} object {change['id']}: moved {change['rotation_deg']:.2f} deg, "
                        f"{change['translation_mm']:.2f} mm")  # fmt: skip
         click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm")
     click.echo(f"wrote {', '.join(str(p) for p in written)} and {report.parent}/")
+
+
+def _camera_preset(base, frames):
+    """The preset with the frames' camera (one line naming the first frame if it does not fit)."""
+    from ddsgen.fit.inputs import adopt_camera
+
+    try:
+        return adopt_camera(base, frames)[0]
+    except InputError as error:
+        raise InputError(f"{frames[0].source_depth_path}: the scan's camera does not fit the preset: {error}") from None
+
+
+def _scenes(frames) -> list:
+    """[(index of the scene's first frame, its frames)]: the static scenes of a folder.
+
+    Frames with camera poses (ddsgen's world_T_cam) belong together while they hold the same classes at
+    the same world poses (within 0.1 mm and 1e-4 rad: a scene list block); frames without (BOP) by their
+    scene folder.
+    """
+    groups: list[tuple[int, list]] = []
+    for index, frame in enumerate(frames):
+        previous = groups[-1][1][0] if groups else None
+        if previous is not None and _same_scene(previous, frame):
+            groups[-1][1].append(frame)
+        else:
+            groups.append((index, [frame]))
+    return groups
+
+
+def _same_scene(a, b) -> bool:
+    import numpy as np
+
+    if a.world_T_cam is None or b.world_T_cam is None:
+        return a.name.split("/")[0] == b.name.split("/")[0]
+    if [o.class_name for o in a.objects] != [o.class_name for o in b.objects]:
+        return False
+    for oa, ob in zip(a.objects, b.objects):
+        wa, wb = a.world_T_cam @ oa.cam_T_obj, b.world_T_cam @ ob.cam_T_obj
+        if np.abs(wa[:3, 3] - wb[:3, 3]).max() > 1e-4 or np.abs(wa[:3, :3] - wb[:3, :3]).max() > 1e-4:
+            return False
+    return True

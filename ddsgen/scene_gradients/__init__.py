@@ -17,6 +17,7 @@ Python API (tensors in, tensors out)::
     out.depth[mask].sub(real[mask]).abs().mean().backward()         # d loss / d pose
 
     result = refine_poses(sensor, scene, real_depth)                # the whole loop (Adam + re-casts)
+    results = refine_static_scene(sensor, views, real_depths)       # views of one static scene, together
 
 Your own pose estimator can produce R, t (and albedo) any way it likes and call :func:`render_depth`.
 """
@@ -26,8 +27,10 @@ from ddsgen.scene_gradients.poses import ScenePoses, axis_angle_to_matrix, pose_
 from ddsgen.scene_gradients.refine import RefineResult, RefineSettings, refine_poses, robust_depth_loss
 from ddsgen.scene_gradients.render import render_depth
 from ddsgen.scene_gradients.scene import RefinableScene
+from ddsgen.scene_gradients.static_scene import refine_static_scene
 
 __all__ = [
     "RefinableScene", "RefineResult", "RefineSettings", "ScenePoses", "SceneTensors", "axis_angle_to_matrix",
-    "pose_difference", "posed_geometry", "refine_poses", "render_depth", "robust_depth_loss", "scene_tensors",
+    "pose_difference", "posed_geometry", "refine_poses", "refine_static_scene", "render_depth", "robust_depth_loss",
+    "scene_tensors",
 ]  # fmt: skip

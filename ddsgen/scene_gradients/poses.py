@@ -8,6 +8,14 @@ and a correction (omega_k, tau_k): a rotation by ``exp([omega]_x)`` about the pa
 
 Rotating about the part's own centre (not the camera origin) keeps the rotation and translation
 directions nearly decoupled, so one learning rate per kind suits every part.
+
+Views of one static scene share their objects' corrections (:class:`SharedObjectCorrections`): a
+correction in the object's own frame (omega_b, tau_b) is, in a view whose initial rotation is R0, the
+camera-frame correction (R0 omega_b, R0 tau_b) about the same centre, since
+
+    exp([R0 omega_b]_x) (R0 X + t0 - c) + c + R0 tau_b = R0 (exp([omega_b]_x) (X - c_b) + c_b + tau_b) + t0
+
+with c = R0 c_b + t0. So one body-frame correction moves the object alike in every view.
 """
 
 from __future__ import annotations
@@ -75,6 +83,8 @@ class ScenePoses(nn.Module):
         free: (N,) bool, which parts may move (default all); a fixed part keeps its initial pose.
 
     Parameters: ``rotation`` (N, 3) axis-angle (rad), ``translation`` (N, 3) m, ``log_albedo`` (N,).
+    After :meth:`share_objects` the first n parts' corrections come from a
+    :class:`SharedObjectCorrections` instead (their rows of ``rotation`` and ``translation`` are unused).
     """
 
     def __init__(self, initial, centres, albedo, free=None):
@@ -89,6 +99,25 @@ class ScenePoses(nn.Module):
         self.translation = nn.Parameter(torch.zeros(n, 3, dtype=torch.float64))
         albedo = torch.as_tensor(np.asarray(albedo), dtype=torch.float64).clamp_min(1e-6)
         self.log_albedo = nn.Parameter(albedo.log())
+        self.shared = None
+
+    def share_objects(self, shared: SharedObjectCorrections) -> None:
+        """Take the first ``len(shared)`` parts' corrections from ``shared`` (body frame, tied across views)."""
+        if len(shared) > len(self):
+            raise ValueError(f"{len(shared)} shared objects, but the scene has {len(self)} parts")
+        self.shared = shared
+
+    def corrections(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The camera-frame corrections (rotation (N, 3) rad, translation (N, 3) m) the poses apply."""
+        free = self.free.to(self.rotation.dtype)[:, None]
+        rotation, translation = self.rotation * free, self.translation * free
+        if self.shared is None:
+            return rotation, translation
+        n = len(self.shared)
+        R0 = self.initial[:n, :3, :3]
+        rotation = torch.cat([(R0 @ self.shared.rotation[..., None])[..., 0], rotation[n:]])
+        translation = torch.cat([(R0 @ self.shared.translation[..., None])[..., 0], translation[n:]])
+        return rotation, translation
 
     def __len__(self) -> int:
         return int(self.initial.shape[0])
@@ -99,10 +128,10 @@ class ScenePoses(nn.Module):
 
     def forward(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The current poses: R (N, 3, 3) and t (N, 3) (float64, differentiable)."""
-        free = self.free.to(self.rotation.dtype)[:, None]
-        dR = axis_angle_to_matrix(self.rotation * free)
+        rotation, translation = self.corrections()
+        dR = axis_angle_to_matrix(rotation)
         R = dR @ self.initial[:, :3, :3]
-        t = (dR @ (self.initial[:, :3, 3] - self.centres)[..., None])[..., 0] + self.centres + self.translation * free
+        t = (dR @ (self.initial[:, :3, 3] - self.centres)[..., None])[..., 0] + self.centres + translation
         return R, t
 
     def matrices(self) -> np.ndarray:
@@ -112,3 +141,20 @@ class ScenePoses(nn.Module):
         T = np.tile(np.eye(4), (len(self), 1, 1))
         T[:, :3, :3], T[:, :3, 3] = R.numpy(), t.numpy()
         return T
+
+
+class SharedObjectCorrections(nn.Module):
+    """Pose corrections of n objects in their own frames, shared by every view of one static scene.
+
+    Parameters: ``rotation`` (n, 3) axis-angle (rad, object axes) about each object's bounding-box
+    centre, ``translation`` (n, 3) (m, object axes). See the module docstring for why a body-frame
+    correction moves the object alike in every view.
+    """
+
+    def __init__(self, n_objects: int):
+        super().__init__()
+        self.rotation = nn.Parameter(torch.zeros(int(n_objects), 3, dtype=torch.float64))
+        self.translation = nn.Parameter(torch.zeros(int(n_objects), 3, dtype=torch.float64))
+
+    def __len__(self) -> int:
+        return int(self.rotation.shape[0])

@@ -130,8 +130,8 @@ def refine_poses(sensor, scene: RefinableScene, real_depth: torch.Tensor, settin
     """Refine the poses of a scene's parts against a real depth image.
 
     Args:
-        sensor: :class:`~ddsgen.sensor.depth_sensor.DepthSensor` with the real camera's intrinsics
-            (``sensor.intr`` equal to ``scene.intrinsics``); its parameters are not changed.
+        sensor: :class:`~ddsgen.sensor.depth_sensor.DepthSensor`; its parameters are not changed, and it
+            is given the scene's camera (``scene.intrinsics``) for the call.
         scene: :class:`RefinableScene` at the initial poses (its ``poses`` are updated in place).
         real_depth: (H, W) float32 real depth (m, 0 = invalid), same camera as the scene.
         settings: :class:`RefineSettings`.
@@ -141,90 +141,156 @@ def refine_poses(sensor, scene: RefinableScene, real_depth: torch.Tensor, settin
     Returns:
         :class:`RefineResult`.
     """
+    (result,) = refine_views(sensor, [scene], [real_depth], settings, progress,
+                             None if callback is None else (lambda step, loss: callback(step, scene, loss)))
+    return result
+
+
+def refine_views(sensor, scenes: list, real_depths: list, settings: RefineSettings | None = None,
+                 progress: bool = False, callback=None) -> list:  # fmt: skip
+    """Refine several views together: one loss, the mean of the views' losses, and one optimiser.
+
+    Views whose :class:`~ddsgen.scene_gradients.poses.ScenePoses` share their objects' corrections
+    (:func:`ddsgen.scene_gradients.static_scene.refine_static_scene`) move those objects together;
+    otherwise the views are independent problems that merely step in lockstep. View 0 draws exactly
+    the noise a single-view refinement draws. ``callback(step, loss_m)`` after every step.
+
+    Returns:
+        one :class:`RefineResult` per view.
+    """
     s = settings or RefineSettings()
-    real = torch.as_tensor(real_depth, dtype=torch.float32)
-    if tuple(real.shape) != (scene.intrinsics.height, scene.intrinsics.width):
-        raise ValueError(f"real depth is {tuple(real.shape)}, the scene's camera is "
-                         f"{(scene.intrinsics.height, scene.intrinsics.width)}")  # fmt: skip
-    noise = sensor.draw_noise([int(s.seed), REFINE_STREAM])
+    reals = [torch.as_tensor(r, dtype=torch.float32) for r in real_depths]
+    if len(reals) != len(scenes) or not scenes:
+        raise ValueError(f"{len(scenes)} scenes but {len(reals)} real depth images")
+    for scene, real in zip(scenes, reals):
+        if tuple(real.shape) != (scene.intrinsics.height, scene.intrinsics.width):
+            raise ValueError(f"real depth is {tuple(real.shape)}, the scene's camera is "
+                             f"{(scene.intrinsics.height, scene.intrinsics.width)}")  # fmt: skip
     trainable = [p for p in sensor.parameters() if p.requires_grad]
     for p in trainable:  # the sensor is fixed here; its flags are restored at the end
         p.requires_grad_(False)
     try:
-        return _refine_loop(sensor, scene, real, s, noise, progress, callback)
+        return _refine_loop(sensor, scenes, reals, s, progress, callback)
     finally:
         for p in trainable:
             p.requires_grad_(True)
 
 
-def _refine_loop(sensor, scene, real, s, noise, progress, callback) -> RefineResult:
-    from tqdm import tqdm
+def _noise_seed(s: RefineSettings, view: int, *step: int) -> list:
+    """Noise stream of a view (view 0: the single-view stream) and, during the loop, of a step."""
+    return [int(s.seed), REFINE_STREAM, *step] + ([view] if view else [])
 
-    poses = scene.poses
-    initial = poses.matrices()
-    groups = [{"params": [poses.rotation], "lr": s.lr_rotation}, {"params": [poses.translation], "lr": s.lr_translation}]
-    if s.lr_albedo > 0:
-        groups.append({"params": [poses.log_albedo], "lr": s.lr_albedo})
-    else:
-        poses.log_albedo.requires_grad_(False)
-    optimiser = torch.optim.Adam(groups)
-    base_lrs = [g["lr"] for g in groups]
 
-    def evaluate(tensors):
+def _distinct(parameters) -> list:
+    out = []
+    for p in parameters:
+        if all(p is not q for q in out):
+            out.append(p)
+    return out
+
+
+class _View:
+    """One view's state in the loop: its scene, real depth, cast and outline (re-made every re-cast)."""
+
+    def __init__(self, index: int, scene: RefinableScene, real: torch.Tensor, s: RefineSettings):
+        self.index, self.scene, self.real, self.s = index, scene, real, s
+        self.edge_distance = torch.from_numpy(real_edge_distance(real.numpy(), s.edge_jump_m, s.edge_max_px))
+        self.meshes = [p.mesh for p in scene.parts]
+        self.tensors, self.outline = None, None
+
+    def recast(self) -> None:
+        poses = self.scene.poses
+        self.tensors = self.scene.cast()
+        if self.s.edge_weight <= 0:
+            return
         with torch.no_grad():
             R, t = poses()
-            geometry = posed_geometry(tensors, R, t, poses.albedo)
-            out = sensor(geometry, noise=noise)
-        gap = _gap_mm(out.depth, out.valid, geometry.clean_depth, real, tensors.instance, s.band_m)
+            clean = posed_geometry(self.tensors, R, t, poses.albedo).clean_depth.numpy()
+        self.outline = outline_points(self.tensors, self.meshes, clean, self.scene.n_objects, self.s.edge_jump_m)
+
+    def evaluate(self, sensor) -> tuple[np.ndarray, float]:
+        """(simulated depth (H, W) m at the current poses, gap in mm) with the view's evaluation noise."""
+        poses = self.scene.poses
+        with torch.no_grad():
+            R, t = poses()
+            geometry = posed_geometry(self.tensors, R, t, poses.albedo)
+            out = sensor(geometry, noise=sensor.draw_noise(_noise_seed(self.s, self.index)))
+        gap = _gap_mm(out.depth, out.valid, geometry.clean_depth, self.real, self.tensors.instance, self.s.band_m)
         return out.depth.numpy().copy(), gap
 
-    edge_distance = torch.from_numpy(real_edge_distance(real.numpy(), s.edge_jump_m, s.edge_max_px))
-    meshes = [p.mesh for p in scene.parts]
+    def loss(self, sensor, step: int):
+        """(loss (m, differentiable), pixels compared) of this step, fresh noise."""
+        s, poses = self.s, self.scene.poses
+        R, t = poses()
+        # Fresh noise every step (a fixed seeded sequence): the optimum is that of the expected loss, not of
+        # one noise draw (with one fixed draw the poses fit its speckle: 1.5 deg left instead of 1 deg, measured).
+        depth, valid, geometry = simulate_depth(sensor, self.tensors, R, t, poses.albedo,
+                                                sensor.draw_noise(_noise_seed(s, self.index, step)), s.gradient)
+        loss, mask = robust_depth_loss(depth, valid, geometry.clean_depth, self.real, s.band_m, s.huber_m)
+        if self.outline is not None:
+            loss = loss + s.edge_weight * edge_loss(self.outline, R, t, self.edge_distance, self.scene.intrinsics).float()
+        return loss, int(mask.sum())
 
-    def outline(tensors):
-        if s.edge_weight <= 0:
-            return None
-        with torch.no_grad():
-            R, t = poses()
-            clean = posed_geometry(tensors, R, t, poses.albedo).clean_depth.numpy()
-        return outline_points(tensors, meshes, clean, scene.n_objects, s.edge_jump_m)
 
-    tensors = scene.cast()
-    outline_now = outline(tensors)
-    depth_before, gap_before = evaluate(tensors)
-    history = []
+def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
+    from tqdm import tqdm
+
+    from ddsgen.fit.simulate import frame_camera
+
+    views = [_View(i, scene, real, s) for i, scene, real in zip(range(len(scenes)), scenes, reals)]
+    all_poses = [v.scene.poses for v in views]
+    shared = _distinct(p.shared for p in all_poses if p.shared is not None)
+    rotations = _distinct([p.rotation for p in all_poses] + [m.rotation for m in shared])
+    translations = _distinct([p.translation for p in all_poses] + [m.translation for m in shared])
+    groups = [{"params": rotations, "lr": s.lr_rotation}, {"params": translations, "lr": s.lr_translation}]
+    if s.lr_albedo > 0:
+        groups.append({"params": [p.log_albedo for p in all_poses], "lr": s.lr_albedo})
+    else:
+        for p in all_poses:
+            p.log_albedo.requires_grad_(False)
+    optimiser = torch.optim.Adam(groups)
+    base_lrs = [g["lr"] for g in groups]
+    initial = [p.matrices() for p in all_poses]
+    before = []
+    for v in views:
+        v.recast()
+        with frame_camera(sensor, v.scene.intrinsics):
+            before.append(v.evaluate(sensor))
+    histories = [[] for _ in views]
     first_averaged = s.steps - int(round(s.average_last * s.steps)) if s.average_last > 0 else s.steps
     averaged = []
     for step in tqdm(range(s.steps), desc="refine", unit="step", disable=not progress, leave=False):
         if step and step % max(int(s.recast_every), 1) == 0:
-            tensors = scene.cast()
-            outline_now = outline(tensors)
+            for v in views:
+                v.recast()
         decay = 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * step / max(s.steps, 1)))
         for group, lr in zip(optimiser.param_groups, base_lrs):
             group["lr"] = lr * decay
         optimiser.zero_grad()
-        R, t = poses()
-        # Fresh noise every step (a fixed seeded sequence): the optimum is that of the expected loss, not of
-        # one noise draw (with one fixed draw the poses fit its speckle: 1.5 deg left instead of 1 deg, measured).
-        depth, valid, geometry = simulate_depth(sensor, tensors, R, t, poses.albedo,
-                                                sensor.draw_noise([int(s.seed), REFINE_STREAM, step]), s.gradient)
-        loss, mask = robust_depth_loss(depth, valid, geometry.clean_depth, real, s.band_m, s.huber_m)
-        if outline_now is not None:
-            loss = loss + s.edge_weight * edge_loss(outline_now, R, t, edge_distance, scene.intrinsics).float()
-        if loss.requires_grad:
-            loss.backward()
+        total = 0.0
+        for v, history in zip(views, histories):
+            with frame_camera(sensor, v.scene.intrinsics):
+                loss, pixels = v.loss(sensor, step)
+            total = total + loss / len(views)
+            history.append({"step": step, "loss_mm": float(loss.detach()) * 1000.0, "pixels": pixels})
+        if isinstance(total, torch.Tensor) and total.requires_grad:
+            total.backward()
             optimiser.step()
-        history.append({"step": step, "loss_mm": float(loss.detach()) * 1000.0, "pixels": int(mask.sum())})
         if callback is not None:
-            callback(step, scene, float(loss.detach()))
+            callback(step, float(total))
         if step >= first_averaged:
-            averaged.append([p.detach().clone() for p in (poses.rotation, poses.translation)])
+            averaged.append([p.detach().clone() for p in rotations + translations])
     if averaged:
         with torch.no_grad():
-            poses.rotation.copy_(torch.stack([a[0] for a in averaged]).mean(0))
-            poses.translation.copy_(torch.stack([a[1] for a in averaged]).mean(0))
-    tensors = scene.cast()
-    depth_after, gap_after = evaluate(tensors)
-    return RefineResult(initial=initial, refined=poses.matrices(), albedo=poses.albedo.detach().numpy().copy(),
-                        history=history, gap_before_mm=gap_before, gap_after_mm=gap_after,
-                        depth_before=depth_before, depth_after=depth_after)  # fmt: skip
+            for k, p in enumerate(rotations + translations):
+                p.copy_(torch.stack([a[k] for a in averaged]).mean(0))
+    results = []
+    for v, history, init, (depth_before, gap_before) in zip(views, histories, initial, before):
+        v.recast()
+        with frame_camera(sensor, v.scene.intrinsics):
+            depth_after, gap_after = v.evaluate(sensor)
+        poses = v.scene.poses
+        results.append(RefineResult(initial=init, refined=poses.matrices(), albedo=poses.albedo.detach().numpy().copy(),
+                                    history=history, gap_before_mm=gap_before, gap_after_mm=gap_after,
+                                    depth_before=depth_before, depth_after=depth_after))  # fmt: skip
+    return results

@@ -56,21 +56,58 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
         sensor: a :class:`~ddsgen.sensor.depth_sensor.DepthSensor` to use (e.g. one being fitted; its
             camera is set to the window's for the call); default: a new one from ``preset``.
     """
-    from ddsgen.fit.simulate import frame_camera, frame_scene, prepare_frame
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     s = settings or RefineSettings()
-    prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
-                             crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
-    x0, y0, width, height = prepared.crop
-    window = prepared.intrinsics
-    scene = frame_scene(frame, plane=prepared.plane)
-    if sensor is None:
-        sensor = DepthSensor(preset, intrinsics=window)
+    sensor = sensor if sensor is not None else DepthSensor(preset)  # refine_poses gives it the window's camera
+    view = _View(preset, frame, index, s, support_plane, crop_margin_px, float(sensor.baseline.detach()))
+    result = refine_poses(sensor, view.refinable, view.real, s, progress=progress)
+    return view.refinement(result)
+
+
+def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSettings | None = None, *,
+                       support_plane: bool = True, crop_margin_px: int = 32, progress: bool = False,
+                       first_index: int = 0) -> list[FrameRefinement]:  # fmt: skip
+    """Refine the frames of one static scene together: each object's correction is shared by every frame.
+
+    Objects are matched across frames by their position in each frame's list and must have the same
+    class there (BOP: the order of scene_gt.json, the same in every frame of a static scene); each
+    frame keeps its own support plane. Arguments as :func:`refine_scan_frame`; ``first_index`` is the
+    first frame's position in its folder. Returns one :class:`FrameRefinement` per frame.
+    """
+    from ddsgen.errors import InputError
+    from ddsgen.scene_gradients.static_scene import refine_static_scene
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    classes = [o.class_name for o in frames[0].objects]
+    for frame in frames[1:]:
+        if [o.class_name for o in frame.objects] != classes:
+            raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists objects "
+                             f"{[o.class_name for o in frame.objects]}, frame {frames[0].name} {classes}: "
+                             "a static scene needs the same objects in the same order in every frame")  # fmt: skip
+    s = settings or RefineSettings()
+    sensor = DepthSensor(preset)  # given each view's window in turn
     baseline = float(sensor.baseline.detach())
-    refinable = RefinableScene(scene, window, baseline, preset.shadow_bias_m, ir_margin_px=preset.ir_margin_right_px)
-    real = prepared.real_depth.clone()
-    with frame_camera(sensor, window):
-        result = refine_poses(sensor, refinable, real, s, progress=progress)
-    return FrameRefinement(name=frame.name, crop=(int(x0), int(y0), int(width), int(height)), object_ids=[o.id for o in frame.objects],
-                           result=result, real_depth=real.numpy(), plane_fitted=prepared.plane is not None)  # fmt: skip
+    views = [_View(preset, frame, first_index + k, s, support_plane, crop_margin_px, baseline)
+             for k, frame in enumerate(frames)]  # fmt: skip
+    results = refine_static_scene(sensor, [v.refinable for v in views], [v.real for v in views], s, progress)
+    return [v.refinement(r) for v, r in zip(views, results)]
+
+
+class _View:
+    """One scan frame made ready to refine: its window, scene at the annotated poses, real depth."""
+
+    def __init__(self, preset, frame, index, s, support_plane, crop_margin_px, baseline_m):
+        from ddsgen.fit.simulate import frame_scene, prepare_frame
+
+        prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
+                                 crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
+        self.frame, self.crop, self.plane_fitted = frame, tuple(int(v) for v in prepared.crop), prepared.plane is not None
+        scene = frame_scene(frame, plane=prepared.plane)
+        self.refinable = RefinableScene(scene, prepared.intrinsics, baseline_m, preset.shadow_bias_m,
+                                        ir_margin_px=preset.ir_margin_right_px)  # fmt: skip
+        self.real = prepared.real_depth.clone()
+
+    def refinement(self, result: RefineResult) -> FrameRefinement:
+        return FrameRefinement(name=self.frame.name, crop=self.crop, object_ids=[o.id for o in self.frame.objects],
+                               result=result, real_depth=self.real.numpy(), plane_fitted=self.plane_fitted)  # fmt: skip
