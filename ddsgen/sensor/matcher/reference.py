@@ -125,8 +125,12 @@ def _interleave_reversed(rows: int, width: int, S: int, left: int, right: int, d
 
 
 
-_REF_CACHE: dict = {}
+_REF_CACHE: dict = {}  # key -> (weakref to the phases, _Reference), least recently used first
 _REF_LOCK = threading.Lock()
+# A few cameras at once: refining several views of a scene (or fitting frames cropped to different
+# windows) switches the sensor's camera every call; one entry would rebuild the reference each time
+# (~60 ms at 320x240). Render and a one-camera fit use one entry.
+_REF_CACHE_SIZE = 4
 
 
 def _prepare_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, extra: int,
@@ -144,19 +148,25 @@ def _prepare_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, e
         key = (phases.data_ptr(), phases._version, tuple(phases.shape), phases.dtype, str(phases.device),
                pad, block, n_sub, extra, refine_level)  # fmt: skip
         with _REF_LOCK:
-            hit = _REF_CACHE.get(key)
-        if hit is not None and hit[0]() is phases:
-            return hit[1]
-    with _REF_LOCK:
-        if key is not None:
-            _REF_CACHE.clear()  # one sensor at a time is the common case: free the old one first
+            hit = _REF_CACHE.pop(key, None)
+            if hit is not None and hit[0]() is phases:
+                _REF_CACHE[key] = hit  # most recently used last
+                return hit[1]
+            _evict(_REF_CACHE_SIZE - 1)  # free before building: memory stays flat
     ref = _build_reference(phases[:: 2 ** (n_sub - refine_level)], pad, block, refine_level, extra)
     if key is not None:
         with _REF_LOCK:
-            _REF_CACHE.clear()  # one sensor at a time is the common case; keep memory flat
+            _evict(_REF_CACHE_SIZE - 1)
             _REF_CACHE[key] = (weakref.ref(phases), ref)
     return ref
 
+
+def _evict(keep: int) -> None:
+    """Drop entries whose phases are gone, then the least recently used down to ``keep`` (lock held)."""
+    for key in [k for k, (phases, _) in _REF_CACHE.items() if phases() is None]:
+        del _REF_CACHE[key]
+    while len(_REF_CACHE) > keep:
+        del _REF_CACHE[next(iter(_REF_CACHE))]
 
 
 def _build_reference(phases: torch.Tensor, pad: int, block: int, n_sub: int, extra: int) -> _Reference:
