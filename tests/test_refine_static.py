@@ -21,6 +21,7 @@ from ddsgen.scene_gradients import RefinableScene, RefineSettings, refine_poses
 from ddsgen.scene_gradients.poses import SharedObjectCorrections, axis_angle_to_matrix, perturb_pose, pose_difference
 from ddsgen.scene_gradients.static_scene import refine_static_scene
 from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry
+from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, written_inputs
 
 
 def rotation(rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:
@@ -140,57 +141,26 @@ def test_static_scene_refinement_needs_the_same_objects_in_every_view():
 
 # ------------------------------------------------------------------------------------------ CLI
 
-SMALL_PRESET = """\
-name: kinect_v1_small
-width_px: 160
-height_px: 120
-focal_px: 143.1025
-baseline_m: 0.075
-z_min_m: 0.4
-z_max_m: 4.0
-block_size_px: 9
-emitted_intensity: 1.5e6
-shadow_bias_m: 0.005
-softargmax_beta: 15.0
-subpixel_level: 2
-pattern: kinect_like_640.png
-band_rows: 120
-"""
-SCENES = """\
-scenes:
-  - name: table
-    frames: 3
-    objects:
-      - {shape: box, size: [0.2, 0.15, 0.12], albedo: 0.6}
-      - {shape: l_bracket, albedo: 0.6}
-    ground: {size: [6, 6], albedo: 0.6}
-    camera: {distance: [0.9, 1.1], elevation_deg: [40, 50], azimuth_deg: [-30, 30]}
-"""
-
-
 @pytest.fixture(scope="module")
 def two_static_scenes(tmp_path_factory):
-    """Six frames: two layouts, each seen from three camera poses."""
+    """Six frames: two layouts, each seen from three camera poses. Returns (preset path, scans folder)."""
     from ddsgen.runner import render_dataset
 
     root = tmp_path_factory.mktemp("static")
-    (root / "small.yaml").write_text(SMALL_PRESET)
-    (root / "scenes.yaml").write_text(SCENES)
-    render_dataset(str(root / "small.yaml"), str(root / "scenes.yaml"), 6, str(root / "scans"), workers=1, seed=3,
-                   progress=False)  # fmt: skip
-    return root
+    with written_inputs(root, tiny_preset_yaml(160, 120), tiny_scenes_yaml(frames=3, clutter=(2, 3))) as paths:
+        render_dataset(paths[0], paths[1], 6, str(root / "scans"), workers=1, seed=3, progress=False)
+    return paths[0], root / "scans"
 
 
 def test_refine_cli_static_scene_writes_one_world_pose_per_object_and_scene(two_static_scenes, tmp_path):
     from ddsgen.commands.refine import _scenes
     from ddsgen.io.scanfolder import read_scan_folder
 
-    root = two_static_scenes
-    frames = read_scan_folder(root / "scans")
+    preset, scans = two_static_scenes
+    frames = read_scan_folder(scans)
     assert [[f.frame for f in group] for _, group in _scenes(frames)] == [[0, 1, 2], [3, 4, 5]]
     out = tmp_path / "refined"
-    assert main(["refine", str(root / "small.yaml"), str(root / "scans"), "--out", str(out), "--steps", "3",
-                 "--static-scene", "--quiet"]) == 0  # fmt: skip
+    assert main(["refine", preset, str(scans), "--out", str(out), "--steps", "3", "--static-scene", "--quiet"]) == 0
     refined = read_scan_folder(out)
     moved = 0
     for group in ([refined[0], refined[1], refined[2]], [refined[3], refined[4], refined[5]]):
@@ -203,8 +173,7 @@ def test_refine_cli_static_scene_writes_one_world_pose_per_object_and_scene(two_
     assert moved > 0
     # Without --static-scene every frame moves its objects its own way.
     single = tmp_path / "single"
-    assert main(["refine", str(root / "small.yaml"), str(root / "scans"), "--out", str(single), "--steps", "3",
-                 "--quiet"]) == 0  # fmt: skip
+    assert main(["refine", preset, str(scans), "--out", str(single), "--steps", "3", "--quiet"]) == 0
     apart = read_scan_folder(single)
     a, b = (apart[i].world_T_cam @ apart[i].objects[0].cam_T_obj for i in (0, 1))
     assert pose_difference(a, b)[1] > 0.01
@@ -214,7 +183,8 @@ def test_a_static_scene_whose_frames_list_other_objects_is_refused_with_one_line
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.scene_gradients.scan import refine_static_scan
 
-    frames = read_scan_folder(two_static_scenes / "scans")[:2]
+    preset, scans = two_static_scenes
+    frames = read_scan_folder(scans)[:2]
     frames[1].objects = frames[1].objects[1:]
     with pytest.raises(InputError, match="same objects in the same order"):
-        refine_static_scan(load_preset(str(two_static_scenes / "small.yaml")), frames)
+        refine_static_scan(load_preset(preset), frames)
