@@ -5,6 +5,7 @@ CLI finds a folder's static scenes and writes poses that agree between their fra
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -160,7 +161,11 @@ def test_refine_cli_static_scene_writes_one_world_pose_per_object_and_scene(two_
     frames = read_scan_folder(scans)
     assert [[f.frame for f in group] for _, group in _scenes(frames)] == [[0, 1, 2], [3, 4, 5]]
     out = tmp_path / "refined"
-    assert main(["refine", preset, str(scans), "--out", str(out), "--steps", "3", "--static-scene", "--quiet"]) == 0
+    # Two of each scene's three frames simulated; the correction they find moves the third one too.
+    assert main(["refine", preset, str(scans), "--out", str(out), "--steps", "3", "--static-scene", "--static-views",
+                 "2", "--quiet"]) == 0  # fmt: skip
+    report = json.loads((out / "report" / "refine_report.json").read_text())
+    assert [f["frame"].split("/")[1] for f in report["frames"]] == ["000000", "000002", "000003", "000005"]
     refined = read_scan_folder(out)
     moved = 0
     for group in ([refined[0], refined[1], refined[2]], [refined[3], refined[4], refined[5]]):
@@ -188,3 +193,6 @@ def test_a_static_scene_whose_frames_list_other_objects_is_refused_with_one_line
     frames[1].objects = frames[1].objects[1:]
     with pytest.raises(InputError, match="same objects in the same order"):
         refine_static_scan(load_preset(preset), frames)
+    never = scans.parent / "never"
+    assert main(["refine", preset, str(scans), "--out", str(never), "--static-scene", "--static-views", "0"]) == 2
+    assert not never.exists()

@@ -31,10 +31,13 @@ from ddsgen.errors import InputError
               help="Frames that show one static scene (BOP: a scene folder; ddsgen: consecutive frames with the same "
                    "objects at the same world poses) are refined together, each object's correction shared by "
                    "all of them: their noise averages out. Objects are matched by their order in each frame.")
+@click.option("--static-views", type=int, default=8, show_default=True,
+              help="With --static-scene: frames simulated per scene (evenly spaced); the correction they find "
+                   "is applied to the scene's other frames too.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, static_scene,
-           seed, quiet):  # fmt: skip
+           static_views, seed, quiet):  # fmt: skip
     """Refine every annotated object's pose (and the support plane) in REAL_DIR with the sensor PRESET.
 
     Each frame's objects are moved until the simulated depth matches the real one (Huber loss on the
@@ -60,6 +63,8 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
         raise click.BadParameter("must be > 0", param_hint="--band-mm")
     if not edge_weight >= 0:
         raise click.BadParameter("must be >= 0", param_hint="--edge-weight")
+    if static_views < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--static-views")
     base = load_preset(preset)
     frames = read_scan_folder(real_dir)
     if not frames:
@@ -69,23 +74,26 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
             raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists no objects (nothing to refine)")
     settings = RefineSettings(steps=steps, recast_every=recast_every, band_m=band_mm / 1000.0, seed=seed,
                               gradient=gradient, edge_weight=edge_weight)  # fmt: skip
-    refinements = []
+    refinements, refined = [], {}
     if static_scene:
         for first, scene_frames in tqdm(_scenes(frames), desc="scenes", unit="scene", disable=quiet):
             sensor_preset = _camera_preset(base, scene_frames)
-            refinements += refine_static_scan(sensor_preset, scene_frames, settings, support_plane=not no_plane,
-                                              progress=not quiet, first_index=first)  # fmt: skip
+            simulated, poses = refine_static_scan(sensor_preset, scene_frames, settings, support_plane=not no_plane,
+                                                  progress=not quiet, first_index=first, max_views=static_views)  # fmt: skip
+            refinements += simulated
+            refined.update(poses)
             for frame in scene_frames:
                 frame.release()
     for index, frame in enumerate(tqdm([] if static_scene else frames, desc="frames", unit="frame", disable=quiet)):
         refinements.append(refine_scan_frame(_camera_preset(base, [frame]), frame, index, settings,
                                              support_plane=not no_plane, progress=not quiet))  # fmt: skip
         frame.release()
-    refined = {r.name: {obj_id: r.result.refined[k] for k, obj_id in enumerate(r.object_ids)} for r in refinements}
+    for r in [] if static_scene else refinements:
+        refined[r.name] = {obj_id: r.result.refined[k] for k, obj_id in enumerate(r.object_ids)}
     out = Path(out_dir)
     written = write_refined_poses(frames, refined, out)
     report = write_report(refinements, out / "report", {"preset": str(preset), "real_dir": str(real_dir),
-                          "static_scene": bool(static_scene), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
+                          "static_scene": bool(static_scene), "static_views": int(static_views), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
     for r in refinements:
         for change in r.object_changes():
             click.echo(f"{r.name} object {change['id']}: moved {change['rotation_deg']:.2f} deg, "
@@ -107,9 +115,9 @@ def _camera_preset(base, frames):
 def _scenes(frames) -> list:
     """[(index of the scene's first frame, its frames)]: the static scenes of a folder.
 
-    Frames with camera poses (ddsgen's world_T_cam) belong together while they hold the same classes at
-    the same world poses (within 0.1 mm and 1e-4 rad: a scene list block); frames without (BOP) by their
-    scene folder.
+    BOP frames (and frames without camera poses) belong together by their scene folder; ddsgen frames
+    while they hold the same classes at the same world poses (within 0.1 mm and 1e-4: a scene-list
+    block of ``render``).
     """
     groups: list[tuple[int, list]] = []
     for index, frame in enumerate(frames):
@@ -124,7 +132,7 @@ def _scenes(frames) -> list:
 def _same_scene(a, b) -> bool:
     import numpy as np
 
-    if a.world_T_cam is None or b.world_T_cam is None:
+    if a.layout == "bop" or a.world_T_cam is None or b.world_T_cam is None:  # BOP: the scene folder is the scene
         return a.name.split("/")[0] == b.name.split("/")[0]
     if [o.class_name for o in a.objects] != [o.class_name for o in b.objects]:
         return False

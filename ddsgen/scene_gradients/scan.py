@@ -67,15 +67,22 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
 
 def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSettings | None = None, *,
                        support_plane: bool = True, crop_margin_px: int = 32, progress: bool = False,
-                       first_index: int = 0) -> list[FrameRefinement]:  # fmt: skip
+                       first_index: int = 0, max_views: int = 8) -> tuple[list[FrameRefinement], dict]:  # fmt: skip
     """Refine the frames of one static scene together: each object's correction is shared by every frame.
 
     Objects are matched across frames by their position in each frame's list and must have the same
     class there (BOP: the order of scene_gt.json, the same in every frame of a static scene); each
-    frame keeps its own support plane. Arguments as :func:`refine_scan_frame`; ``first_index`` is the
-    first frame's position in its folder. Returns one :class:`FrameRefinement` per frame.
+    frame keeps its own support plane. At most ``max_views`` frames, evenly spaced over the scene, are
+    simulated (a BOP scene may hold a thousand; the correction is one per object); the correction they
+    find is applied to the others too. Arguments as :func:`refine_scan_frame`; ``first_index`` is the
+    first frame's position in its folder.
+
+    Returns:
+        (one :class:`FrameRefinement` per simulated frame, {frame name: {object id: (4, 4) refined
+        ``cam_T_obj``}} for every frame of the scene).
     """
     from ddsgen.errors import InputError
+    from ddsgen.fit.simulate import frame_scene
     from ddsgen.scene_gradients.static_scene import refine_static_scene
     from ddsgen.sensor.depth_sensor import DepthSensor
 
@@ -85,13 +92,21 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
             raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists objects "
                              f"{[o.class_name for o in frame.objects]}, frame {frames[0].name} {classes}: "
                              "a static scene needs the same objects in the same order in every frame")  # fmt: skip
+    if max_views < 1:
+        raise ValueError(f"max_views must be >= 1, got {max_views}")
     s = settings or RefineSettings()
     sensor = DepthSensor(preset)  # given each view's window in turn
     baseline = float(sensor.baseline.detach())
-    views = [_View(preset, frame, first_index + k, s, support_plane, crop_margin_px, baseline)
-             for k, frame in enumerate(frames)]  # fmt: skip
+    chosen = sorted(set(np.linspace(0, len(frames) - 1, min(max_views, len(frames))).round().astype(int).tolist()))
+    views = [_View(preset, frames[k], first_index + k, s, support_plane, crop_margin_px, baseline) for k in chosen]
     results = refine_static_scene(sensor, [v.refinable for v in views], [v.real for v in views], s, progress)
-    return [v.refinement(r) for v, r in zip(views, results)]
+    shared = views[0].refinable.poses.shared
+    poses = {}
+    for frame in frames:  # the shared correction applied to each frame's own annotated poses
+        scene = RefinableScene(frame_scene(frame), preset.intrinsics, baseline, preset.shadow_bias_m)
+        scene.poses.share_objects(shared)
+        poses[frame.name] = {o.id: T for o, T in zip(frame.objects, scene.object_poses())}
+    return [v.refinement(r) for v, r in zip(views, results)], poses
 
 
 class _View:
