@@ -12,6 +12,7 @@ Prints `bench: NAME VALUE UNIT` lines:
   synthetic_static_scene_*, synthetic_static_scene_floor_*  4 static scenes of the same 4 shapes, each seen from 4
                                                             camera poses (orbit of +-12 deg) and refined together
                                                             (`refine_static_scene`): median over the 16 objects
+  synthetic_static_scene_linemod_*                          the same with 2 scenes of the 8 LineMOD meshes (below)
   synthetic_linemod_*, synthetic_linemod_floor_*             the same with the 8 LineMOD-Occluded meshes at
                                                             0.75-0.95 m, 640x480 (3 frames; needs the data)
   linemod_cat_rotation_error_deg, linemod_cat_translation_error_mm   the shared cat frame, pose perturbed by
@@ -165,24 +166,29 @@ def orbit(azimuth_deg: float, elevation_deg: float, centre) -> np.ndarray:
 ORBIT = [(0, 0), (12, 0), (-12, 0), (0, 10)]
 
 
-def static_scene_recovery(scenes: int = 4, start=(3.0, 10.0)) -> tuple[float, float]:
+def static_scene_recovery(scenes: int = 4, start=(3.0, 10.0), models: str = "shapes") -> tuple[float, float]:
     """Median (deg, mm) error over objects of static scenes seen from the ``ORBIT`` camera poses and refined
-    together from world poses ``start`` off the truth (the scenes and window of ``synthetic_recovery``)."""
+    together from world poses ``start`` off the truth (the scenes and windows of ``synthetic_recovery``)."""
     preset = load_preset("kinect_v1")
     full = preset.intrinsics
-    intr = Intrinsics(320, 240, full.fx, full.fy, full.cx - 160, full.cy - 120)
+    intr = full if models == "linemod" else Intrinsics(320, 240, full.fx, full.fy, full.cx - 160, full.cy - 120)
     sensor = DepthSensor(preset, intrinsics=intr)
+    meshes = _linemod_meshes() if models == "linemod" else None
     errors = []
     for index in range(scenes):
         rng = np.random.default_rng(100 + index)
-        truth = table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
+        if meshes:
+            truth = grid_scene(meshes, rng, spread=(0.39, 0.2), depth=rng.uniform(0.75, 0.95), table_behind=0.25)
+        else:
+            truth = table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
         moved = []
         for o in truth.objects:
             centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
             moved.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, *start, rng)))
         views, reals = [], []
         for v, angles in enumerate(ORBIT):
-            seen = dataclasses.replace(truth, world_T_cam=orbit(*angles, centre=(0.0, 0.0, 0.72)))
+            seen = dataclasses.replace(truth, world_T_cam=orbit(*angles, centre=(0.0, 0.0, 0.72 if meshes is None
+                                                                          else truth.objects[0].world_T_obj[2, 3])))
             with torch.no_grad():
                 reals.append(sensor(SensorGeometry.from_hits(cast(seen, intr, 0.075, 0.005)), seed=50 + 10 * index + v).depth)
             views.append(RefinableScene(dataclasses.replace(seen, objects=moved), intr, 0.075, 0.005))
@@ -241,8 +247,11 @@ def main() -> None:
     if LINEMOD.is_dir():
         cases += [("synthetic_linemod", {"models": "linemod", "frames": 3}),
                   ("synthetic_linemod_floor", {"models": "linemod", "frames": 3, "start": (0.0, 0.0)})]
-    for name, kwargs in cases + [("synthetic_static_scene", {"static": True}),
-                                 ("synthetic_static_scene_floor", {"static": True, "start": (0.0, 0.0)})]:
+    cases += [("synthetic_static_scene", {"static": True}),
+              ("synthetic_static_scene_floor", {"static": True, "start": (0.0, 0.0)})]
+    if LINEMOD.is_dir():
+        cases += [("synthetic_static_scene_linemod", {"static": True, "models": "linemod", "scenes": 2})]
+    for name, kwargs in cases:
         if kwargs.pop("static", False):
             deg, mm = static_scene_recovery(**kwargs)
         else:
