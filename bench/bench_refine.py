@@ -119,6 +119,31 @@ def _linemod_meshes() -> list:
     return [(p.stem, load_mesh(str(p), 0.001, source=str(p))) for p in sorted((LINEMOD / "models").glob("obj_*.ply"))]
 
 
+def _recovery_setup(models: str):
+    """(sensor, camera, meshes) of the synthetic cases: "shapes" in a 320x240 window (meshes None) or the
+    LineMOD meshes at 640x480."""
+    preset = load_preset("kinect_v1")
+    full = preset.intrinsics
+    intr = full if models == "linemod" else Intrinsics(320, 240, full.fx, full.fy, full.cx - 160, full.cy - 120)
+    return DepthSensor(preset, intrinsics=intr), intr, _linemod_meshes() if models == "linemod" else None
+
+
+def _truth_scene(meshes, rng: np.random.Generator) -> FrameScene:
+    """The LineMOD grid (4 x 2, 0.13 m apart in x, 0.2 m in y, at 0.75-0.95 m) or 4 shapes at 0.7 m."""
+    if meshes:
+        return grid_scene(meshes, rng, spread=(0.39, 0.2), depth=rng.uniform(0.75, 0.95), table_behind=0.25)
+    return table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
+
+
+def _perturbed(objects, start, rng: np.random.Generator) -> list:
+    """The objects with their poses ``start`` = (deg, mm) off, about their bounding-box centres."""
+    moved = []
+    for o in objects:
+        centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
+        moved.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, *start, rng)))
+    return moved
+
+
 def synthetic_recovery(frames: int = 8, edge_weight: float = 0.0, start=(3.0, 10.0),
                        models: str = "shapes") -> tuple[float, float]:  # fmt: skip
     """Median (deg, mm) error over objects after refining from poses ``start`` = (deg, mm) off the truth.
@@ -127,25 +152,15 @@ def synthetic_recovery(frames: int = 8, edge_weight: float = 0.0, start=(3.0, 10
     meshes at 0.75-0.95 m, 640x480. start=(0, 0) starts at the truth: how far the noise of the one
     "real" frame moves the estimate (the floor of the metric).
     """
-    preset = load_preset("kinect_v1")
-    full = preset.intrinsics
-    intr = full if models == "linemod" else Intrinsics(320, 240, full.fx, full.fy, full.cx - 160, full.cy - 120)
-    sensor = DepthSensor(preset, intrinsics=intr)
-    meshes = _linemod_meshes() if models == "linemod" else None
+    sensor, intr, meshes = _recovery_setup(models)
     errors = []
     for frame in range(frames):
         rng = np.random.default_rng(100 + frame)
-        if meshes:  # the LineMOD grid: 4 x 2, 0.13 m apart in x, 0.2 m in y
-            truth = grid_scene(meshes, rng, spread=(0.39, 0.2), depth=rng.uniform(0.75, 0.95), table_behind=0.25)
-        else:
-            truth = table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
+        truth = _truth_scene(meshes, rng)
         geometry = SensorGeometry.from_hits(cast(truth, intr, 0.075, 0.005))
         with torch.no_grad():
             real = sensor(geometry, seed=50 + frame).depth
-        moved = []
-        for o in truth.objects:
-            centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
-            moved.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, *start, rng)))
+        moved = _perturbed(truth.objects, start, rng)
         scene = RefinableScene(dataclasses.replace(truth, objects=moved), intr, 0.075, 0.005)
         result = refine_poses(sensor, scene, real, RefineSettings(edge_weight=edge_weight))
         found = [pose_difference(result.refined[k], o.world_T_obj) for k, o in enumerate(truth.objects)]
@@ -169,22 +184,12 @@ ORBIT = [(0, 0), (12, 0), (-12, 0), (0, 10)]
 def static_scene_recovery(scenes: int = 4, start=(3.0, 10.0), models: str = "shapes") -> tuple[float, float]:
     """Median (deg, mm) error over objects of static scenes seen from the ``ORBIT`` camera poses and refined
     together from world poses ``start`` off the truth (the scenes and windows of ``synthetic_recovery``)."""
-    preset = load_preset("kinect_v1")
-    full = preset.intrinsics
-    intr = full if models == "linemod" else Intrinsics(320, 240, full.fx, full.fy, full.cx - 160, full.cy - 120)
-    sensor = DepthSensor(preset, intrinsics=intr)
-    meshes = _linemod_meshes() if models == "linemod" else None
+    sensor, intr, meshes = _recovery_setup(models)
     errors = []
     for index in range(scenes):
         rng = np.random.default_rng(100 + index)
-        if meshes:
-            truth = grid_scene(meshes, rng, spread=(0.39, 0.2), depth=rng.uniform(0.75, 0.95), table_behind=0.25)
-        else:
-            truth = table_scene(4, rng, spread=(0.22, 0.13), depth=0.7)
-        moved = []
-        for o in truth.objects:
-            centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
-            moved.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, *start, rng)))
+        truth = _truth_scene(meshes, rng)
+        moved = _perturbed(truth.objects, start, rng)
         views, reals = [], []
         for v, angles in enumerate(ORBIT):
             seen = dataclasses.replace(truth, world_T_cam=orbit(*angles, centre=(0.0, 0.0, 0.72 if meshes is None
