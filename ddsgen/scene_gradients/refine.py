@@ -267,13 +267,14 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
         for group, lr in zip(optimiser.param_groups, base_lrs):
             group["lr"] = lr * decay
         optimiser.zero_grad()
-        total = 0.0
+        losses = []
         for v, history in zip(views, histories):
             with frame_camera(sensor, v.scene.intrinsics):
                 loss, pixels = v.loss(sensor, step)
-            total = total + loss / len(views)
+            losses.append(loss / len(views))
             history.append({"step": step, "loss_mm": float(loss.detach()) * 1000.0, "pixels": pixels})
-        if isinstance(total, torch.Tensor) and total.requires_grad:
+        total = sum(losses[1:], losses[0])
+        if total.requires_grad:
             total.backward()
             optimiser.step()
         if callback is not None:

@@ -60,7 +60,7 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
 
     s = settings or RefineSettings()
     sensor = sensor if sensor is not None else DepthSensor(preset)  # refine_poses gives it the window's camera
-    view = _View(preset, frame, index, s, support_plane, crop_margin_px, float(sensor.baseline.detach()))
+    view = _ScanView(preset, frame, index, s, support_plane, crop_margin_px, float(sensor.baseline.detach()))
     result = refine_poses(sensor, view.refinable, view.real, s, progress=progress)
     return view.refinement(result)
 
@@ -98,7 +98,7 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
     sensor = DepthSensor(preset)  # given each view's window in turn
     baseline = float(sensor.baseline.detach())
     chosen = sorted(set(np.linspace(0, len(frames) - 1, min(max_views, len(frames))).round().astype(int).tolist()))
-    views = [_View(preset, frames[k], first_index + k, s, support_plane, crop_margin_px, baseline) for k in chosen]
+    views = [_ScanView(preset, frames[k], first_index + k, s, support_plane, crop_margin_px, baseline) for k in chosen]
     results = refine_static_scene(sensor, [v.refinable for v in views], [v.real for v in views], s, progress)
     shared = views[0].refinable.poses.shared
     poses = {}
@@ -109,7 +109,7 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
     return [v.refinement(r) for v, r in zip(views, results)], poses
 
 
-class _View:
+class _ScanView:
     """One scan frame made ready to refine: its window, scene at the annotated poses, real depth."""
 
     def __init__(self, preset, frame, index, s, support_plane, crop_margin_px, baseline_m):
