@@ -255,7 +255,7 @@ def test_edge_term_pins_an_in_plane_slide_that_depth_cannot_see():
             assert scene.poses.translation.grad[0, 0] > 0  # descent moves it back (towards -x)
         if dx < -0.002:
             assert scene.poses.translation.grad[0, 0] < 0
-        edge.append(float(loss))
+        edge.append(float(loss.detach()))
         on_face = (tensors.instance > 0).numpy() & (real > 0) & (real < 0.75)  # the box's front face in both
         assert on_face.sum() > 500
         depth_gap.append(float(np.abs(clean.detach().numpy()[on_face] - real[on_face]).mean()))

@@ -154,12 +154,12 @@ def two_static_scenes(tmp_path_factory):
 
 
 def test_refine_cli_static_scene_writes_one_world_pose_per_object_and_scene(two_static_scenes, tmp_path):
-    from ddsgen.commands.refine import _scenes
     from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.scene_gradients.scan import static_scenes
 
     preset, scans = two_static_scenes
     frames = read_scan_folder(scans)
-    assert [[f.frame for f in group] for _, group in _scenes(frames)] == [[0, 1, 2], [3, 4, 5]]
+    assert [[f.frame for f in group] for _, group in static_scenes(frames)] == [[0, 1, 2], [3, 4, 5]]
     out = tmp_path / "refined"
     # Two of each scene's three frames simulated; the correction they find moves the third one too.
     assert main(["refine", preset, str(scans), "--out", str(out), "--steps", "3", "--static-scene", "--static-views",
@@ -196,3 +196,23 @@ def test_a_static_scene_whose_frames_list_other_objects_is_refused_with_one_line
     never = scans.parent / "never"
     assert main(["refine", preset, str(scans), "--out", str(never), "--static-scene", "--static-views", "0"]) == 2
     assert not never.exists()
+
+
+def test_fit_refine_poses_static_scene_moves_each_object_alike_in_every_frame_of_its_scene(two_static_scenes, tmp_path):
+    preset, scans = two_static_scenes
+    refused = tmp_path / "refused.yaml"
+    assert main(["fit", preset, str(scans), "--out", str(refused), "--static-scene", "--quiet"]) == 2
+    assert not refused.exists()
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit", preset, str(scans), "--out", str(out), "--params", "beta", "--steps", "2", "--refine-poses",
+                 "--pose-steps", "3", "--static-scene", "--static-views", "2", "--quiet"]) == 0  # fmt: skip
+    refinement = json.loads((tmp_path / "fitted_report" / "fit_report.json").read_text())["pose_refinement"]
+    assert refinement["static_scene"] and refinement["static_views"] == 2 and len(refinement["rounds"]) == 2
+    for changes in refinement["rounds"]:
+        assert [c["frame"].split("/")[-1] for c in changes] == [f"{k:06d}" for k in range(6)]
+        for scene in (changes[:3], changes[3:]):  # the frame not simulated (--static-views 2) moves alike too
+            for k in range(len(scene[0]["objects"])):
+                moved = [(c["objects"][k]["rotation_deg"], c["objects"][k]["translation_mm"]) for c in scene]
+                assert moved[0][0] > 0.0 and moved[0][1] > 0.0
+                for other in moved[1:]:
+                    assert other == pytest.approx(moved[0], abs=1e-3)

@@ -45,7 +45,16 @@ from ddsgen.errors import InputError
 @click.option("--refine-poses", is_flag=True,
               help="Poses as nuisance parameters: refine every frame's object poses (ddsgen refine's loop) with the "
                    "current sensor before the fit and again after it; the held-out gap after uses the final poses.")
-@click.option("--pose-steps", type=int, default=40, show_default=True, help="Pose-refinement steps per frame and round.")
+@click.option("--pose-steps", type=int, default=40, show_default=True,
+              help="Pose-refinement steps per frame (per static scene with --static-scene) and round.")
+@click.option("--static-scene", is_flag=True,
+              help="With --refine-poses: the frames of one static scene (BOP: a scene folder; ddsgen: consecutive "
+                   "frames with the same objects at the same world poses) share one pose correction per object, "
+                   "refined on all of them together (ddsgen refine --static-scene): several views average out what "
+                   "one frame's noise leaves in a pose.")
+@click.option("--static-views", type=int, default=8, show_default=True,
+              help="With --static-scene: frames simulated per scene and round (evenly spaced); their correction is "
+                   "applied to every frame of the scene.")
 @click.option("--unpaired", is_flag=True,
               help="REAL_DIR is any folder of depth images (16-bit PNG, EXR in m), no poses: fit the sensor by "
                    "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md). "
@@ -67,7 +76,7 @@ from ddsgen.errors import InputError
                    "by image radius is closer to the real frames'.")
 @common_options
 def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
-        pose_steps, unpaired, scenes, depth_scale, registration, no_plane, crop, plausible_px, region, seed,
+        pose_steps, static_scene, static_views, unpaired, scenes, depth_scale, registration, no_plane, crop, plausible_px, region, seed,
         quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
@@ -120,6 +129,10 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         raise InputError(f"--holdout: must be in [0, 1), got {holdout}")
     if pose_steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--pose-steps")
+    if static_scene and not refine_poses:
+        raise click.BadParameter("needs --refine-poses (it says how the poses are refined)", param_hint="--static-scene")
+    if static_views < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--static-views")
     names = split_names(params) or list(DEFAULT_PARAMS)
     out_path = Path(out)
     if out_path.suffix.lower() not in (".yaml", ".yml"):
@@ -150,6 +163,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
 
     def refine_all():  # poses as nuisance parameters, with the sensor as it is now; the same split again
         refined, changes = refine_frame_poses(sensor, camera_preset, scans, pose_steps, progress=progress, seed=seed,
+                                              static_views=static_views if static_scene else 0,
                                               support_plane=not no_plane, crop=crop, plausible_px=plausible_px)  # fmt: skip
         pose_rounds.append(changes)
         fit_frames, held, _ = split_fit_held_out(refined, holdout, seed)
@@ -233,7 +247,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         "fit": result.to_dict(),
     }  # fmt: skip
     if refine_poses:
-        summary["pose_refinement"] = {"steps": pose_steps, "rounds": pose_rounds}
+        summary["pose_refinement"] = {"steps": pose_steps, "rounds": pose_rounds, "static_scene": bool(static_scene),
+                                      "static_views": int(static_views) if static_scene else None}  # fmt: skip
     atomic_write_text(report / "fit_report.json", json.dumps(summary, indent=1, default=float) + "\n")
     if weights_path is not None:
         save_postprocess(sensor.postprocess, weights_path)

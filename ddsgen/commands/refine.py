@@ -53,7 +53,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     from ddsgen.preset import load_preset
     from ddsgen.scene_gradients.refine import RefineSettings
     from ddsgen.scene_gradients.report import write_report
-    from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan
+    from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan, static_scenes
 
     if steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--steps")
@@ -76,7 +76,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
                               gradient=gradient, edge_weight=edge_weight)  # fmt: skip
     refinements, refined = [], {}
     if static_scene:
-        for first, scene_frames in tqdm(_scenes(frames), desc="scenes", unit="scene", disable=quiet):
+        for first, scene_frames in tqdm(static_scenes(frames), desc="scenes", unit="scene", disable=quiet):
             sensor_preset = _camera_preset(base, scene_frames)
             simulated, poses = refine_static_scan(sensor_preset, scene_frames, settings, support_plane=not no_plane,
                                                   progress=not quiet, first_index=first, max_views=static_views)  # fmt: skip
@@ -110,34 +110,3 @@ def _camera_preset(base, frames):
         return adopt_camera(base, frames)[0]
     except InputError as error:
         raise InputError(f"{frames[0].source_depth_path}: the scan's camera does not fit the preset: {error}") from None
-
-
-def _scenes(frames) -> list:
-    """[(index of the scene's first frame, its frames)]: the static scenes of a folder.
-
-    BOP frames (and frames without camera poses) belong together by their scene folder; ddsgen frames
-    while they hold the same classes at the same world poses (within 0.1 mm and 1e-4: a scene-list
-    block of ``render``).
-    """
-    groups: list[tuple[int, list]] = []
-    for index, frame in enumerate(frames):
-        previous = groups[-1][1][0] if groups else None
-        if previous is not None and _same_scene(previous, frame):
-            groups[-1][1].append(frame)
-        else:
-            groups.append((index, [frame]))
-    return groups
-
-
-def _same_scene(a, b) -> bool:
-    import numpy as np
-
-    if a.layout == "bop" or a.world_T_cam is None or b.world_T_cam is None:  # BOP: the scene folder is the scene
-        return a.name.split("/")[0] == b.name.split("/")[0]
-    if [o.class_name for o in a.objects] != [o.class_name for o in b.objects]:
-        return False
-    for oa, ob in zip(a.objects, b.objects):
-        wa, wb = a.world_T_cam @ oa.cam_T_obj, b.world_T_cam @ ob.cam_T_obj
-        if np.abs(wa[:3, 3] - wb[:3, 3]).max() > 1e-4 or np.abs(wa[:3, :3] - wb[:3, :3]).max() > 1e-4:
-            return False
-    return True

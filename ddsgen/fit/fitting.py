@@ -417,7 +417,7 @@ def fitted_preset(sensor, postprocess_path: str | None = None):
 
 
 def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool = False, seed: int = 0,
-                       **prepare_options) -> tuple[list[FrameData], list[dict]]:  # fmt: skip
+                       static_views: int = 0, **prepare_options) -> tuple[list[FrameData], list[dict]]:  # fmt: skip
     """Poses as nuisance parameters (``fit --refine-poses``): refine every scan frame's object poses
     with the current ``sensor`` (:mod:`ddsgen.scene_gradients`), then prepare the frames again at the
     refined poses.
@@ -425,22 +425,37 @@ def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool =
     Args:
         sensor: the sensor being fitted (its current parameters simulate the refinement).
         preset: the preset with the scans' camera; scans: the ScanFrame list (poses replaced in place).
-        steps: refinement steps per frame; seed: noise seed.
+        steps: refinement steps per frame (per static scene); seed: noise seed.
+        static_views: 0 refines every frame alone; K > 0 refines the frames of each static scene
+            (:func:`ddsgen.scene_gradients.scan.static_scenes`) together, one correction per object
+            found on at most K of its frames and applied to all of them (``fit --static-scene``).
         prepare_options: passed to :func:`ddsgen.fit.simulate.prepare_frames` (support_plane, crop, ...).
 
     Returns:
         (the new FrameData list, per frame {frame, objects: [{id, rotation_deg, translation_mm}]}).
     """
     from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.scene_gradients.poses import pose_difference
     from ddsgen.scene_gradients.refine import RefineSettings
-    from ddsgen.scene_gradients.scan import refine_scan_frame
+    from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan, static_scenes
 
+    settings, plane = RefineSettings(steps=steps, seed=seed), prepare_options.get("support_plane", True)
+    refined = {}  # frame name -> {object id: refined cam_T_obj}
+    if static_views > 0:
+        for first, frames in static_scenes(scans):
+            refined.update(refine_static_scan(preset, frames, settings, support_plane=plane, first_index=first,
+                                              max_views=static_views, sensor=sensor)[1])  # fmt: skip
+    else:
+        for index, scan in enumerate(scans):
+            r = refine_scan_frame(preset, scan, index, settings, support_plane=plane, sensor=sensor).result
+            refined[scan.name] = {obj.id: r.refined[k] for k, obj in enumerate(scan.objects)}
     changes = []
-    for index, scan in enumerate(scans):
-        refinement = refine_scan_frame(preset, scan, index, RefineSettings(steps=steps, seed=seed),
-                                       support_plane=prepare_options.get("support_plane", True), sensor=sensor)  # fmt: skip
-        for k, obj in enumerate(scan.objects):
-            obj.cam_T_obj = refinement.result.refined[k]
-        changes.append({"frame": scan.name, "objects": refinement.object_changes()})
+    for scan in scans:
+        moved = []
+        for obj in scan.objects:
+            deg, mm = pose_difference(obj.cam_T_obj, refined[scan.name][obj.id])
+            moved.append({"id": int(obj.id), "rotation_deg": round(deg, 4), "translation_mm": round(mm, 4)})
+            obj.cam_T_obj = refined[scan.name][obj.id]
+        changes.append({"frame": scan.name, "objects": moved})
     return prepare_frames(preset, scans, seed=seed, progress=progress, **prepare_options), changes
 

@@ -278,7 +278,7 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
             total.backward()
             optimiser.step()
         if callback is not None:
-            callback(step, float(total))
+            callback(step, float(total.detach()))
         if step >= first_averaged:
             averaged.append([p.detach().clone() for p in rotations + translations])
     if averaged:

@@ -67,7 +67,7 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
 
 def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSettings | None = None, *,
                        support_plane: bool = True, crop_margin_px: int = 32, progress: bool = False,
-                       first_index: int = 0, max_views: int = 8) -> tuple[list[FrameRefinement], dict]:  # fmt: skip
+                       first_index: int = 0, max_views: int = 8, sensor=None) -> tuple[list[FrameRefinement], dict]:  # fmt: skip
     """Refine the frames of one static scene together: each object's correction is shared by every frame.
 
     Objects are matched across frames by their position in each frame's list and must have the same
@@ -75,7 +75,8 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
     frame keeps its own support plane. At most ``max_views`` frames, evenly spaced over the scene, are
     simulated (a BOP scene may hold a thousand; the correction is one per object); the correction they
     find is applied to the others too. Arguments as :func:`refine_scan_frame`; ``first_index`` is the
-    first frame's position in its folder.
+    first frame's position in its folder. Group a folder's frames into static scenes with
+    :func:`static_scenes`.
 
     Returns:
         (one :class:`FrameRefinement` per simulated frame, {frame name: {object id: (4, 4) refined
@@ -95,7 +96,7 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
     if max_views < 1:
         raise ValueError(f"max_views must be >= 1, got {max_views}")
     s = settings or RefineSettings()
-    sensor = DepthSensor(preset)  # given each view's window in turn
+    sensor = sensor if sensor is not None else DepthSensor(preset)  # given each view's window in turn
     baseline = float(sensor.baseline.detach())
     chosen = sorted(set(np.linspace(0, len(frames) - 1, min(max_views, len(frames))).round().astype(int).tolist()))
     views = [_ScanView(preset, frames[k], first_index + k, s, support_plane, crop_margin_px, baseline) for k in chosen]
@@ -107,6 +108,35 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
         scene.poses.share_objects(shared)
         poses[frame.name] = {o.id: T for o, T in zip(frame.objects, scene.object_poses())}
     return [v.refinement(r) for v, r in zip(views, results)], poses
+
+
+def static_scenes(frames: list) -> list[tuple[int, list]]:
+    """[(index of the scene's first frame, its frames)]: the static scenes of a folder's frames.
+
+    BOP frames (and frames without camera poses) belong together by their scene folder; ddsgen frames
+    while they hold the same classes at the same world poses (within 0.1 mm and 1e-4: a scene-list
+    block of ``render``).
+    """
+    groups: list[tuple[int, list]] = []
+    for index, frame in enumerate(frames):
+        previous = groups[-1][1][0] if groups else None
+        if previous is not None and _same_scene(previous, frame):
+            groups[-1][1].append(frame)
+        else:
+            groups.append((index, [frame]))
+    return groups
+
+
+def _same_scene(a, b) -> bool:
+    if a.layout == "bop" or a.world_T_cam is None or b.world_T_cam is None:  # BOP: the scene folder is the scene
+        return a.name.split("/")[0] == b.name.split("/")[0]
+    if [o.class_name for o in a.objects] != [o.class_name for o in b.objects]:
+        return False
+    for oa, ob in zip(a.objects, b.objects):
+        wa, wb = a.world_T_cam @ oa.cam_T_obj, b.world_T_cam @ ob.cam_T_obj
+        if np.abs(wa[:3, 3] - wb[:3, 3]).max() > 1e-4 or np.abs(wa[:3, :3] - wb[:3, :3]).max() > 1e-4:
+            return False
+    return True
 
 
 class _ScanView:
