@@ -87,9 +87,8 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     for index, frame in enumerate(tqdm([] if static_scene else frames, desc="frames", unit="frame", disable=quiet)):
         refinements.append(refine_scan_frame(_camera_preset(base, [frame]), frame, index, settings,
                                              support_plane=not no_plane, progress=not quiet))  # fmt: skip
+        refined[frame.name] = refinements[-1].refined_poses()
         frame.release()
-    for r in [] if static_scene else refinements:
-        refined[r.name] = {obj_id: r.result.refined[k] for k, obj_id in enumerate(r.object_ids)}
     out = Path(out_dir)
     written = write_refined_poses(frames, refined, out)
     report = write_report(refinements, out / "report", {"preset": str(preset), "real_dir": str(real_dir),

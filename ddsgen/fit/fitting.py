@@ -435,9 +435,8 @@ def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool =
         (the new FrameData list, per frame {frame, objects: [{id, rotation_deg, translation_mm}]}).
     """
     from ddsgen.fit.simulate import prepare_frames
-    from ddsgen.scene_gradients.poses import pose_difference
     from ddsgen.scene_gradients.refine import RefineSettings
-    from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan, static_scenes
+    from ddsgen.scene_gradients.scan import object_changes, refine_scan_frame, refine_static_scan, static_scenes
 
     settings, plane = RefineSettings(steps=steps, seed=seed), prepare_options.get("support_plane", True)
     refined = {}  # frame name -> {object id: refined cam_T_obj}
@@ -447,15 +446,14 @@ def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool =
                                               max_views=static_views, sensor=sensor)[1])  # fmt: skip
     else:
         for index, scan in enumerate(scans):
-            r = refine_scan_frame(preset, scan, index, settings, support_plane=plane, sensor=sensor).result
-            refined[scan.name] = {obj.id: r.refined[k] for k, obj in enumerate(scan.objects)}
+            refined[scan.name] = refine_scan_frame(preset, scan, index, settings, support_plane=plane,
+                                                   sensor=sensor).refined_poses()  # fmt: skip
     changes = []
     for scan in scans:
-        moved = []
-        for obj in scan.objects:
-            deg, mm = pose_difference(obj.cam_T_obj, refined[scan.name][obj.id])
-            moved.append({"id": int(obj.id), "rotation_deg": round(deg, 4), "translation_mm": round(mm, 4)})
-            obj.cam_T_obj = refined[scan.name][obj.id]
-        changes.append({"frame": scan.name, "objects": moved})
+        ids = [obj.id for obj in scan.objects]
+        poses = [refined[scan.name][i] for i in ids]
+        changes.append({"frame": scan.name, "objects": object_changes(ids, [o.cam_T_obj for o in scan.objects], poses)})
+        for obj, T in zip(scan.objects, poses):
+            obj.cam_T_obj = T
     return prepare_frames(preset, scans, seed=seed, progress=progress, **prepare_options), changes
 

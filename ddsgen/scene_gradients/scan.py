@@ -31,13 +31,23 @@ class FrameRefinement:
 
     def object_changes(self) -> list[dict]:
         """Per object: id and the pose change (deg, mm) from the initial to the refined pose."""
-        from ddsgen.scene_gradients.poses import pose_difference
+        return object_changes(self.object_ids, self.result.initial, self.result.refined)
 
-        out = []
-        for k, obj_id in enumerate(self.object_ids):
-            deg, mm = pose_difference(self.result.initial[k], self.result.refined[k])
-            out.append({"id": int(obj_id), "rotation_deg": round(deg, 4), "translation_mm": round(mm, 4)})
-        return out
+    def refined_poses(self) -> dict:
+        """{object id: (4, 4) refined ``cam_T_obj``}."""
+        return {obj_id: self.result.refined[k] for k, obj_id in enumerate(self.object_ids)}
+
+
+def object_changes(object_ids, initial, refined) -> list[dict]:
+    """Per object: {id, rotation_deg, translation_mm}, the change from its ``initial`` to its ``refined`` (4, 4)
+    pose (both in object order; extra rows, e.g. a support plane's, are ignored)."""
+    from ddsgen.scene_gradients.poses import pose_difference
+
+    out = []
+    for k, obj_id in enumerate(object_ids):
+        deg, mm = pose_difference(initial[k], refined[k])
+        out.append({"id": int(obj_id), "rotation_deg": round(deg, 4), "translation_mm": round(mm, 4)})
+    return out
 
 
 def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: RefineSettings | None = None, *,
