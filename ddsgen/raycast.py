@@ -282,9 +282,10 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
         triangle[index] = result["primID"][closer]
         barycentric[index, 0] = result["u"][closer]
         barycentric[index, 1] = result["v"][closer]
-    normals = table[owner]
+    # np.take, not table[owner]: several times faster for these small tables (owner -1 takes the last row)
+    normals = np.take(table, owner, axis=0)
     if meshes:
-        from_mesh = is_mesh[owner]
+        from_mesh = np.take(is_mesh, owner)
         normals[from_mesh] = mesh_normals[from_mesh]
 
     hit = owner >= 0
@@ -293,11 +294,11 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     if polygons:  # coplanar faces: face 0's plane is the hit's plane (barycentrics left 0: not needed, not cheap)
         is_polygon = np.zeros(len(placed) + 1, dtype=bool)
         is_polygon[[k for k, _ in polygons]] = True
-        triangle[is_polygon[owner]] = 0
+        triangle = np.where(np.take(is_polygon, owner), np.int32(0), triangle)
     ids = np.append(np.array([o.id for o in placed], dtype=np.uint16), np.uint16(0))
     albedos = np.append(np.array([o.albedo for o in placed], dtype=np.float32), np.float32(0.0))
-    instance = ids[owner]
-    albedo = albedos[owner]
+    instance = np.take(ids, owner)
+    albedo = np.take(albedos, owner)
 
     shadow = None
     if shadows:
@@ -328,7 +329,8 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
     projector = np.array([baseline_m, 0.0, 0.0], dtype=np.float64)
     start = points + np.float32(shadow_bias_m) * normals
     # surface facing away from the projector: n . (t_p - P) <= 0
-    blocked = normals[:, 0] * np.float32(baseline_m) - np.einsum("ij,ij->i", normals, points) <= 0.0
+    n_dot_p = normals[:, 0] * points[:, 0] + normals[:, 1] * points[:, 1] + normals[:, 2] * points[:, 2]
+    blocked = normals[:, 0] * np.float32(baseline_m) - n_dot_p <= 0.0
     for _, polygon in polygons:
         blocked |= _segment_blocked_by_polygon(polygon, start, projector)
     if meshes:

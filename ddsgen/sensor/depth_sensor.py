@@ -27,7 +27,7 @@ from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
-from ddsgen.sensor.registration import cropped_index, register, splat_fill_index
+from ddsgen.sensor.registration import cropped_index, register, register_images, splat_fill_index
 from ddsgen.sensor.speckle import scene_seed
 
 # Fraction of disparity range added to the reference padding, so that fitting the
@@ -429,7 +429,7 @@ class DepthSensor(nn.Module):
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
                 fill = splat_fill_index(register(valid, index))
                 index = torch.where(fill >= 0, torch.take(index, fill.clamp(min=0)), -1)
-            depth, valid, valid_soft, disparity, confidence, raw_depth = (
-                register(x, index) for x in (depth, valid, valid_soft, disparity, confidence, raw_depth))  # fmt: skip
+            depth, valid, valid_soft, disparity, confidence, raw_depth = register_images(
+                (depth, valid, valid_soft, disparity, confidence, raw_depth), index)  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
                             confidence=confidence, raw_depth=raw_depth)  # fmt: skip

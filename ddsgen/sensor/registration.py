@@ -116,8 +116,15 @@ def cropped_index(index: torch.Tensor, full_width: int, x0: int, y0: int, width:
 def register(image: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """(H, W) IR-frame image -> (H, W) output image: ``image`` at ``index``, 0 (False) where the index is -1.
     Differentiable in ``image``."""
-    gathered = torch.take(image, index.clamp(min=0))
-    return torch.where(index >= 0, gathered, torch.zeros((), dtype=gathered.dtype, device=gathered.device))
+    return register_images((image,), index)[0]
+
+
+def register_images(images, index: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """:func:`register` for several (H, W) images through the same ``index``, which is prepared once (a frame
+    registers six maps: the clamp and the mask cost as much as a gather each)."""
+    safe, inside = index.clamp(min=0), index >= 0
+    return tuple(torch.where(inside, torch.take(image, safe), torch.zeros((), dtype=image.dtype, device=image.device))
+                 for image in images)  # fmt: skip
 
 
 def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:
