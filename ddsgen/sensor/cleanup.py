@@ -63,16 +63,19 @@ def _one_surface(labels: np.ndarray, candidates: np.ndarray, disparity: np.ndarr
     the holes' pixels and their neighbours only (a few thousand), not on whole images.
     """
     height, width = labels.shape
-    rows, cols = np.nonzero(candidates[labels])
+    rows, cols = np.nonzero(np.take(candidates, labels))  # np.take: a small table over a whole image, fast
     hole_of = labels[rows, cols]
-    rim_label = np.zeros(height * width, np.int64)  # flat: the hole each rim pixel belongs to
+    rim_label = np.zeros(height * width, np.int64)  # flat: the hole each rim pixel belongs to (labels are >= 1)
+    rim_pixels = []
     for dy, dx in _NEIGHBOURS:
         r, c = rows + dy, cols + dx
         inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
         r, c, lab = r[inside], c[inside], hole_of[inside]
         on_rim = valid[r, c]
-        rim_label[r[on_rim] * width + c[on_rim]] = lab[on_rim]
-    rim = np.flatnonzero(rim_label)
+        flat = r[on_rim] * width + c[on_rim]
+        rim_label[flat] = lab[on_rim]
+        rim_pixels.append(flat)
+    rim = np.unique(np.concatenate(rim_pixels))  # = np.flatnonzero(rim_label), without a whole-image pass
     rim_rows, rim_cols = np.divmod(rim, width)
     flat_disparity = disparity.reshape(-1)
     worst = np.zeros(len(candidates))
@@ -112,13 +115,14 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
     small[0] = False  # label 0 is the valid background
     if disparity is not None and max_diff_px is not None and small.any():
         small = _one_surface(labels, small, np.asarray(disparity), valid, max_diff_px)
-    filled = small[labels]
+    filled = np.take(small, labels)
     if not filled.any():
         return source, filled
     # Every valid pixel (a zero of `invalid`) gets its own label; each pixel learns its nearest one's.
     _, nearest = cv2.distanceTransformWithLabels(invalid, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
     label_to_index = np.zeros(int(nearest.max()) + 1, np.int64)
-    label_to_index[nearest[valid]] = source[valid]
+    valid_index = np.flatnonzero(valid)  # = source[valid]
+    label_to_index[nearest.reshape(-1)[valid_index]] = valid_index
     source[filled] = label_to_index[nearest[filled]]
     return source, filled
 

@@ -142,13 +142,11 @@ def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:
     height, width = valid.shape
     index = torch.arange(height * width, device=valid.device).reshape(height, width)
     rows, cols = torch.nonzero(~valid, as_tuple=True)  # only the holes (a few % of the pixels) look around
+    padded = torch.nn.functional.pad(valid, (0, 1, 0, 1))  # beyond the last row and column: no depth
     source = torch.full_like(rows, -1)
     for dy, dx in ((0, 1), (1, 0), (1, 1)):  # lowest priority first: a later writer wins
         r, c = rows + dy, cols + dx
-        inside = (r < height) & (c < width)
-        seen = torch.zeros_like(inside)
-        seen[inside] = valid[r[inside], c[inside]]
-        source = torch.where(seen, r * width + c, source)
+        source = torch.where(padded[r, c], r * width + c, source)
     index[rows, cols] = source
     return index
 

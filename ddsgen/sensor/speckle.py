@@ -85,8 +85,8 @@ def speckle_field(height: int, width: int, shape: float, grain_px: float, rng: n
     index = np.minimum(position.astype(np.int32), _TABLE_SIZE - 2)
     frac = position - index.astype(np.float32)
     table = quantiles.astype(np.float32)
-    low = table[index]
-    return low + (table[index + 1] - low) * frac
+    low = np.take(table, index)  # np.take: several times faster than table[index] here, same values
+    return low + (np.take(table, index + 1) - low) * frac
 
 
 def scene_seed(*arrays: torch.Tensor | np.ndarray) -> list[int]:
