@@ -162,9 +162,15 @@ def _as_polygon(vertices: np.ndarray, faces: np.ndarray) -> _Polygon | None:
 
 
 def _polygon_inside(polygon: _Polygon, q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """True where (q1, q2) is inside every edge: a q1 + b q2 >= c - 1e-7, evaluated in float64 (the edge
+    coefficients are float64 scalars) into two reused buffers."""
     inside = np.ones(q1.shape, dtype=bool)
+    along, other = np.empty(q1.shape, dtype=np.float64), np.empty(q1.shape, dtype=np.float64)
     for (a, b), c in zip(polygon.edge_normals, polygon.edge_offsets):
-        inside &= a * q1 + b * q2 >= c - 1e-7
+        np.multiply(a, q1, out=along)
+        np.multiply(b, q2, out=other)
+        along += other
+        inside &= along >= c - 1e-7
     return inside
 
 

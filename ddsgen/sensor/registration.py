@@ -92,7 +92,7 @@ def registration_index(hits, ir_hits, intrinsics: Intrinsics, preset) -> np.ndar
     column = np.rint(np.float32(fx) * x / z + np.float32(intrinsics.cx - shift)).astype(np.int64)
     inside = hits.hit & (column >= 0) & (column < width)
     flat = (np.arange(height, dtype=np.int64) * width)[:, None] + np.clip(column, 0, width - 1)
-    ir_depth, ir_hit = ir_hits.depth.ravel()[flat], ir_hits.hit.ravel()[flat]
+    ir_depth, ir_hit = np.take(ir_hits.depth.ravel(), flat), np.take(ir_hits.hit.ravel(), flat)
     # Half a pixel along the surface changes the depth by |dZ/du| / 2 = Z^2 |n_x| / (2 fx |n . P_ir|), capped (a
     # surface seen edge-on is no reason to accept whatever the IR pixel shows; fmin also takes the cap for 0/0).
     n = hits.normals
