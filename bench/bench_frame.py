@@ -37,13 +37,13 @@ from ddsgen.cache import configure_torch_compile_cache  # noqa: E402
 from ddsgen.io.exr import write_exr  # noqa: E402
 from ddsgen.io.png import write_depth_png, write_png8, write_png16  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
-from ddsgen.raycast import cast  # noqa: E402
 from ddsgen.runner import render_dataset  # noqa: E402
 from ddsgen.scene.sampling import sample_frame  # noqa: E402
 from ddsgen.scene.scenelist import load_scene_list  # noqa: E402
-from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry  # noqa: E402
+from ddsgen.sensor.depth_sensor import DepthSensor  # noqa: E402
 from ddsgen.sensor.ir import render_ir  # noqa: E402
 from ddsgen.sensor.matcher import match  # noqa: E402
+from ddsgen.sensor.sensor_cast import cast_for_sensor  # noqa: E402
 
 REPEATS = 7
 
@@ -64,11 +64,10 @@ def stage_times() -> None:
     scenes = load_scene_list(None)
     scene = sample_frame(scenes, 0, 0)
     intr = preset.intrinsics
-    cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)  # warm caches (rest poses, BVHs)
-    raycast_ms = _median_ms(lambda: cast(scene, intr, preset.baseline_m, preset.shadow_bias_m))
-    hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
-    g = SensorGeometry.from_hits(hits)
-    noise = sensor.draw_noise(0)
+    # The casts `render` makes (registered device: the output view, the IR view, the IR margin strip, the index).
+    hits, g = cast_for_sensor(scene, intr, preset, output_shadows=False)  # also warms caches (rest poses, BVHs)
+    raycast_ms = _median_ms(lambda: cast_for_sensor(scene, intr, preset, output_shadows=False))
+    noise = sensor.draw_noise(0, g)
     field = sensor.pattern_field()
     lit = (g.hit & ~g.shadow).float()
 
@@ -93,10 +92,13 @@ def stage_times() -> None:
     matching_ms = _median_ms(matching)
 
     def sensor_ms(name):
-        model = DepthSensor(load_preset(name)).eval()
+        model_preset = load_preset(name)
+        model = DepthSensor(model_preset).eval()
+        _, geometry = cast_for_sensor(scene, intr, model_preset, output_shadows=False)  # its own (un)registered view
+        model_noise = model.draw_noise(0, geometry)
         with torch.no_grad():
-            model(g, noise=noise)  # caches: pattern field, reference phases
-            return _median_ms(lambda: model(g, noise=noise))
+            model(geometry, noise=model_noise)  # caches: pattern field, reference phases
+            return _median_ms(lambda: model(geometry, noise=model_noise))
 
     forward_ms, forward_paper_ms = sensor_ms("kinect_v1"), sensor_ms("kinect_v1_paper")
 
@@ -167,10 +169,10 @@ def cpu_profile(preset_name: str, warm: int = 4, frames: int = 16) -> dict[str, 
             t0 = time.process_time()
             scene = sample_frame(state["scenes"], frame, 1)
             t1 = time.process_time()
-            hits = cast(scene, intr, preset.baseline_m, preset.shadow_bias_m)
+            hits, geometry = cast_for_sensor(scene, intr, preset, output_shadows=False)  # as render_frame does
             t2 = time.process_time()
             with torch.no_grad():
-                out = sensor(SensorGeometry.from_hits(hits), seed=[1, frame, NOISE_STREAM])
+                out = sensor(geometry, seed=[1, frame, NOISE_STREAM])
             t3 = time.process_time()
             write_frame_files(tmp, frame, out.depth.numpy().astype(np.float32), hits.depth, out.ir.numpy(),
                               2.0**preset.ir_bits - 1.0, hits.instance)  # fmt: skip
