@@ -84,6 +84,8 @@ class _MeshBVH:
     fingerprint: tuple
     embree: object  # EmbreeScene with the mesh in its own object frame
     hull: np.ndarray  # (K, 3) float64 convex-hull vertices (for image boxes)
+    centre: np.ndarray  # (3,) float64 centre of the hull's bounding box (object frame) ...
+    radius: float  # ... and the radius of the sphere about it that holds every vertex (m)
 
 
 _BVH_CACHE: dict[int, _MeshBVH] = {}
@@ -109,7 +111,9 @@ def _mesh_bvh(mesh) -> _MeshBVH:
         hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
     except Exception:  # degenerate (flat) meshes: all vertices do
         hull = np.asarray(vertices, dtype=np.float64)
-    entry = _MeshBVH(weakref.ref(mesh), fingerprint, embree, hull)
+    centre = (hull.min(axis=0) + hull.max(axis=0)) / 2.0
+    radius = float(np.sqrt(((np.asarray(vertices, dtype=np.float64) - centre) ** 2).sum(axis=1).max()))
+    entry = _MeshBVH(weakref.ref(mesh), fingerprint, embree, hull, centre, radius)
     _BVH_CACHE[id(mesh)] = entry
     return entry
 
@@ -358,17 +362,34 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
                 )
             if not len(todo):
                 continue
-            R = cam_T_obj[:3, :3].astype(np.float32)
             s = start[todo]
+            to_projector = projector.astype(np.float32)[None, :] - s
+            near = _segments_near_sphere(s, to_projector, cam_T_obj[:3, :3] @ bvh.centre + cam_T_obj[:3, 3], bvh.radius)
+            todo, s, to_projector = todo[near], s[near], to_projector[near]
+            if not len(todo):
+                continue
+            R = cam_T_obj[:3, :3].astype(np.float32)
             occluded = bvh.embree.run(
                 np.ascontiguousarray((s - cam_T_obj[:3, 3].astype(np.float32)) @ R),
-                np.ascontiguousarray((projector.astype(np.float32)[None, :] - s) @ R),
+                np.ascontiguousarray(to_projector @ R),
                 dists=np.full(len(todo), 1.0 - 1e-6, dtype=np.float32),
                 query="OCCLUDED",
             )
             blocked[todo] |= occluded >= 0
             open_rays[todo] &= ~(occluded >= 0)
     return blocked & hit
+
+
+def _segments_near_sphere(starts: np.ndarray, along: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """(M,) bool: the segments starts + [0, 1] along (float32 (M, 3) each) that come within ``radius`` (plus a
+    margin far above float32 rounding) of ``centre``: the only ones that can meet a mesh inside that sphere
+    (an exact cull: Embree is asked about the others for nothing)."""
+    to_centre = centre.astype(np.float32)[None, :] - starts
+    length_sq = np.maximum((along * along).sum(axis=1), np.float32(1e-30))
+    fraction = np.clip((to_centre * along).sum(axis=1) / length_sq, 0.0, 1.0)[:, None]
+    gap = to_centre - fraction * along
+    reach = np.float32(radius * (1.0 + 1e-3) + 1e-4)
+    return (gap * gap).sum(axis=1) <= reach * reach
 
 
 def _image_box(vertices_cam: np.ndarray, intrinsics: Intrinsics):
