@@ -27,7 +27,7 @@ from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
-from ddsgen.sensor.registration import cropped_index, register, register_images, splat_fill_index
+from ddsgen.sensor.registration import cropped_index, gather_flat, register, register_images, splat_fill_index
 from ddsgen.sensor.speckle import scene_seed
 
 # Fraction of disparity range added to the reference padding, so that fitting the
@@ -402,11 +402,9 @@ class DepthSensor(nn.Module):
             # A selection: each pixel keeps its own value or copies its nearest valid neighbour's.
             cleaned, source = device_cleanup(disparity, valid, p.cleanup_speckle_px, p.cleanup_max_diff_px,
                                              p.cleanup_hole_px)  # fmt: skip
-            flat = source.reshape(-1)
-            raw_depth = raw_depth.reshape(-1)[flat].reshape(raw_depth.shape)
-            disparity = disparity.reshape(-1)[flat].reshape(disparity.shape)
+            raw_depth, disparity, valid_soft = (gather_flat(x, source) for x in (raw_depth, disparity, valid_soft))
             removed = valid & ~cleaned
-            valid_soft = valid_soft.reshape(-1)[flat].reshape(valid_soft.shape) * (~removed).float()
+            valid_soft = valid_soft * (~removed).float()
             valid = cleaned
         window = OutputWindow.of(p)
         if not window.is_full:
@@ -428,7 +426,7 @@ class DepthSensor(nn.Module):
             index = geometry.registration
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
                 fill = splat_fill_index(register(valid, index))
-                index = torch.where(fill >= 0, torch.take(index, fill.clamp(min=0)), -1)
+                index = torch.where(fill >= 0, gather_flat(index, fill.clamp(min=0)), -1)
             depth, valid, valid_soft, disparity, confidence, raw_depth = register_images(
                 (depth, valid, valid_soft, disparity, confidence, raw_depth), index)  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,

@@ -123,8 +123,14 @@ def register_images(images, index: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """:func:`register` for several (H, W) images through the same ``index``, which is prepared once (a frame
     registers six maps: the clamp and the mask cost as much as a gather each)."""
     safe, inside = index.clamp(min=0), index >= 0
-    return tuple(torch.where(inside, torch.take(image, safe), torch.zeros((), dtype=image.dtype, device=image.device))
+    return tuple(torch.where(inside, gather_flat(image, safe), torch.zeros((), dtype=image.dtype, device=image.device))
                  for image in images)  # fmt: skip
+
+
+def gather_flat(image: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``image`` read at flat indices ``index`` (any shape, every entry in range): ``torch.take``'s values and
+    gradient, through ``index_select`` (2-5x faster on the CPU for whole images)."""
+    return image.reshape(-1).index_select(0, index.reshape(-1)).reshape(index.shape)
 
 
 def splat_fill_index(valid: torch.Tensor) -> torch.Tensor:

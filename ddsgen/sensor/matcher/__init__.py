@@ -155,7 +155,8 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
     outs = [torch.zeros_like(candidates) for _ in peaks]
     for start in range(0, ys.numel(), chunk):
         part = slice(start, start + chunk)
-        neighbours = seeds[corner[part, None] + window]  # (chunk, block^2)
+        at = (corner[part, None] + window).reshape(-1)  # index_select: ~3x faster than seeds[2-D index]
+        neighbours = seeds.index_select(0, at).reshape(-1, window.shape[1])  # (chunk, block^2)
         for own, out in zip(owns, outs):
             out[ys[part], xs[part]] = ((neighbours - own[part, None]).abs() <= 1).any(dim=1)
     return outs
