@@ -351,6 +351,7 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
             u_s = start[:, 0] * inv_z * np.float32(intrinsics.fx) + np.float32(intrinsics.cx)
             v_s = start[:, 1] * inv_z * np.float32(intrinsics.fy) + np.float32(intrinsics.cy)
         open_rays = hit & ~blocked
+        start_xyz = [np.ascontiguousarray(start[:, axis]) for axis in range(3)]  # 1-D gathers for the sphere cull
         no_cull = open_rays & ~(start[:, 2] > 0)  # start at/behind the camera plane (or nan): no cull
         for k, cam_T_obj, bvh, box in meshes:
             if box is None:
@@ -362,16 +363,15 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
                 )
             if not len(todo):
                 continue
-            s = start[todo]
-            to_projector = projector.astype(np.float32)[None, :] - s
-            near = _segments_near_sphere(s, to_projector, cam_T_obj[:3, :3] @ bvh.centre + cam_T_obj[:3, 3], bvh.radius)
-            todo, s, to_projector = todo[near], s[near], to_projector[near]
+            todo = todo[_segments_near_sphere(*(axis[todo] for axis in start_xyz), np.float32(baseline_m),
+                                              cam_T_obj[:3, :3] @ bvh.centre + cam_T_obj[:3, 3], bvh.radius)]  # fmt: skip
             if not len(todo):
                 continue
             R = cam_T_obj[:3, :3].astype(np.float32)
+            s = start[todo]
             occluded = bvh.embree.run(
                 np.ascontiguousarray((s - cam_T_obj[:3, 3].astype(np.float32)) @ R),
-                np.ascontiguousarray(to_projector @ R),
+                np.ascontiguousarray((projector.astype(np.float32)[None, :] - s) @ R),
                 dists=np.full(len(todo), 1.0 - 1e-6, dtype=np.float32),
                 query="OCCLUDED",
             )
@@ -380,16 +380,20 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
     return blocked & hit
 
 
-def _segments_near_sphere(starts: np.ndarray, along: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """(M,) bool: the segments starts + [0, 1] along (float32 (M, 3) each) that come within ``radius`` (plus a
-    margin far above float32 rounding) of ``centre``: the only ones that can meet a mesh inside that sphere
-    (an exact cull: Embree is asked about the others for nothing)."""
-    to_centre = centre.astype(np.float32)[None, :] - starts
-    length_sq = np.maximum((along * along).sum(axis=1), np.float32(1e-30))
-    fraction = np.clip((to_centre * along).sum(axis=1) / length_sq, 0.0, 1.0)[:, None]
-    gap = to_centre - fraction * along
+def _segments_near_sphere(x: np.ndarray, y: np.ndarray, z: np.ndarray, projector_x: np.float32, centre: np.ndarray,
+                          radius: float) -> np.ndarray:  # fmt: skip
+    """(M,) bool: the segments from the points (x, y, z) (float32 (M,) each, camera frame) to the projector at
+    (projector_x, 0, 0) that come within ``radius`` (plus a margin far above float32 rounding) of ``centre``: the
+    only ones that can meet a mesh inside that sphere (an exact cull: Embree is asked about the others for nothing).
+    Written per coordinate: numpy's sums over a length-3 axis are several times slower."""
+    ax, ay, az = projector_x - x, -y, -z  # along the segment
+    cx, cy, cz = (np.float32(c) for c in centre)
+    tx, ty, tz = cx - x, cy - y, cz - z  # to the centre
+    length_sq = np.maximum(ax * ax + ay * ay + az * az, np.float32(1e-30))
+    fraction = np.clip((tx * ax + ty * ay + tz * az) / length_sq, np.float32(0.0), np.float32(1.0))
+    gx, gy, gz = tx - fraction * ax, ty - fraction * ay, tz - fraction * az
     reach = np.float32(radius * (1.0 + 1e-3) + 1e-4)
-    return (gap * gap).sum(axis=1) <= reach * reach
+    return gx * gx + gy * gy + gz * gz <= reach * reach
 
 
 def _image_box(vertices_cam: np.ndarray, intrinsics: Intrinsics):
