@@ -2,7 +2,9 @@
 
 Prints `bench: NAME VALUE UNIT` lines:
   frame_raycast_ms, frame_ir_ms, frame_matching_ms, frame_sensor_ms, frame_writing_ms   (one thread, as in a
-                                    worker; frame_sensor_ms is the whole DepthSensor.forward, clean-up included)
+                                    worker; frame_raycast_ms is every cast render makes for a frame
+                                    (cast_for_sensor: output view, IR view with shadow rays, margin strip,
+                                    registration index); frame_sensor_ms the whole DepthSensor.forward)
   frame_sensor_paper_ms             the same for kinect_v1_paper (1/4 px, no device effects), same run
   frame_matching_vs_stereobm        matching stage / OpenCV StereoBM on the same IR pair, same run
   frame_fps_1worker, frame_fps      frames written to disk per second, steady state (--workers 1, 2)
