@@ -341,6 +341,26 @@ def test_refine_cli_rejects_bad_input_with_one_line_and_writes_nothing(rendered,
     assert not out.exists()
 
 
+def test_refine_cli_threads_gives_the_same_poses_twice_and_leaves_torch_as_it_was(rendered, tmp_path, capsys):
+    """Results are bit-reproducible for a given torch thread count, not across counts (docs/scene_gradients.md):
+    --threads fixes it for the run, and the caller's count comes back afterwards."""
+    before = torch.get_num_threads()
+    threads = 2 if before == 1 else 1
+    manifests = []
+    for run in range(2):
+        out = tmp_path / f"run{run}"
+        assert main(["refine", str(rendered / "small.yaml"), str(rendered / "scans"), "--out", str(out), "--steps", "3",
+                     "--threads", str(threads), "--quiet"]) == 0  # fmt: skip
+        assert torch.get_num_threads() == before
+        manifests.append((out / "manifest.jsonl").read_text())
+    assert manifests[0] == manifests[1]
+    capsys.readouterr()
+    assert main(["refine", str(rendered / "small.yaml"), str(rendered / "scans"), "--out", str(tmp_path / "never"),
+                 "--threads", "0"]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--threads" in err[0] and not (tmp_path / "never").exists()
+
+
 def test_fit_with_refine_poses_reports_both_rounds(rendered, tmp_path):
     out = tmp_path / "fitted.yaml"
     code = main(["fit", str(rendered / "small.yaml"), str(rendered / "scans"), "--out", str(out), "--params", "beta",

@@ -25,5 +25,28 @@ def common_options(f):
     return f
 
 
+REPRODUCIBLE_THREADS_HELP = ("Torch threads (default: torch's own, one per core). Results are bit-reproducible for a "
+                             "given thread count, not across thread counts (docs/scene_gradients.md): pass the same "
+                             "--threads to compare runs on machines with different core counts.")
+
+
+def threads_option(default: int | None, help: str):
+    """``--threads``: torch's intra-op threads while the command runs (None: leave torch's default)."""
+    return click.option("--threads", type=click.IntRange(min=1), default=default, show_default=default is not None,
+                        help=help)  # fmt: skip
+
+
+def use_threads(threads: int | None) -> None:
+    """Run the current command with ``threads`` torch threads (None: unchanged); the previous count comes back when
+    the command ends (commands also run inside other programs and tests)."""
+    if threads is None:
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    click.get_current_context().call_on_close(lambda: torch.set_num_threads(before))
+
+
 def echo_stderr(message: str) -> None:
     click.echo(message, err=True)

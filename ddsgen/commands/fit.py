@@ -7,7 +7,8 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import common_options, echo_stderr, split_names
+from ddsgen.commands import (REPRODUCIBLE_THREADS_HELP, common_options, echo_stderr, split_names, threads_option,
+                             use_threads)
 from ddsgen.fit.inputs import load_inputs
 from ddsgen.errors import InputError
 
@@ -74,10 +75,11 @@ from ddsgen.errors import InputError
                    "registration), as unregistered (the bands measured as they are, registration switched off in "
                    "the fitted preset), or auto: render both at the stock values and take the one whose validity "
                    "by image radius is closer to the real frames'.")
+@threads_option(None, REPRODUCIBLE_THREADS_HELP)
 @common_options
 def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
-        pose_steps, static_scene, static_views, unpaired, scenes, depth_scale, registration, no_plane, crop, plausible_px, region, seed,
-        quiet):  # fmt: skip
+        pose_steps, static_scene, static_views, unpaired, scenes, depth_scale, registration, threads, no_plane, crop,
+        plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
     Whole scenes are held out (frames when there is one scene, half the region when there is
@@ -90,6 +92,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     its comments) and REPORT/ (index.html, fit_report.json, parameters.txt, gaps.txt,
     loss_curve.png, residuals.png, frames/).
     """
+    use_threads(threads)
     if unpaired:
         from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ddsgen.commands import REPRODUCIBLE_THREADS_HELP, threads_option, use_threads
 from ddsgen.errors import InputError
 
 
@@ -35,9 +36,10 @@ from ddsgen.errors import InputError
               help="With --static-scene: frames simulated per scene (evenly spaced); the correction they find "
                    "is applied to the scene's other frames too.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation.")
+@threads_option(None, REPRODUCIBLE_THREADS_HELP)
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, static_scene,
-           static_views, seed, quiet):  # fmt: skip
+           static_views, seed, threads, quiet):  # fmt: skip
     """Refine every annotated object's pose (and the support plane) in REAL_DIR with the sensor PRESET.
 
     Each frame's objects are moved until the simulated depth matches the real one (Huber loss on the
@@ -55,6 +57,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     from ddsgen.scene_gradients.report import write_report
     from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan, static_scenes
 
+    use_threads(threads)
     if steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if recast_every < 1:
