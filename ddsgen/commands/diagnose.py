@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import echo_stderr, split_names
+from ddsgen.commands import echo_stderr, split_names, threads_option, use_threads
 from ddsgen.errors import InputError
 
 
@@ -32,8 +32,7 @@ from ddsgen.errors import InputError
 @click.option("--plausible-px", type=float, default=2.0, show_default=True,
               help="Compare only where |real - clean| disparity is below this (px), or real is invalid.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation and frame split.")
-@click.option("--threads", type=int, default=1, show_default=True,
-              help="Torch threads. The diagnosis runs many small simulations: on a shared machine one thread per "
+@threads_option(1, "Torch threads. The diagnosis runs many small simulations: on a shared machine one thread per "
                    "process is usually fastest.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_steps, candidates, grid_frames,
@@ -53,8 +52,6 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     REPORT/report.html (one sentence per step; residual profiles before/after each step and
     full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """
-    import torch
-
     from ddsgen.fit.inputs import load_inputs
     from ddsgen.diagnose import DiagnoseConfig
     from ddsgen.diagnose import diagnose as run_diagnosis
@@ -70,8 +67,6 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise click.BadParameter("must be >= 0", param_hint="--grid-frames")
     if max_effects < 0:
         raise click.BadParameter("must be >= 0", param_hint="--max-effects")
-    if threads < 1:
-        raise click.BadParameter("must be >= 1", param_hint="--threads")
     if not 0.0 < holdout < 1.0:
         raise click.BadParameter("must be in (0, 1)", param_hint="--holdout")
     if apply_path is not None and Path(apply_path).suffix.lower() not in (".yaml", ".yml"):
@@ -82,7 +77,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise InputError(f"--candidates: unknown effect(s) {', '.join(unknown)} (known: {', '.join(sorted(REGISTRY))})")
 
     progress = not quiet
-    torch.set_num_threads(threads)
+    use_threads(threads)
 
     def echo(line: str) -> None:
         if progress:
@@ -94,7 +89,6 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
                             seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames)  # fmt: skip
     result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)
-    del torch
 
     written = write_diagnosis(result, report_dir, f"ddsgen diagnose: {original.name} vs {real_dir}",
                               [f"Sensor preset {preset}; scans {real_dir} ({len(frames)} frame(s))."])  # fmt: skip
