@@ -136,6 +136,8 @@ def test_non_finite_numbers(tmp_path, text, key):
         ("scenes: [{objects: [box], clutter: {count: [1, 3], unique: true}}]", ["clutter.count", "pool holds 1"]),
         ("scenes: [{objects: [box], camera: {elevation_deg: [10, 95]}}]", ["elevation_deg[1]", "<= 89"]),
         ("scenes: [{objects: [box], wall: {distance: 1}, camera: {azimuth_deg: [-180, 180]}}]", ["azimuth_deg", "wall"]),
+        ("scenes: [{objects: [box], ground: null, floor: {depth: 0.7}}]", ["scenes[0].floor", "give a `ground`"]),
+        ("scenes: [{objects: [box], floor: {depth: -0.7}}]", ["scenes[0].floor.depth", "> 0"]),
         ("scenes: [{objects: [box]}]\n  bad: [", ["malformed YAML"]),
         ("- just a list", ["mapping"]),
     ],
@@ -253,6 +255,47 @@ def test_dropped_objects_rest_on_the_ground_without_interpenetration():
                     inside = (points[i] @ hulls[j][:, :3].T + hulls[j][:, 3] < -1e-9).all(axis=1)
                     assert not inside.any(), f"frame {frame_index}: object {i + 1} penetrates object {j + 1}"
     assert pairs > 60
+
+
+def test_a_floor_below_makes_the_ground_a_table_that_objects_stay_on():
+    # A 0.5 x 0.4 m table top with a drop area larger than it: no footprint may hang over an edge.
+    pool = [{"shape": "box", "size": [0.12, 0.08, 0.06]}, {"shape": "cylinder", "radius": 0.04, "height": 0.12}]
+    table = {"objects": pool, "frames": 1, "clutter": {"count": [6, 6], "area": [0.9, 0.9], "min_gap": 0.01},
+             "ground": {"size": [0.5, 0.4], "albedo": 0.5}, "floor": {"depth": 0.72, "size": [4, 3], "albedo": 0.3},
+             "wall": {"distance": 0.2, "width": 3, "height": 2}, "camera": {"azimuth_deg": [-60, 60]}}
+    scene_list = scene_list_from_dict({"scenes": [table]})
+    placed = 0
+    for frame_index in range(8):
+        scene = sample_frame(scene_list, frame_index, seed=3)
+        for obj in scene.objects:
+            pts = world_vertices(obj)
+            assert np.all(np.abs(pts[:, 0]) <= 0.25 - 0.01 + 1e-9) and np.all(np.abs(pts[:, 1]) <= 0.2 - 0.01 + 1e-9)
+            placed += 1
+        floor = [b for b in scene.background if b.class_name == "floor"]
+        assert len(floor) == 1 and floor[0].albedo == 0.3
+        corners = np.asarray(floor[0].mesh.vertices) @ floor[0].world_T_obj[:3, :3].T + floor[0].world_T_obj[:3, 3]
+        np.testing.assert_allclose(corners[:, 2], -0.72)
+        np.testing.assert_allclose(np.ptp(corners[:, :2], axis=0), [4.0, 3.0])
+        wall = next(b for b in scene.background if b.class_name == "wall")
+        wall_z = np.asarray(wall.mesh.vertices) @ wall.world_T_obj[:3, :3].T + wall.world_T_obj[:3, 3]
+        assert wall_z[:, 2].min() == pytest.approx(-0.72) and wall_z[:, 2].max() == pytest.approx(2.0 - 0.72)
+    assert placed >= 8  # some objects fit; the rest were left out, not hung over the edge
+
+
+def test_a_scene_list_without_a_floor_keeps_its_layouts():
+    # The table-edge rule never triggers on a ground larger than the drop area, and the floor's albedo is drawn
+    # after everything else: adding the floor key leaves the objects and the camera where they were.
+    plain = default_scene_list_dict()
+    with_floor = copy.deepcopy(plain)
+    with_floor["scenes"][0]["floor"] = {"depth": 0.75}
+    a, b = scene_list_from_dict(plain), scene_list_from_dict(with_floor)
+    for frame_index in range(4):
+        sa, sb = sample_frame(a, frame_index, seed=5), sample_frame(b, frame_index, seed=5)
+        assert [o.class_name for o in sa.objects] == [o.class_name for o in sb.objects]
+        for oa, ob in zip(sa.objects, sb.objects):
+            np.testing.assert_array_equal(oa.world_T_obj, ob.world_T_obj)
+        np.testing.assert_array_equal(sa.world_T_cam, sb.world_T_cam)
+        assert len(sb.background) == len(sa.background) + 1
 
 
 def test_camera_looks_at_the_clutter_from_the_sampled_distance_range():

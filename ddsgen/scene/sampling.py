@@ -1,7 +1,8 @@
 """Sample one frame's scene: which objects, where they rest, where the camera is.
 
 World frame: z up, the ground plane is z = 0, the clutter is dropped around the
-origin, an optional back wall stands at y = +distance facing -y. The camera pose
+origin, an optional floor lies ``depth`` below the ground (which is then a table top), an
+optional back wall stands at y = +distance facing -y (on the floor if there is one). The camera pose
 ``world_T_cam`` has OpenCV axes (x right, y down, z forward) and looks at the clutter.
 
 Randomness of frame ``i`` comes only from ``(seed, i)`` (and the scene list):
@@ -17,9 +18,10 @@ So any worker can build frame ``i`` alone, in any order, and get the same scene.
 Objects are dropped without interpenetration: each rests on the ground in a stable
 pose of its convex hull (or upright, as modelled) with its lowest point at z = 0 and a
 random yaw; its footprint (the 2-D convex hull of its vertices seen from above) must
-keep ``min_gap`` from every footprint already placed (separating-axis test) and from
-the wall, else the position is redrawn (``max_tries`` times, then the object is left
-out). Objects that extend only upwards from disjoint convex footprints cannot touch.
+keep ``min_gap`` from every footprint already placed (separating-axis test), from
+the wall and from the ground's edges (nothing hangs over a table's edge), else the
+position is redrawn (``max_tries`` times, then the object is left out). Objects that
+extend only upwards from disjoint convex footprints cannot touch.
 """
 
 from __future__ import annotations
@@ -185,6 +187,10 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     count = int(rng.integers(clutter.count[0], clutter.count[1] + 1))
     half = np.asarray(clutter.area) / 2.0
     wall_y = scene.wall.distance if scene.wall is not None else math.inf
+    # The ground's half extent less the gap (x, y): footprints stay on it.
+    ground_half = np.full(2, math.inf)
+    if scene.ground is not None:
+        ground_half = np.asarray(scene.ground.size) / 2.0 - clutter.min_gap
     placed: list[tuple[PlacedObject, np.ndarray]] = []
     used: set[int] = set()
     for _ in range(count):
@@ -203,6 +209,8 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
             xy = rng.uniform(-half, half)
             world_polygon = footprint + xy
             if world_polygon[:, 1].max() > wall_y - clutter.min_gap:
+                continue
+            if np.any(np.abs(world_polygon) > ground_half):
                 continue
             if all(polygons_separated(world_polygon, other, clutter.min_gap) for _, other in placed):
                 position = xy
@@ -236,10 +244,17 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
         # plane in x-y (normal +z) -> rotate +90 deg about x: (x, y, 0) -> (x, 0, y), normal -> -y
         T = np.eye(4)
         T[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
-        T[:3, 3] = [0.0, wall.distance, wall.height / 2.0]
+        bottom = -scene.floor.depth if scene.floor is not None else 0.0
+        T[:3, 3] = [0.0, wall.distance, bottom + wall.height / 2.0]
         background.append(
             PlacedObject(0, "wall", f"plane:{wall.width:g}x{wall.height:g}", shapes.plane_mesh(wall.width, wall.height),
                          T, _uniform(rng, wall.albedo))
+        )
+    if scene.floor is not None:  # drawn last: scene lists without a floor keep their random streams
+        sx, sy = scene.floor.size
+        background.append(
+            PlacedObject(0, "floor", f"plane:{sx:g}x{sy:g}", shapes.plane_mesh(sx, sy),
+                         _translation([0.0, 0.0, -scene.floor.depth]), _uniform(rng, scene.floor.albedo))
         )
 
     objects = [obj for obj, _ in placed]

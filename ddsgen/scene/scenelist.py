@@ -1,7 +1,8 @@
 """Scene lists: YAML files that say what to put in front of the sensor.
 
 A scene list holds one or more *scenes*. A scene is an object pool (meshes from
-files or built-in procedural shapes), a ground plane, an optional back wall, a
+files or built-in procedural shapes), a ground plane (the support: a floor, or a table
+top when a `floor` lies below it), an optional floor, an optional back wall, a
 clutter rule (how many objects are dropped on the ground, where) and a camera rule
 (distance, elevation, azimuth, look-at jitter). Frames cycle through the scenes in
 blocks: scene 0 for its ``frames`` frames, then scene 1, ..., then scene 0 again. The
@@ -32,6 +33,8 @@ number means a fixed value)::
           max_tries: 100                   # placement attempts per object before it is left out
           unique: false                    # true: each pool entry at most once per layout
         ground: {size: [5, 5], albedo: [0.4, 0.7]}   # or `ground: null` for none
+        floor: {depth: 0.75, size: [6, 6], albedo: [0.2, 0.6]}   # optional: a floor `depth` m below the
+                                           # ground, which is then a table top (objects stay on it)
         wall: {distance: 0.6, width: 4, height: 2, albedo: 0.6}   # optional back wall at y = +distance
         camera:
           distance: [0.8, 1.8]             # camera to look-at point (m)
@@ -111,6 +114,15 @@ class PlaneSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class FloorSpec:
+    """A floor ``depth`` m below the ground plane (which is then a table top), centred under it."""
+
+    depth: float = 0.75
+    size: tuple[float, float] = (6.0, 6.0)
+    albedo: tuple[float, float] = (0.2, 0.6)
+
+
+@dataclasses.dataclass(frozen=True)
 class WallSpec:
     distance: float = 0.6  # y of the wall plane (m); the wall faces -y
     width: float = 4.0
@@ -136,6 +148,7 @@ class SceneSpec:
     ground: PlaneSpec | None
     wall: WallSpec | None
     camera: CameraSpec
+    floor: FloorSpec | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -268,6 +281,22 @@ def _plane(source, key: str, data: Any) -> PlaneSpec | None:
     return PlaneSpec(size=size, albedo=albedo)
 
 
+def _floor(source, key: str, data: Any, ground: PlaneSpec | None) -> FloorSpec | None:
+    if data is None or data is False:
+        return None
+    if data is True:
+        data = {}
+    if ground is None:
+        raise InputError(f"{where(source, key)}a floor lies below the ground plane (the table top): give a `ground`")
+    default = FloorSpec()
+    check_keys(source, key, data, ("depth", "size", "albedo"), "the floor")
+    return FloorSpec(
+        depth=field_number(source, f"{key}.depth", data.get("depth", default.depth), low=0, low_open=True, high=1e3),
+        size=field_size2(source, f"{key}.size", data.get("size", list(default.size))),
+        albedo=field_range(source, f"{key}.albedo", data.get("albedo", list(default.albedo)), low=0, high=1),
+    )
+
+
 def _wall(source, key: str, data: Any) -> WallSpec | None:
     if data is None or data is False:
         return None
@@ -311,7 +340,7 @@ def _camera(source, key: str, data: Any, has_wall: bool) -> CameraSpec:
     return camera
 
 
-SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "wall", "camera")
+SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "floor", "wall", "camera")
 
 
 def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> SceneSpec:
@@ -325,14 +354,16 @@ def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> Sc
         raise InputError(f"{where(source, key + '.objects')}expected a non-empty list of objects, got {describe(pool)}")
     objects = tuple(_object(source, f"{key}.objects[{i}]", entry, base_dir) for i, entry in enumerate(pool))
     wall = _wall(source, f"{key}.wall", data.get("wall"))
+    ground = _plane(source, f"{key}.ground", data.get("ground", {}))
     return SceneSpec(
         name=name,
         frames=frames,
         objects=objects,
         clutter=_clutter(source, f"{key}.clutter", data.get("clutter"), len(objects)),
-        ground=_plane(source, f"{key}.ground", data.get("ground", {})),
+        ground=ground,
         wall=wall,
         camera=_camera(source, f"{key}.camera", data.get("camera"), wall is not None),
+        floor=_floor(source, f"{key}.floor", data.get("floor"), ground),
     )
 
 
