@@ -23,6 +23,15 @@ there):
   f b (1/z_near - 1/z_far) px on the left side of every near surface; the real frames have
   one at 9-58 % of such jumps (the matcher and the device fill the rest).
 
+* **isolated dropouts per edge**: isolated dropouts per 1000 pixels of depth edge. An edge
+  pixel is one whose depth differs from its right or lower neighbour's by more than
+  ``EDGE_MIN_RELATIVE`` = 3 %, on the depth map with every hole filled from its nearest valid
+  pixel (so a jump hidden in a shadow still counts once), within ``EDGE_NEAR_VALID_PX`` = 8 px of
+  a valid pixel (not deep inside the device's blind border bands). Every isolated dropout counts
+  (on real frames they sit at edges). It separates how many edges a scene has from how ragged
+  the sensor leaves them: the ten real frames have 5.3-11.0 per 1000 edge pixels whatever their
+  content (cluttered bins at 0.6 m, a table at 1 m).
+
 A ``region`` (bool (H, W)) restricts every statistic to the pixels that count (e.g. the
 modelled geometry of a real frame); components are still found on the whole image, and a
 component counts for the region when any of its pixels lies in it.
@@ -42,12 +51,15 @@ STATISTIC_LABELS = {
     "depth_step_at_1m_mm": "depth step at 1 m (mm)",
     "jump_holes_left": "depth jumps, hole left of near",
     "jump_holes_right": "depth jumps, hole right of near",
+    "isolated_dropouts_per_1000_edge_px": "isolated dropouts / 1000 edge px",
 }
 ISOLATED_MAX_PX = 20
 CORNER_RADIUS = 0.7
 JUMP_MIN_RELATIVE = 0.06
 JUMP_FLAT_PX = 4
 JUMP_MAX_GAP_PX = 40
+EDGE_MIN_RELATIVE = 0.03
+EDGE_NEAR_VALID_PX = 8
 #: Flatness tolerance of the surfaces on either side of a jump (m).
 _JUMP_FLAT_M = 0.02
 # Depth values are compared within this relative window around each reference depth.
@@ -80,6 +92,29 @@ def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
     invalid_in_region = int((invalid.astype(bool) & region).sum())
     isolated_pixels = int((small[labels] & region & invalid.astype(bool)).sum())
     return count, (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
+
+
+def depth_edges(depth_m: np.ndarray, min_relative: float = EDGE_MIN_RELATIVE,
+                near_valid_px: float = EDGE_NEAR_VALID_PX) -> np.ndarray:
+    """(H, W) bool: the depth-edge pixels of a depth image (see the module docstring).
+
+    Args:
+        depth_m: (H, W) metres, 0 = invalid.
+    """
+    depth = np.asarray(depth_m, np.float64)
+    valid = depth > 0
+    edges = np.zeros(depth.shape, bool)
+    if not valid.any():
+        return edges
+    # Each pixel's nearest valid pixel (OpenCV labels every zero of the input, i.e. every valid pixel).
+    distance, nearest = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, 3,
+                                                        labelType=cv2.DIST_LABEL_PIXEL)  # fmt: skip
+    label_to_depth = np.zeros(int(nearest.max()) + 1)
+    label_to_depth[nearest[valid]] = depth[valid]
+    filled = label_to_depth[nearest]
+    edges[:, 1:] |= np.abs(np.diff(filled, axis=1)) > min_relative * np.minimum(filled[:, 1:], filled[:, :-1])
+    edges[1:, :] |= np.abs(np.diff(filled, axis=0)) > min_relative * np.minimum(filled[1:], filled[:-1])
+    return edges & (distance <= near_valid_px)
 
 
 def normalised_radius(height: int, width: int) -> np.ndarray:
@@ -176,7 +211,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
 
     Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),
     ``isolated_dropout_share`` (of the invalid pixels), ``depth_step_at_1m_mm``, ``jump_holes_left``,
-    ``jump_holes_right`` (:func:`holes_at_depth_jumps`), ``pixels``.
+    ``jump_holes_right`` (:func:`holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
+    (:func:`depth_edges`; None without edges), ``pixels``.
     """
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
@@ -185,6 +221,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     corner, whole = corner_valid_share(valid, region)
     step = depth_step_at_1m(depth, valid, region, resolution_m)
     left, right = holes_at_depth_jumps(np.where(valid, depth, 0.0), region)
+    edge_px = int((depth_edges(np.where(valid, depth, 0.0)) & region).sum())
     return {
         "valid_share": whole,
         "corner_valid_share": corner,
@@ -193,5 +230,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "depth_step_at_1m_mm": None if step is None else step * 1000.0,
         "jump_holes_left": left,
         "jump_holes_right": right,
+        "isolated_dropouts_per_1000_edge_px": 1000.0 * count / edge_px if edge_px else None,
         "pixels": int(region.sum()),
     }
