@@ -80,6 +80,7 @@ FIELDS: dict[str, Field] = {
     "cleanup_speckle_px": Field(int, "device clean-up: valid regions smaller than this are removed (px; 0 = off)", 0, 1_000_000, default=0),
     "cleanup_max_diff_px": Field(float, "device clean-up: neighbours differing by more disparity than this are separate regions (px)", 0, 1000, low_open=True, default=1.0),
     "cleanup_hole_px": Field(int, "device clean-up: invalid holes smaller than this take their nearest valid pixel's disparity (px; 0 = off)", 0, 1_000_000, default=0),
+    "cleanup_fill_width_px": Field(int, "device clean-up: runs of at most this many invalid pixels between two valid ones along a row or a column take their nearest valid pixel's disparity, at depth edges too (px; 0 = off): a matching window centred in so narrow a shadow or crack is mostly lit and matches", 0, 1000, default=0),
     "output_left_border_px": Field(int, "the device outputs no depth in this many leftmost columns (px; 0 = none)", 0, 16384, default=0),
     "output_right_border_px": Field(int, "the device outputs no depth in this many rightmost columns (px; 0 = none; depth registered to an RGB camera leaves such a band)", 0, 16384, default=0),
     "ir_margin_right_px": Field(int, "the IR camera sees this many columns beyond the depth image's right edge, so matching windows there are whole (px; 0 = the IR image is the depth image's grid). Takes effect where the caller ray-casts the margin (render, compare, fit, diagnose, study)", 0, 64, default=0),
@@ -155,6 +156,7 @@ class SensorPreset:
     cleanup_speckle_px: int
     cleanup_max_diff_px: float
     cleanup_hole_px: int
+    cleanup_fill_width_px: int
     output_left_border_px: int
     output_right_border_px: int
     ir_margin_right_px: int

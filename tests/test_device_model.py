@@ -16,7 +16,7 @@ import torch
 
 from ddsgen.depth_statistics import depth_step_at_1m, isolated_dropouts
 from ddsgen.preset import load_preset
-from ddsgen.sensor.cleanup import device_cleanup, fill_small_holes, remove_valid_specks
+from ddsgen.sensor.cleanup import device_cleanup, fill_narrow_runs, fill_small_holes, remove_valid_specks
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.ir import render_ir
 from ddsgen.sensor.speckle import speckle_field
@@ -204,6 +204,29 @@ def test_hole_fill_spares_holes_at_depth_edges():
     assert not filled[10, 40] and not filled[20:22, 39:42].any()
     _, every = fill_small_holes(valid, 16)  # without a disparity: every small hole (the old rule)
     assert every[~valid].all()
+
+
+def test_narrow_fill_closes_thin_shadows_at_depth_edges_and_keeps_wide_ones():
+    """A projector shadow between a far wall (left) and a near board (right): 3 px wide in the upper rows, 6 px in the
+    lower ones. A window centred in the thin part is mostly lit, so the device matches there; the wide part stays
+    a hole. Each filled pixel takes its nearest side's disparity: the wall's left of the middle, the board's right."""
+    disparity = np.full((40, 60), 20.0)
+    disparity[:, 30:] = 30.0  # the board
+    valid = np.ones_like(disparity, bool)
+    valid[:20, 27:30] = False  # 3 px
+    valid[20:, 24:30] = False  # 6 px
+    valid[5:8, 45] = False  # a 3-px vertical crack inside the board
+    filled = fill_narrow_runs(valid, 4)
+    assert filled[:20, 27:30].all() and filled[5:8, 45].all() and not filled[20:].any()
+    cleaned, source = device_cleanup(torch.from_numpy(disparity), torch.from_numpy(valid), speckle_px=0,
+                                     max_diff_px=1.0, hole_px=0, fill_width_px=4)  # fmt: skip
+    assert cleaned.numpy()[:20].all() and not cleaned.numpy()[20:, 24:30].any()
+    out = disparity.reshape(-1)[source.numpy().reshape(-1)].reshape(disparity.shape)
+    assert (out[:20, 27] == 20.0).all() and (out[:20, 29] == 30.0).all()  # the wall's left, the board's right
+    # A run that touches the image's edge is no gap between two valid pixels; fill width 0 is off.
+    valid = np.ones((10, 10), bool)
+    valid[:, :2] = False
+    assert not fill_narrow_runs(valid, 4).any() and not fill_narrow_runs(~np.eye(10, dtype=bool), 0).any()
 
 
 @pytest.mark.skipif(not (DATA / "icbin_primesense_unpaired").is_dir(),

@@ -1,7 +1,7 @@
 """The device's clean-up of its disparity map: small specks of valid pixels and small holes removed.
 
 A Kinect V1 does not output the salt-and-pepper of a bare block matcher: its invalid pixels
-come in clusters (shadows, dark and far surfaces, edges). Two morphological passes, both
+come in clusters (shadows, dark and far surfaces, edges). Three morphological passes, all
 OpenCV's, model that:
 
 * **speckle filter** (``cv2.filterSpeckles``): a connected region of valid pixels whose
@@ -15,6 +15,13 @@ OpenCV's, model that:
   real frames say so: the isolated holes of the ten real Kinect V1 / PrimeSense frames in
   ../shared/data sit at depth edges (median rim disparity range 6.7 px; 17 % within 1 px),
   while a bare block matcher's flat-surface holes have rims within 0.1-0.3 px.
+* **narrow fill** (``cv2.morphologyEx`` closing with a 1 x (w+1) and a (w+1) x 1 line): a run of at
+  most ``fill_width_px`` = w invalid pixels between two valid ones along a row or a column takes the
+  disparity of the run's nearer end, at depth edges too. A matching window centred in a projector
+  shadow or crack that narrow is mostly lit (w = 4 of a 9-px window leaves 5 lit columns) and matches
+  the surface it sees; the ray-cast shadow mask and the matcher's ragged decisions at such edges
+  leave 1-3 px bands instead, which the registration's shift and 2x2 splat break into fragments:
+  5-10 times the real frames' isolated holes per length of depth edge (docs/realism.md).
 
 Both are a selection, not arithmetic: the output at a pixel is the matcher's disparity of
 that pixel or of its nearest valid neighbour, so the cleaned depth stays differentiable (the
@@ -118,23 +125,84 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
     filled = np.take(small, labels)
     if not filled.any():
         return source, filled
-    # Every valid pixel (a zero of `invalid`) gets its own label; each pixel learns its nearest one's.
-    _, nearest = cv2.distanceTransformWithLabels(invalid, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
-    label_to_index = np.zeros(int(nearest.max()) + 1, np.int64)
-    valid_index = np.flatnonzero(valid)  # = source[valid]
-    label_to_index[nearest.reshape(-1)[valid_index]] = valid_index
-    source[filled] = label_to_index[nearest[filled]]
+    source.reshape(-1)[np.flatnonzero(filled)] = nearest_valid_source(valid, np.flatnonzero(filled))
     return source, filled
 
 
+def _closed_runs(valid: np.ndarray, width_px: int, along_rows: bool) -> np.ndarray:
+    """(H, W) bool: invalid pixels in runs of at most ``width_px`` between two valid pixels along rows (or columns):
+    a morphological closing of ``valid`` by a line (nothing beyond the image's edges counts as valid)."""
+    line = np.ones((1, width_px + 1) if along_rows else (width_px + 1, 1), np.uint8)
+    closed = cv2.morphologyEx(valid.astype(np.uint8), cv2.MORPH_CLOSE, line, borderType=cv2.BORDER_CONSTANT,
+                              borderValue=0)  # fmt: skip
+    return (closed > 0) & ~valid
+
+
+def fill_narrow_runs(valid: np.ndarray, width_px: int) -> np.ndarray:
+    """(H, W) bool: the invalid pixels in runs of at most ``width_px`` between two valid pixels along a row or a
+    column."""
+    if width_px <= 0 or valid.all() or not valid.any():
+        return np.zeros_like(valid)
+    return _closed_runs(valid, width_px, True) | _closed_runs(valid, width_px, False)
+
+
+def _nearer_run_end(valid: np.ndarray, pixels: tuple[np.ndarray, np.ndarray], width_px: int,
+                    along_rows: bool) -> np.ndarray:
+    """(N,) int64 flat index of the nearer valid end (the left or upper one on a tie) of the run holding each of
+    the ``pixels`` (rows, cols), along rows or columns. Every run is at most ``width_px`` long with valid pixels at
+    both ends, so its nearer end is at most ceil(width_px / 2) away: look 1 before, 1 after, 2 before, ..."""
+    height, width = valid.shape
+    rows, cols = pixels
+    flat_valid = valid.reshape(-1)
+    end = np.full(len(rows), -1, np.int64)
+    for step in range(1, (width_px + 1) // 2 + 1):
+        for sign in (-1, 1):
+            r, c = (rows, cols + sign * step) if along_rows else (rows + sign * step, cols)
+            inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+            candidate = np.where(inside, r * width + c, 0)
+            take = (end < 0) & inside & flat_valid[candidate]
+            end[take] = candidate[take]
+    return end
+
+
+def narrow_run_sources(valid: np.ndarray, width_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(pixels, sources)``: flat indices of the invalid pixels in runs of at most ``width_px`` between two valid
+    pixels along a row or a column (:func:`fill_narrow_runs`), and of the valid pixel each takes its value from:
+    its run's nearer end along the row (the side a window centred there mostly sees), or along the column for
+    pixels only a vertical run holds. Both (N,) int64."""
+    none = np.zeros(0, np.int64)
+    if width_px <= 0 or valid.all() or not valid.any():
+        return none, none
+    in_row = _closed_runs(valid, width_px, True)
+    in_column = _closed_runs(valid, width_px, False) & ~in_row
+    pixels, sources = [], []
+    for mask, along_rows in ((in_row, True), (in_column, False)):
+        rows, cols = np.nonzero(mask)
+        pixels.append(rows * valid.shape[1] + cols)
+        sources.append(_nearer_run_end(valid, (rows, cols), width_px, along_rows))
+    return np.concatenate(pixels), np.concatenate(sources)
+
+
+def nearest_valid_source(valid: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(N,) int64: the flat index of the nearest valid pixel of each of the (N,) flat indices ``pixels``
+    (``cv2.distanceTransformWithLabels``, L2 with a 3x3 mask; ``valid`` must have a valid pixel)."""
+    invalid = (~valid).astype(np.uint8)
+    # Every valid pixel (a zero of `invalid`) gets its own label; each pixel learns its nearest one's.
+    _, nearest = cv2.distanceTransformWithLabels(invalid, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
+    label_to_index = np.zeros(int(nearest.max()) + 1, np.int64)
+    valid_index = np.flatnonzero(valid)
+    label_to_index[nearest.reshape(-1)[valid_index]] = valid_index
+    return label_to_index[nearest.reshape(-1)[pixels]]
+
+
 def device_cleanup(disparity: torch.Tensor, valid: torch.Tensor, speckle_px: int, max_diff_px: float,
-                   hole_px: int) -> tuple[torch.Tensor, torch.Tensor]:
+                   hole_px: int, fill_width_px: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """The clean-up as a selection: which pixels stay valid and where each takes its value from.
 
     Args:
         disparity: (H, W) px (any grad; read only).
         valid: (H, W) bool, the matcher's validity.
-        speckle_px, max_diff_px, hole_px: see the module docstring (0 switches a pass off);
+        speckle_px, max_diff_px, hole_px, fill_width_px: see the module docstring (0 switches a pass off);
             ``max_diff_px`` is also the hole fill's one-surface tolerance.
 
     Returns:
@@ -145,5 +213,11 @@ def device_cleanup(disparity: torch.Tensor, valid: torch.Tensor, speckle_px: int
     v = valid.detach().cpu().numpy()
     kept = remove_valid_specks(d, v, speckle_px, max_diff_px)
     source, filled = fill_small_holes(kept, hole_px, d, max_diff_px)
+    cleaned = kept | filled
+    pixels, ends = narrow_run_sources(cleaned, fill_width_px)
+    if len(pixels):  # after the hole fill: its pixels are valid ends, each already pointing at its own source
+        flat_source, flat_cleaned = source.reshape(-1), cleaned.reshape(-1)
+        flat_source[pixels] = flat_source[ends]
+        flat_cleaned[pixels] = True
     device = valid.device
-    return torch.from_numpy(kept | filled).to(device), torch.from_numpy(source).to(device)
+    return torch.from_numpy(cleaned).to(device), torch.from_numpy(source).to(device)

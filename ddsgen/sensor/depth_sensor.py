@@ -398,10 +398,10 @@ class DepthSensor(nn.Module):
         if p.shadow_always_invalid:
             valid = valid & ~geometry.shadow
         valid_soft = keep * in_range.float()
-        if p.cleanup_speckle_px or p.cleanup_hole_px:
+        if p.cleanup_speckle_px or p.cleanup_hole_px or p.cleanup_fill_width_px:
             # A selection: each pixel keeps its own value or copies its nearest valid neighbour's.
             cleaned, source = device_cleanup(disparity, valid, p.cleanup_speckle_px, p.cleanup_max_diff_px,
-                                             p.cleanup_hole_px)  # fmt: skip
+                                             p.cleanup_hole_px, p.cleanup_fill_width_px)  # fmt: skip
             raw_depth, disparity, valid_soft = (gather_flat(x, source) for x in (raw_depth, disparity, valid_soft))
             removed = valid & ~cleaned
             valid_soft = valid_soft * (~removed).float()
