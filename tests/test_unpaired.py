@@ -136,6 +136,17 @@ def test_real_icbin_folder_is_read_and_its_lattice_is_one_eighth_px():
 HIDDEN = {"subpixel_level": 3, "emitted_intensity": 5e6, "softargmax_beta": 30.0, "min_confidence": 0.2}
 
 
+def _endless_ground(data: dict) -> dict:
+    """A scene list's scenes on an endless ground, no table edge: the scenes these tests were measured on (the
+    built-in list has stood its objects on a table above a floor since session 24). Its far floor's stray depths
+    read a registered device's right band 4 px narrow in 6 frames at 320x240, and frames of an endless ground
+    against fit scenes with table edges tip the window-model choice: scene content the tests do not study."""
+    for scene in data["scenes"]:
+        scene["ground"] = {"size": [5.0, 5.0], "albedo": [0.4, 0.7]}
+        scene.pop("floor", None)
+    return data
+
+
 def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
     from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
 
@@ -144,7 +155,7 @@ def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
     data["scenes"] = [s for s in data["scenes"] if (s["name"] == "against_wall") == wall]
     for scene in data["scenes"]:
         scene["objects"], scene["camera"]["distance"] = pool_, distance
-    return scene_list_from_dict(data)
+    return scene_list_from_dict(_endless_ground(data))
 
 
 @pytest.fixture(scope="module")
@@ -252,8 +263,11 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
 
     torch = pytest.importorskip("torch")
     torch.set_num_threads(1)
+    # Without the narrow fill (cleanup_fill_width_px), which closes 1-px holes along rows and columns whatever the
+    # hole fill does, as the dense splat does (below).
     stock = camera_for(load_preset("kinect_v1"), W, H).replace(registration_ir_offset_m=0.0, registration_shift_px=0.0,
-                                                               emitted_intensity=5.0e5)  # fmt: skip
+                                                               emitted_intensity=5.0e5,
+                                                               cleanup_fill_width_px=0)  # fmt: skip
     hidden = {"projector_falloff_exponent": 12.0, "cleanup_hole_px": 0}
     device = stock.replace(**hidden)
     scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
@@ -345,10 +359,10 @@ def test_the_fit_reads_registered_frames_with_the_registration_and_plain_frames_
     from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
     from ddsgen.fit.unpaired.realfolder import RealDepthFrame
     from ddsgen.fit.unpaired.search import cast_scenes, render_depths
-    from ddsgen.scene.scenelist import load_scene_list
+    from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
 
     stock, window, real = registered_device
-    scenes = load_scene_list(None)
+    scenes = scene_list_from_dict(_endless_ground(default_scene_list_dict()))
     chosen, candidates = choose_window_model(stock, real, scenes, 4, seed=0)
     assert [m.name for m in candidates] == ["unregistered", "registered"]
     assert chosen.name == "registered" and chosen.window.as_keys() == window
