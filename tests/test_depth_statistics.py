@@ -115,8 +115,9 @@ def test_depth_edges_follow_jumps_through_holes_and_count_dropouts_per_edge_leng
     assert not depth_edges(ramp).any() and realism_statistics(ramp)["isolated_dropouts_per_1000_edge_px"] is None
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12: rendered edges are ragged, 27-111 isolated dropouts per 1000 edge "
-                   "px against the real frames' 5-11 (docs/realism.md, session 24); passes once the sensor fixes it")
+@pytest.mark.xfail(strict=True, reason="issue 12: rendered edges are still ragged, 7-49 isolated dropouts per 1000 "
+                   "edge px (median 16; 27-111 before the narrow fill) against the real frames' 5-11 (docs/realism.md, "
+                   "session 24); passes once the sensor fixes it")
 def test_rendered_frames_have_as_few_isolated_dropouts_per_edge_as_real_ones(tmp_path):
     import cv2
 
