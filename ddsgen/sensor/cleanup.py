@@ -23,8 +23,8 @@ OpenCV's, model that:
   leave 1-3 px bands instead, which the registration's shift and 2x2 splat break into fragments:
   5-10 times the real frames' isolated holes per length of depth edge (docs/realism.md).
 
-Both are a selection, not arithmetic: the output at a pixel is the matcher's disparity of
-that pixel or of its nearest valid neighbour, so the cleaned depth stays differentiable (the
+All three are a selection, not arithmetic: the output at a pixel is the matcher's disparity of
+that pixel or of a valid neighbour, so the cleaned depth stays differentiable (the
 gradient of a filled pixel flows to the pixel it copied) and keeps the device's disparity
 levels.
 """
