@@ -220,8 +220,9 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     count, share = isolated_dropouts(valid, region)
     corner, whole = corner_valid_share(valid, region)
     step = depth_step_at_1m(depth, valid, region, resolution_m)
-    left, right = holes_at_depth_jumps(np.where(valid, depth, 0.0), region)
-    edge_px = int((depth_edges(np.where(valid, depth, 0.0)) & region).sum())
+    valid_depth = np.where(valid, depth, 0.0)
+    left, right = holes_at_depth_jumps(valid_depth, region)
+    edge_px = int((depth_edges(valid_depth) & region).sum())
     return {
         "valid_share": whole,
         "corner_valid_share": corner,

@@ -232,13 +232,10 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
         )
         placed.append((obj, world_polygon))
 
+    # Albedos drawn in this order (ground, wall, floor): scene lists without a floor keep their random streams.
     background = []
     if scene.ground is not None:
-        sx, sy = scene.ground.size
-        background.append(
-            PlacedObject(0, "ground", f"plane:{sx:g}x{sy:g}", shapes.plane_mesh(sx, sy), np.eye(4),
-                         _uniform(rng, scene.ground.albedo))
-        )
+        background.append(_plane_object("ground", scene.ground.size, np.eye(4), _uniform(rng, scene.ground.albedo)))
     if scene.wall is not None:
         wall = scene.wall
         # plane in x-y (normal +z) -> rotate +90 deg about x: (x, y, 0) -> (x, 0, y), normal -> -y
@@ -246,16 +243,10 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
         T[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
         bottom = -scene.floor.depth if scene.floor is not None else 0.0
         T[:3, 3] = [0.0, wall.distance, bottom + wall.height / 2.0]
-        background.append(
-            PlacedObject(0, "wall", f"plane:{wall.width:g}x{wall.height:g}", shapes.plane_mesh(wall.width, wall.height),
-                         T, _uniform(rng, wall.albedo))
-        )
-    if scene.floor is not None:  # drawn last: scene lists without a floor keep their random streams
-        sx, sy = scene.floor.size
-        background.append(
-            PlacedObject(0, "floor", f"plane:{sx:g}x{sy:g}", shapes.plane_mesh(sx, sy),
-                         _translation([0.0, 0.0, -scene.floor.depth]), _uniform(rng, scene.floor.albedo))
-        )
+        background.append(_plane_object("wall", (wall.width, wall.height), T, _uniform(rng, wall.albedo)))
+    if scene.floor is not None:
+        floor_T = _translation([0.0, 0.0, -scene.floor.depth])
+        background.append(_plane_object("floor", scene.floor.size, floor_T, _uniform(rng, scene.floor.albedo)))
 
     objects = [obj for obj, _ in placed]
     if objects:
@@ -265,6 +256,12 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     else:
         target = np.zeros(3)
     return tuple(objects), tuple(background), target
+
+
+def _plane_object(name: str, size, world_T_obj: np.ndarray, albedo: float) -> PlacedObject:
+    """A background rectangle (id 0) of ``size`` (width, height) m, in its own x-y plane."""
+    sx, sy = size
+    return PlacedObject(0, name, f"plane:{sx:g}x{sy:g}", shapes.plane_mesh(sx, sy), world_T_obj, albedo)
 
 
 def _world_bounds(obj: PlacedObject) -> np.ndarray:
