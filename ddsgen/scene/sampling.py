@@ -99,9 +99,27 @@ def _translation(xyz) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class _RestPose:
+    """One resting pose of a mesh. Its offset and footprint are computed when a layout first draws it: a mesh
+    can have hundreds of stable poses (a tessellated torus), and a 2-D convex hull for each of them cost ~0.2 s
+    per mesh in every worker (most poses are never drawn)."""
+
     rotation: np.ndarray  # (4, 4) rotation only
-    offset: np.ndarray  # (3,) subtract after rotation: xy centre of the footprint box, lowest z
-    footprint: np.ndarray  # (K, 2) convex polygon, counter-clockwise, centred (after offset)
+    hull_vertices: np.ndarray  # (V, 3) the mesh's convex hull in its own frame (shared by its poses)
+
+    @functools.cached_property
+    def _rotated(self) -> np.ndarray:
+        return self.hull_vertices @ self.rotation[:3, :3].T
+
+    @functools.cached_property
+    def offset(self) -> np.ndarray:
+        """(3,) subtract after rotation: xy centre of the footprint box, lowest z."""
+        lo, hi = self._rotated.min(axis=0), self._rotated.max(axis=0)
+        return np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
+
+    @functools.cached_property
+    def footprint(self) -> np.ndarray:
+        """(K, 2) convex polygon, counter-clockwise, centred (after offset)."""
+        return _convex_polygon(self._rotated[:, :2] - self.offset[:2])
 
 
 def _convex_polygon(points: np.ndarray) -> np.ndarray:
@@ -132,11 +150,7 @@ def _rest_poses(mesh_ref: str, scale: float, rest: str) -> tuple[tuple[_RestPose
     for T in rotations:
         R = np.eye(4)
         R[:3, :3] = T[:3, :3]
-        vertices = hull.vertices @ R[:3, :3].T
-        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-        offset = np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
-        footprint = _convex_polygon(vertices[:, :2] - offset[:2])
-        poses.append(_RestPose(rotation=R, offset=offset, footprint=footprint))
+        poses.append(_RestPose(rotation=R, hull_vertices=hull.vertices))
     return tuple(poses), np.asarray(probs, dtype=np.float64)
 
 
