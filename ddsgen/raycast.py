@@ -3,8 +3,8 @@
 Primary rays use the *unnormalised* directions ``K^-1 [u, v, 1]`` (z = 1), so the hit
 parameter ``t`` is the depth z itself. Pixel centres are at integer ``(u, v)`` (OpenCV).
 
-* Planar convex background pieces (ground, walls) are intersected analytically
-  (vectorised numpy); a BVH holding the huge ground triangles slows every ray.
+* Planar convex background pieces (ground, table top, walls, floor) are intersected analytically
+  (ddsgen/raycast_planes.py); a BVH holding the huge ground triangles slows every ray.
 * Every other mesh has one Embree BVH in its own object frame, built once per process
   and cached; rays are rotated into the object frame (t is unchanged).
 * Exact image-space culls: a mesh can only be hit by rays inside its projected box, and
@@ -27,6 +27,7 @@ import weakref
 import numpy as np
 
 from ddsgen.preset import Intrinsics
+from ddsgen.raycast_planes import Polygon, as_polygon, primary_depth, segments_blocked
 
 
 @dataclasses.dataclass
@@ -118,100 +119,6 @@ def _mesh_bvh(mesh) -> _MeshBVH:
     return entry
 
 
-@dataclasses.dataclass(frozen=True)
-class _Polygon:
-    """A planar convex polygon in the camera frame: n . x = c, 2-D edges in the in-plane basis (e1, e2)."""
-
-    normal: np.ndarray  # (3,) unit
-    offset: float  # c
-    basis: np.ndarray  # (3, 3) rows n, e1, e2
-    corners: np.ndarray  # (K, 2) counter-clockwise, in (e1, e2) coordinates
-    edge_normals: np.ndarray  # (K, 2) inward
-    edge_offsets: np.ndarray  # (K,): inside where edge_normals . q >= edge_offsets
-
-
-def _as_polygon(vertices: np.ndarray, faces: np.ndarray) -> _Polygon | None:
-    """The mesh as one convex planar polygon if it is one (e.g. the ground or a wall), else None."""
-    if len(faces) > 64:
-        return None
-    v = vertices.astype(np.float64)
-    tri = v[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    areas = np.linalg.norm(cross, axis=1) / 2.0
-    if areas.sum() <= 0:
-        return None
-    normal = cross.sum(axis=0)
-    normal /= np.linalg.norm(normal)
-    offset = float(np.mean(v @ normal))
-    scale = max(float(np.ptp(v, axis=0).max()), 1e-9)
-    if np.max(np.abs(v @ normal - offset)) > 1e-6 * scale:
-        return None  # not planar
-    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    q = v @ np.stack([e1, e2]).T
-    from scipy.spatial import ConvexHull
-
-    try:
-        hull = ConvexHull(q)
-    except Exception:
-        return None
-    if abs(hull.volume - areas.sum()) > 1e-6 * hull.volume:
-        return None  # not exactly its convex hull (holes, overlaps, concave)
-    corners = q[hull.vertices]  # counter-clockwise
-    edges = np.roll(corners, -1, axis=0) - corners
-    inward = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
-    inward /= np.linalg.norm(inward, axis=1, keepdims=True)
-    return _Polygon(normal, offset, np.stack([normal, e1, e2]), corners, inward, np.einsum("ij,ij->i", inward, corners))
-
-
-def _polygon_inside(polygon: _Polygon, q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """True where (q1, q2) is inside every edge: a q1 + b q2 >= c - 1e-7, evaluated in float64 (the edge
-    coefficients are float64 scalars) into two reused buffers."""
-    inside = np.ones(q1.shape, dtype=bool)
-    along, other = np.empty(q1.shape, dtype=np.float64), np.empty(q1.shape, dtype=np.float64)
-    for (a, b), c in zip(polygon.edge_normals, polygon.edge_offsets):
-        np.multiply(a, q1, out=along)
-        np.multiply(b, q2, out=other)
-        along += other
-        inside &= along >= c - 1e-7
-    return inside
-
-
-def _polygon_primary_t(polygon: _Polygon, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """(H, W) ray parameter (= depth) of the rays from the origin through K^-1 [u, v, 1]; inf where they miss.
-
-    ``xs`` (W,) and ``ys`` (H,) are the x and y of the directions (z = 1): dot products are outer sums.
-    """
-    def dot(row):
-        return (row[1] * ys + row[2]).astype(np.float32)[:, None] + (row[0] * xs).astype(np.float32)[None, :]
-
-    nd = dot(polygon.basis[0])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.float32(polygon.offset) / nd
-    q1 = t * dot(polygon.basis[1])
-    q2 = t * dot(polygon.basis[2])
-    ok = t > 0  # False for nan; inf only where nd == 0 (parallel): rejected by the edge tests below
-    ok &= _polygon_inside(polygon, q1, q2)
-    return np.where(ok, t, np.float32(np.inf))
-
-
-def _segment_blocked_by_polygon(polygon: _Polygon, starts: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """True where the segment start -> end crosses the polygon (vectorised over starts (M, 3))."""
-    side_start = starts @ polygon.normal.astype(np.float32) - np.float32(polygon.offset)
-    side_end = float(end @ polygon.normal - polygon.offset)
-    crossing = np.flatnonzero((side_start > 0) != (side_end > 0))
-    blocked = np.zeros(len(starts), dtype=bool)
-    if len(crossing):
-        s = starts[crossing].astype(np.float64)
-        a = side_start[crossing].astype(np.float64)
-        w = a / (a - side_end)  # fraction of the way to the end where the plane is crossed
-        point = s + w[:, None] * (end[None, :] - s)
-        q = point @ polygon.basis[1:].T
-        blocked[crossing] = _polygon_inside(polygon, q[:, 0], q[:, 1])
-    return blocked
-
-
 def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float, shadows: bool = True) -> RayHits:
     """Ray-cast a :class:`~ddsgen.scene.sampling.FrameScene` for a pinhole camera.
 
@@ -235,12 +142,12 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     directions = ray_directions(intrinsics).reshape(-1, 3)
     n_rays = directions.shape[0]
 
-    polygons: list[tuple[int, _Polygon]] = []  # (index into placed, polygon in the camera frame)
+    polygons: list[tuple[int, Polygon]] = []  # (index into placed, polygon in the camera frame)
     meshes: list[tuple[int, np.ndarray, _MeshBVH, tuple | None]] = []  # (index, cam_T_obj, BVH, image box)
     for k, p in enumerate(placed):
         cam_T_obj = cam_T_world @ np.asarray(p.world_T_obj, dtype=np.float64)
         if p.id == 0 and len(p.mesh.faces) <= 64:
-            polygon = _as_polygon(*_camera_vertices(p, cam_T_world))
+            polygon = as_polygon(*_camera_vertices(p, cam_T_world))
             if polygon is not None:
                 polygons.append((k, polygon))
                 continue
@@ -254,7 +161,7 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     best_t = np.full((height, width), np.inf, dtype=np.float32)
     owner = np.full((height, width), -1, dtype=np.int32)
     for k, polygon in polygons:
-        t = _polygon_primary_t(polygon, xs, ys)
+        t = primary_depth(polygon, xs, ys, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
         owner = np.where(t < best_t, np.int32(k), owner)
         best_t = np.minimum(best_t, t)
     best_t, owner = best_t.reshape(-1), owner.reshape(-1)
@@ -342,7 +249,7 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
     n_dot_p = normals[:, 0] * points[:, 0] + normals[:, 1] * points[:, 1] + normals[:, 2] * points[:, 2]
     blocked = normals[:, 0] * np.float32(baseline_m) - n_dot_p <= 0.0
     for _, polygon in polygons:
-        blocked |= _segment_blocked_by_polygon(polygon, start, projector)
+        blocked |= segments_blocked(polygon, start, projector)
     if meshes:
         # The segment S -> projector projects onto image row v_S, columns u >= u_S (a half-line), so it can only
         # meet a mesh whose projected box spans that row to the right of u_S (exact, conservative cull).
