@@ -207,6 +207,27 @@ def test_hole_fill_spares_holes_at_depth_edges():
     assert every[~valid].all()
 
 
+def test_nearest_valid_source_is_the_euclidean_nearest_valid_pixel():
+    """Against a brute-force search over every valid pixel: the chosen source is at the smallest Euclidean
+    distance (exactly within the 3-px ring; beyond it the distance transform's L2 approximation, within 5 %)."""
+    from ddsgen.sensor.cleanup import nearest_valid_source
+
+    rng = np.random.default_rng(5)
+    valid = rng.random((40, 50)) > 0.3
+    valid[5:20, 10:22] = False  # a block whose centre is more than 3 px from any valid pixel
+    pixels = np.flatnonzero(~valid)
+    sources = nearest_valid_source(valid, pixels)
+    assert valid.reshape(-1)[sources].all()
+    vr, vc = np.divmod(np.flatnonzero(valid), 50)
+    pr, pc = np.divmod(pixels, 50)
+    best = np.sqrt(((pr[:, None] - vr[None]) ** 2 + (pc[:, None] - vc[None]) ** 2).min(axis=1))
+    got = np.hypot(*(np.divmod(sources, 50)[k] - (pr, pc)[k] for k in range(2)))
+    near = best <= 3
+    assert near.sum() > 100 and (~near).sum() > 5  # both paths are exercised
+    np.testing.assert_array_equal(got[near], best[near])
+    assert (got[~near] <= 1.05 * best[~near]).all()
+
+
 def test_narrow_fill_closes_thin_shadows_at_depth_edges_and_keeps_wide_ones():
     """A projector shadow between a far wall (left) and a near board (right): 3 px wide in the upper rows, 6 px in the
     lower ones. A window centred in the thin part is mostly lit, so the device matches there; the wide part stays

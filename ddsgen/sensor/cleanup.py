@@ -171,16 +171,43 @@ def narrow_gap_sources(valid: np.ndarray, width_px: int) -> tuple[np.ndarray, np
     return pixels, sources
 
 
+#: Hole pixels look for their nearest valid pixel among these offsets (dy, dx) first, nearest first (ties in
+#: (dy, dx) order): every pixel of a hole below 8 px has one within 2 px. Beyond 3 px, a distance transform.
+_RING_RADIUS_PX = 3
+_RING = sorted(((dy, dx) for dy in range(-_RING_RADIUS_PX, _RING_RADIUS_PX + 1)
+                for dx in range(-_RING_RADIUS_PX, _RING_RADIUS_PX + 1)
+                if 0 < dy * dy + dx * dx <= _RING_RADIUS_PX**2), key=lambda o: (o[0] ** 2 + o[1] ** 2, o))  # fmt: skip
+
+
 def nearest_valid_source(valid: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """(N,) int64: the flat index of the nearest valid pixel of each of the (N,) flat indices ``pixels``
-    (``cv2.distanceTransformWithLabels``, L2 with a 3x3 mask; ``valid`` must have a valid pixel)."""
-    invalid = (~valid).astype(np.uint8)
-    # Every valid pixel (a zero of `invalid`) gets its own label; each pixel learns its nearest one's.
-    _, nearest = cv2.distanceTransformWithLabels(invalid, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
-    label_to_index = np.zeros(int(nearest.max()) + 1, np.int64)
-    valid_index = np.flatnonzero(valid)
-    label_to_index[nearest.reshape(-1)[valid_index]] = valid_index
-    return label_to_index[nearest.reshape(-1)[pixels]]
+    """(N,) int64: the flat index of the nearest valid pixel of each of the (N,) flat indices ``pixels`` (``valid``
+    must have a valid pixel). Within 3 px: the exact Euclidean nearest (ties: the first in (dy, dx) order),
+    found by looking at the pixels around each one, nearest first; farther: ``cv2.distanceTransformWithLabels``
+    (L2 with a 3x3 mask), which costs ~9 ms for a 640x480 image where the ring costs well under one."""
+    height, width = valid.shape
+    pixels = np.asarray(pixels, np.int64)
+    rows, cols = np.divmod(pixels, width)
+    flat_valid = valid.reshape(-1)
+    sources = np.full(len(pixels), -1, np.int64)
+    for dy, dx in _RING:
+        todo = np.flatnonzero(sources < 0)
+        if not len(todo):
+            break
+        r, c = rows[todo] + dy, cols[todo] + dx
+        inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+        candidate = np.where(inside, r * width + c, 0)
+        found = inside & flat_valid[candidate]
+        sources[todo[found]] = candidate[found]
+    far = np.flatnonzero(sources < 0)
+    if len(far):
+        invalid = (~valid).astype(np.uint8)
+        # Every valid pixel (a zero of `invalid`) gets its own label; each pixel learns its nearest one's.
+        _, nearest = cv2.distanceTransformWithLabels(invalid, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
+        label_to_index = np.zeros(int(nearest.max()) + 1, np.int64)
+        valid_index = np.flatnonzero(valid)
+        label_to_index[nearest.reshape(-1)[valid_index]] = valid_index
+        sources[far] = label_to_index[nearest.reshape(-1)[pixels[far]]]
+    return sources
 
 
 def device_cleanup(disparity: torch.Tensor, valid: torch.Tensor, speckle_px: int, max_diff_px: float,
