@@ -156,12 +156,10 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
         meshes.append((k, cam_T_obj, bvh, _image_box(hull, intrinsics)))
 
     # --- primary rays: nearest of the analytic polygons and the meshes
-    xs = (np.arange(width, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
-    ys = (np.arange(height, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
     best_t = np.full((height, width), np.inf, dtype=np.float32)
     owner = np.full((height, width), -1, dtype=np.int32)
     for k, polygon in polygons:
-        t = primary_depth(polygon, xs, ys, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+        t = primary_depth(polygon, intrinsics)
         owner = np.where(t < best_t, np.int32(k), owner)
         best_t = np.minimum(best_t, t)
     best_t, owner = best_t.reshape(-1), owner.reshape(-1)

@@ -118,10 +118,12 @@ def image_spans(polygon: Polygon, fx: float, fy: float, cx: float, cy: float, he
     return lo, hi
 
 
-def primary_depth(polygon: Polygon, xs: np.ndarray, ys: np.ndarray, fx: float, fy: float, cx: float,
-                  cy: float) -> np.ndarray:  # fmt: skip
-    """(H, W) float32 ray parameter (= depth) of the rays from the origin through K^-1 [u, v, 1]; inf where
-    they miss the polygon. ``xs`` (W,) and ``ys`` (H,) are the x and y of the directions (z = 1)."""
+def primary_depth(polygon: Polygon, intrinsics) -> np.ndarray:
+    """(H, W) float32 ray parameter (= depth) of the rays from the origin through K^-1 [u, v, 1] (``intrinsics``:
+    a :class:`~ddsgen.preset.Intrinsics`); inf where they miss the polygon."""
+    fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+    xs = (np.arange(int(intrinsics.width), dtype=np.float64) - cx) / fx  # directions' x and y (z = 1)
+    ys = (np.arange(int(intrinsics.height), dtype=np.float64) - cy) / fy
     height, width = len(ys), len(xs)
     t = np.full((height, width), np.float32(np.inf), dtype=np.float32)
     lo, hi = image_spans(polygon, fx, fy, cx, cy, height)

@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from ddsgen.preset import Intrinsics
 from ddsgen.raycast_planes import as_polygon, primary_depth, segments_blocked
 
 WIDTH, HEIGHT, FX, FY, CX, CY = 80, 60, 70.0, 72.0, 39.5, 29.5
+K = Intrinsics(width=WIDTH, height=HEIGHT, fx=FX, fy=FY, cx=CX, cy=CY)
 
 
 def _quad(rng, crossing: bool) -> np.ndarray:
@@ -45,13 +47,12 @@ def _reference(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("crossing", [False, True], ids=["in-front", "crossing-camera-plane"])
 def test_primary_depth_matches_a_per_pixel_float64_reference(crossing):
     rng = np.random.default_rng(7 if crossing else 3)
-    xs, ys = (np.arange(WIDTH) - CX) / FX, (np.arange(HEIGHT) - CY) / FY
     seen = 0
     for _ in range(40):
         corners = _quad(rng, crossing)
         polygon = as_polygon(corners.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]]))
         expected, margin = _reference(corners.astype(np.float32).astype(np.float64))
-        got = primary_depth(polygon, xs, ys, FX, FY, CX, CY)
+        got = primary_depth(polygon, K)
         clear = margin > 1e-5  # away from the boundary by more than rounding
         assert np.array_equal(np.isfinite(got)[clear], np.isfinite(expected)[clear])
         both = np.isfinite(got) & np.isfinite(expected)
@@ -66,8 +67,7 @@ def test_a_floor_under_the_camera_fills_the_lower_image_to_the_horizon():
     # corners lie behind the camera.
     floor = np.array([[-500.0, 1.0, -5.0], [500.0, 1.0, -5.0], [500.0, 1.0, 50.0], [-500.0, 1.0, 50.0]])
     polygon = as_polygon(floor.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]]))
-    xs, ys = (np.arange(WIDTH) - CX) / FX, (np.arange(HEIGHT) - CY) / FY
-    depth = primary_depth(polygon, xs, ys, FX, FY, CX, CY)
+    depth = primary_depth(polygon, K)
     with np.errstate(divide="ignore"):
         on_floor = 1.0 * FY / (np.arange(HEIGHT) - CY)
     below = (on_floor > 0) & (on_floor <= 50.0)
@@ -79,8 +79,7 @@ def test_a_floor_under_the_camera_fills_the_lower_image_to_the_horizon():
 def test_a_polygon_seen_edge_on_covers_no_pixel():
     wall = np.array([[0.0, -1.0, 1.0], [0.0, 1.0, 1.0], [0.0, 1.0, 3.0], [0.0, -1.0, 3.0]])  # the plane x = 0
     polygon = as_polygon(wall.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]]))
-    xs, ys = (np.arange(WIDTH) - CX) / FX, (np.arange(HEIGHT) - CY) / FY
-    assert np.isinf(primary_depth(polygon, xs, ys, FX, FY, CX, CY)).all()
+    assert np.isinf(primary_depth(polygon, K)).all()
 
 
 def test_segments_blocked_only_where_they_cross_inside_the_polygon():
