@@ -113,6 +113,40 @@ def test_identical_settings_at_noise_floor_perturbed_clearly_larger(small):
     assert all(f.pose_error_mm < 25.0 for f in frames)
 
 
+def test_noise_floor_is_what_a_perfect_model_scores_against_a_unit_it_does_not_know(small):
+    """The floor is measured against another unit of the sensor (its own laser speckle and dot positions, fixed to
+    the scene as on the device): a scan taken by a third unit, with the model's exact parameters, scores the floor,
+    while a scan that shares the model's own speckle and dots scores far below it. A floor measured against a twin
+    that shared them (as before) told the user that a perfect model had a large gap left to explain."""
+    import dataclasses
+
+    from effects_geometry import small_preset
+
+    device = small_preset(160, 120)  # kinect_v1 scaled down: speckle fixed to the scene, dots off the lattice
+    assert device.speckle_fixed_to_scene and device.pattern_dot_jitter_px > 0
+    frames = prepare_frames(device, read_scan_folder(small["real"]))
+    sensor = DepthSensor(device)
+
+    def taken_by(unit: int, seed: int):
+        taken = []
+        for frame in frames:
+            sensor.unit = unit
+            try:
+                with torch.no_grad():
+                    scan = simulate(sensor, frame, seed)
+            finally:
+                sensor.unit = 0
+            taken.append(dataclasses.replace(frame, real_depth=scan.depth, real_valid=scan.valid))
+        return taken
+
+    unknown_unit = gap(sensor, taken_by(3, 7))
+    own_unit = gap(sensor, taken_by(0, 7), noise_floor=False)
+    print(f"floor {unknown_unit.noise_floor:.2f} mm; gap to an unknown unit {unknown_unit.gap:.2f} mm, "
+          f"to its own unit {own_unit.gap:.2f} mm")
+    assert 0.7 * unknown_unit.noise_floor <= unknown_unit.gap <= 1.3 * unknown_unit.noise_floor
+    assert own_unit.gap < 0.7 * unknown_unit.noise_floor
+
+
 def test_compare_cli_writes_report_and_rejects_bad_input(small, tmp_path, capsys):
     report = tmp_path / "report"
     code = main(["compare", str(small["stock"]), str(small["real"]), "--report", str(report), "--quiet"])

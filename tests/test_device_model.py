@@ -86,6 +86,28 @@ def test_speckle_is_fixed_to_the_scene_and_read_noise_is_not():
     assert diff_fixed < 0.5 * diff_fresh
 
 
+def test_another_unit_has_its_own_speckle_and_dots_and_unit_0_is_what_render_draws():
+    """Units of one sensor model share every parameter; each has its own scene-fixed speckle and dot positions (the
+    twin of the noise floor is another unit). Unit 0 keeps the seeds renders have always used."""
+    from ddsgen.sensor.pattern import DOT_JITTER_SEED, dot_jitter_seed
+
+    sensor = _device(speckle_fixed_to_scene=True)
+    plane = plane_geometry(sensor.intr, 1.0)
+    mine = sensor.draw_noise(1, plane)
+    field = sensor.pattern_field().raster
+    assert dot_jitter_seed(0) == DOT_JITTER_SEED
+    sensor.unit = 1
+    theirs = sensor.draw_noise(1, plane)
+    assert torch.equal(theirs.speckle_unit, sensor.draw_noise(2, plane).speckle_unit)  # still fixed to the scene
+    assert not torch.equal(mine.speckle_unit, theirs.speckle_unit)
+    assert not torch.equal(field, sensor.pattern_field().raster)  # its dots sit elsewhere
+    assert torch.equal(mine.read_unit, theirs.read_unit)  # the detector noise follows the frame seed only
+    sensor.unit = 0
+    assert torch.equal(sensor.pattern_field().raster, field)
+    redrawn = sensor.draw_noise(1, plane).speckle_unit
+    assert torch.equal(redrawn, mine.speckle_unit)
+
+
 def test_paper_preset_noise_draws_are_unchanged_by_the_device_options():
     """With the options off the draws are the paper model's: Gamma then normal from one generator."""
     sensor = DepthSensor(load_preset("kinect_v1_paper").replace(width_px=64, height_px=48, cx_px=None,

@@ -30,7 +30,8 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     1.5 deg of view, 15 px at 640 x 480) + noise-texture mismatch (|Sobel| roughness per depth
     bin) + validity disagreement (100 mm x squared difference of local valid rates), averaged
     over frames; the noise floor
-    is the same metric between two noise draws of the simulated sensor. Writes
+    is the same metric between the simulation and another unit of the simulated sensor (its own
+    noise, laser speckle and dot positions: no model can know the real unit's). Writes
     REPORT/comparison.json (gap, noise_floor, per-frame values, parts binned by depth, incidence
     angle and image radius, validity confusion, and the hole and quantisation statistics of real
     and sim), full-resolution real | simulated | difference pictures per frame, PNG plots and

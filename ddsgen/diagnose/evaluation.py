@@ -17,7 +17,7 @@ import torch
 from ddsgen.diagnose.plane import replaned
 from ddsgen.fit.compare import frame_gap_mm
 from ddsgen.fit.losses import local_window, masked_local_mean
-from ddsgen.fit.simulate import simulate
+from ddsgen.fit.simulate import simulate, simulate_twin
 
 
 @dataclasses.dataclass
@@ -76,10 +76,11 @@ def validity_log_likelihood(sim, frame) -> float:
 
 def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float, float]:
     """(gap, noise floor, validity log-likelihood) of one frame: the gap between the simulation (noise draw
-    ``seed``) and the real scan and between that simulation and a second draw (``seed + 1000``) of the same
-    sensor, exactly as ``compare`` measures them, and :func:`validity_log_likelihood` of the real scan."""
+    ``seed``) and the real scan and between that simulation and its twin (another unit of the same sensor:
+    :func:`~ddsgen.fit.simulate.simulate_twin`), exactly as ``compare`` measures them, and
+    :func:`validity_log_likelihood` of the real scan."""
     sim = simulate(sensor, frame, seed)
-    other = simulate(sensor, frame, seed + 1000)
+    other = simulate_twin(sensor, frame, seed)
     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
     return frame_gap_mm(sim, frame), frame_gap_mm(sim, twin), validity_log_likelihood(sim, frame)
 

@@ -80,7 +80,7 @@ def reuse_matches(size: int = MATCH_ENTRIES):
 def front_end_state(sensor) -> tuple:
     """Everything a sensor's front end depends on besides geometry and noise: the preset (without its effects),
     the camera, the values of every parameter and buffer except those of validity-stage effects and of the
-    post-processing (both act after the front end), and the other effects' entries."""
+    post-processing (both act after the front end), the other effects' entries and the unit (its dots)."""
     later = {f"effects.{i}." for i, e in enumerate(sensor.effects) if e.stage == "validity"} | {"postprocess."}
     tensors = tuple((name, tuple(t.detach().reshape(-1).tolist()))
                     for name, t in (*sensor.named_parameters(), *sensor.named_buffers())
@@ -88,14 +88,15 @@ def front_end_state(sensor) -> tuple:
     effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage != "validity")
     intr = sensor.intr
     return (repr(sensor.preset.replace(effects=[])), (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy),
-            tensors, effects)  # fmt: skip
+            tensors, effects, sensor.unit)  # fmt: skip
 
 
 @contextlib.contextmanager
 def reuse_front_ends(size: int = FRONT_END_ENTRIES):
     """Serve noise draws and sensor front ends from caches (see the module docstring).
 
-    Noise draws are keyed by their integer seed (and the geometry when the speckle is fixed to the scene),
+    Noise draws are keyed by their integer seed and the sensor's unit (and the geometry when the speckle is fixed
+    to the scene),
     so the same seed returns the same object; front ends by that noise object, the geometry object and
     :func:`front_end_state`. The cached objects are kept alive by the cache, so their ids stay unique.
     """
@@ -109,8 +110,8 @@ def reuse_front_ends(size: int = FRONT_END_ENTRIES):
             return original_noise(self, seed, geometry)
         p = self.preset
         key = (tuple(seed) if isinstance(seed, (tuple, list)) else seed, self.intr.height, self.intr.width,
-               self.ir_margin_px, p.speckle_shape, p.speckle_grain_px, p.speckle_fixed_to_scene, id(geometry) if geometry is not None
-               else None)  # fmt: skip
+               self.ir_margin_px, p.speckle_shape, p.speckle_grain_px, p.speckle_fixed_to_scene, self.unit,
+               id(geometry) if geometry is not None else None)  # fmt: skip
         return noises.get(key, lambda: (original_noise(self, seed, geometry), geometry))[0]
 
     def front_end(self, geometry, noise, quantise=True):

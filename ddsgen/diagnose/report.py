@@ -237,8 +237,9 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     summary = list(notes or []) + list(getattr(d, "notes", []))
     summary.append(
         f"{len(d.fit_frames)} frame(s) fitted, {len(d.held_frames)} held out. Held-out gap of the fitted base sensor: "
-        f"{d.baseline.gap:.2f} mm, of which {d.baseline.floor:.2f} mm is its noise floor (two noise draws of the same "
-        f"simulated sensor differ by this much, so no model can remove it): {d.baseline_gap:.2f} mm beyond it. "
+        f"{d.baseline.gap:.2f} mm, of which {d.baseline.floor:.2f} mm is its noise floor (two units of the same "
+        f"simulated sensor, each with its own noise, speckle and dot positions, differ by this much, so no model can "
+        f"remove it): {d.baseline_gap:.2f} mm beyond it. "
         f"The gaps below (and in diagnosis.json) are gaps beyond the noise floor."
     )
     if d.steps:

@@ -24,8 +24,10 @@ For each frame, on its comparison region R (modelled geometry visible and plausi
 
 These are exactly the loss terms of :mod:`ddsgen.fit.losses` (so ``fit`` minimises what
 ``compare`` reports). Two independent noise draws of the *same* sensor do not score 0:
-``noise_floor`` is the gap between two simulations of the sensor under test with different
-noise seeds, and ``excess = gap - noise_floor`` is the part a better model could remove.
+``noise_floor`` is the gap between the simulation and a twin of it
+(:func:`~ddsgen.fit.simulate.simulate_twin`: another unit of the same model, with its own noise
+draw and its own scene-fixed speckle and dot positions, as the real unit has), and
+``excess = gap - noise_floor`` is the part a better model could remove.
 
 Parts reported besides: bias (median) and spread (1.4826 MAD) of sim - real, and of real -
 clean and sim - clean, binned by clean depth, incidence angle and image radius; validity
@@ -43,7 +45,7 @@ import numpy as np
 import torch
 
 from ddsgen.fit.losses import LossWeights, frame_loss
-from ddsgen.fit.simulate import FrameData, simulate
+from ddsgen.fit.simulate import FrameData, simulate, simulate_twin
 
 DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
 INCIDENCE_EDGES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.01)
@@ -55,7 +57,7 @@ MIN_BIN_PIXELS = 20
 class GapReport:
     """Result of :func:`gap`.
 
-    gap: headline (mm); noise_floor: gap between two simulation draws (mm, NaN if not computed);
+    gap: headline (mm); noise_floor: gap between the simulation and another unit's (mm, NaN if not computed);
     frames: per-frame dicts (name, gap, depth_mm, gradient_mm, validity_mm, bias_mm, spread_mm,
     confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
     real depth, region) numpy arrays when requested (for residual plots); realism: the hole and
@@ -86,7 +88,8 @@ DEFINITION = (
     "mean of sim - real (both valid, clipped to +-50 mm) over a window of 1.5 deg of view (15 px at 640 x 480, "
     "at least 5 px); G = Huber of the difference of mean |Sobel(depth - clean)| of sim and real per 0.25 m depth "
     "bin; V = 100 mm x mean squared difference of the local valid rates (same window). "
-    "noise_floor = the same between two noise draws of the simulated sensor; excess = gap - noise_floor."
+    "noise_floor = the same between the simulation and another unit of the same sensor model (its own noise draw, "
+    "laser speckle and dot positions, as the real unit has its own); excess = gap - noise_floor."
 )
 
 
@@ -191,8 +194,8 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         sensor: a :class:`~ddsgen.sensor.depth_sensor.DepthSensor` (not modified).
         frames: from :func:`ddsgen.fit.simulate.prepare_frames`.
         region: ``"all"`` (every modelled, plausible pixel) or ``"objects"`` (only the objects').
-        seed: noise seed of the simulation (the floor uses ``seed + 1000``).
-        noise_floor: also compute the gap between two noise draws of ``sensor``.
+        seed: noise seed of the simulation (the floor's twin: see :func:`~ddsgen.fit.simulate.simulate_twin`).
+        noise_floor: also compute the gap between the simulation and another unit of ``sensor``.
         keep_maps: keep per-frame depth maps in ``GapReport.maps`` (for residual plots).
         progress: show a progress bar.
         on_frame: called as ``on_frame(frame, sim)`` (FrameData, SensorOutput) after each frame's
@@ -214,7 +217,7 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
             if on_frame is not None:
                 on_frame(frame, sim)
             if noise_floor:
-                other = simulate(sensor, frame, seed + 1000)
+                other = simulate_twin(sensor, frame, seed)
                 twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
                 floors.append(frame_gap(sim, twin, region)["gap"] or 0.0)
             mask = region_mask(frame, region)
@@ -266,6 +269,11 @@ def table(report: GapReport, title: str = "") -> str:
     lines += [
         f"gap ({report.region} region)       {report.gap:8.2f} mm   (noise floor {report.noise_floor:.2f} mm, "
         f"excess {report.excess:.2f} mm)",
+    ]
+    if report.excess < 0:
+        lines.append("  below the floor: the real scans are closer to the simulation than another simulated unit is "
+                     "(the real sensor is less noisy here than the model)")
+    lines += [
         f"  systematic depth D     {p['depth_mm']:8.2f} mm",
         f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
         f"  validity         V     {p['validity_mm']:8.2f} mm",

@@ -159,18 +159,18 @@ class FrontEnd:
 
 @functools.lru_cache(maxsize=8)
 def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                   dot_jitter_px: float = 0.0) -> PatternField:
-    """The pattern field for one sensor geometry, built once per process."""
+                   dot_jitter_px: float = 0.0, unit: int = 0) -> PatternField:
+    """The pattern field for one sensor geometry (and unit), built once per process."""
     pattern = load_pattern(pattern_path)
     geometry = fit_pattern(pattern.shape, width, height, pad_left=pad, margin=margin)
-    return PatternField(pattern, geometry, psf_px=psf_px, dot_jitter_px=dot_jitter_px)
+    return PatternField(pattern, geometry, psf_px=psf_px, dot_jitter_px=dot_jitter_px, unit=unit)
 
 
 @functools.lru_cache(maxsize=8)
 def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                      dot_jitter_px: float, n_sub: int, ir_width: int):
+                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int):
     """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin)."""
-    field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px)
+    field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px, unit)
     return field.reference_phases(ir_width, height, pad, n_sub)
 
 
@@ -191,6 +191,12 @@ class DepthSensor(nn.Module):
     ``log_emitted_intensity``, ``log_speckle_scale``, ``log_read_noise_std``,
     ``read_noise_mean``, ``log_ambient``, ``log_beta``, ``log_baseline``,
     ``log_focal_scale`` (f / f_preset, scales fx and fy together), and the effects'.
+
+    ``unit`` (int, 0 by default) says which unit of the device model this is. Every unit has the same
+    parameters; each has its own scene-fixed random patterns: the laser speckle a static scene shows and the
+    dots' sub-pixel positions. A real scan was taken by a unit whose patterns the model cannot know, so the
+    noise floor of a comparison is measured against another unit (:func:`ddsgen.fit.simulate.simulate_twin`).
+    Renders use unit 0.
     """
 
     def __init__(self, preset: SensorPreset, intrinsics: Intrinsics | None = None, device="cpu"):
@@ -198,6 +204,7 @@ class DepthSensor(nn.Module):
         self.preset = preset
         self.intr = intrinsics or preset.intrinsics
         self.device_ = torch.device(device)
+        self.unit = 0
         self.log_emitted_intensity = _log_param(preset.emitted_intensity)
         self.log_speckle_scale = _log_param(preset.speckle_scale)
         self.log_read_noise_std = _log_param(max(preset.read_noise_std_counts, 1e-6))
@@ -276,7 +283,7 @@ class DepthSensor(nn.Module):
     def _pattern_key(self) -> tuple:
         p = self.preset
         return (str(p.resolve_path(p.pattern)), p.pattern_psf_px, self.intr.width, self.intr.height, self.pad, self.margin,
-                p.pattern_dot_jitter_px)  # fmt: skip
+                p.pattern_dot_jitter_px, self.unit)  # fmt: skip
 
     def pattern_field(self) -> PatternField:
         return _pattern_field(*self._pattern_key()).to(self.device_)
@@ -291,14 +298,15 @@ class DepthSensor(nn.Module):
         """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator.
 
         With ``speckle_fixed_to_scene`` and a ``geometry``, the speckle is seeded by the geometry
-        (the same static scene gets the same speckle whatever the frame seed); the read noise
-        always comes from ``seed``.
+        and the sensor's ``unit`` (the same static scene gets the same speckle whatever the frame
+        seed; another unit sees another speckle); the read noise always comes from ``seed``.
         """
         p = self.preset
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         speckle_rng = None
         if p.speckle_fixed_to_scene and geometry is not None:
-            speckle_rng = np.random.default_rng(scene_seed(geometry.points, geometry.hit))
+            unit_salt = [self.unit] if self.unit else []  # unit 0: the seed renders have always used
+            speckle_rng = np.random.default_rng(scene_seed(geometry.points, geometry.hit) + unit_salt)
         # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
         return IRNoise.draw(self.intr.height, self.intr.width + self.ir_margin_px, p.speckle_shape, rng, self.device_,
                             p.speckle_grain_px, speckle_rng)  # fmt: skip

@@ -209,6 +209,12 @@ def _psf_peak(sigma_x: float, sigma_y: float, box_x: int, box_y: int) -> float:
 #: Seed of the dots' fixed offsets from the pattern lattice (PatternField ``dot_jitter_px``).
 DOT_JITTER_SEED = 20120917
 
+
+def dot_jitter_seed(unit: int = 0) -> int | list[int]:
+    """numpy seed of the dots' fixed offsets of one unit of the device (0: the unit ddsgen renders with)."""
+    return DOT_JITTER_SEED if unit == 0 else [DOT_JITTER_SEED, int(unit)]
+
+
 class PatternField:
     """The projected pattern as a continuous, differentiable intensity field.
 
@@ -229,10 +235,12 @@ class PatternField:
             the camera's pixel lattice; dots that all do see the same sub-pixel phase on a
             fronto-parallel surface, so the matcher's phase-dependent error becomes one bias there
             instead of noise. 0: the lattice (the paper's raster pattern).
+        unit: which unit of the device: another unit's dots sit at other fixed offsets
+            (:func:`dot_jitter_seed`; only with ``dot_jitter_px`` > 0).
     """
 
     def __init__(self, pattern: np.ndarray, geometry: PatternGeometry, psf_px: float = 0.5, supersample: int = 4,
-                 dot_jitter_px: float = 0.0):
+                 dot_jitter_px: float = 0.0, unit: int = 0):
         self.geometry = geometry
         self.sx = int(supersample)
         self.sy = max(int(supersample) // 2, 1)
@@ -252,7 +260,7 @@ class PatternField:
         inside_r = (row >= 0) & (row < ph)
         raster = np.zeros((out_h, out_w), np.float32)
         if dot_jitter_px > 0:
-            raster = self._jittered_raster(pattern, geometry, dot_jitter_px, out_h, out_w)
+            raster = self._jittered_raster(pattern, geometry, dot_jitter_px, out_h, out_w, unit)
         else:
             raster[np.ix_(inside_r, inside_c)] = pattern[np.ix_(row[inside_r], col[inside_c])]
         blurred = cv2.GaussianBlur(raster, (0, 0), sigmaX=psf_px * self.sx, sigmaY=psf_px * self.sy)
@@ -264,9 +272,9 @@ class PatternField:
         self.extent_v = (self.origin_v, self.origin_v + out_h / self.sy)
 
     def _jittered_raster(self, pattern: np.ndarray, geometry: PatternGeometry, jitter_px: float, out_h: int,
-                         out_w: int) -> np.ndarray:
+                         out_w: int, unit: int) -> np.ndarray:
         """The box-dot raster with every lit dot moved by its fixed random offset (see ``dot_jitter_px``)."""
-        rng = np.random.default_rng(DOT_JITTER_SEED)  # a property of the projector: the same in every process
+        rng = np.random.default_rng(dot_jitter_seed(unit))  # a property of the projector: the same in every process
         offset = (rng.random((2,) + pattern.shape) - 0.5) * jitter_px  # (2, Hp, Wp) projector px
         rows, cols = np.nonzero(pattern > 0)
         values = pattern[rows, cols].astype(np.float32)
