@@ -271,8 +271,8 @@ def table(report: GapReport, title: str = "") -> str:
         f"excess {report.excess:.2f} mm)",
     ]
     if report.excess < 0:
-        lines.append("  below the floor: the real scans are closer to the simulation than another simulated unit is "
-                     "(the real sensor is less noisy here than the model)")
+        lines.append("  below the floor: the real scans are as close to the simulation as another simulated unit is "
+                     "(the floor is one unit's draw; on few frames or a small region it scatters by tens of percent)")
     lines += [
         f"  systematic depth D     {p['depth_mm']:8.2f} mm",
         f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
