@@ -90,11 +90,16 @@ def test_another_unit_has_its_own_speckle_and_dots_and_unit_0_is_what_render_dra
     """Units of one sensor model share every parameter; each has its own scene-fixed speckle and dot positions (the
     twin of the noise floor is another unit). Unit 0 keeps the seeds renders have always used."""
     from ddsgen.sensor.pattern import DOT_JITTER_SEED, dot_jitter_seed
+    from ddsgen.sensor.speckle import scene_seed, speckle_field
 
     sensor = _device(speckle_fixed_to_scene=True)
     plane = plane_geometry(sensor.intr, 1.0)
     mine = sensor.draw_noise(1, plane)
     field = sensor.pattern_field().raster
+    p = sensor.preset  # unit 0: the scene's own seed and the projector's own seed, as every render drew them
+    render_speckle = speckle_field(sensor.intr.height, sensor.intr.width + sensor.ir_margin_px, p.speckle_shape,
+                                   p.speckle_grain_px, np.random.default_rng(scene_seed(plane.points, plane.hit)))
+    assert np.array_equal(mine.speckle_unit.numpy(), render_speckle)
     assert dot_jitter_seed(0) == DOT_JITTER_SEED
     sensor.unit = 1
     theirs = sensor.draw_noise(1, plane)
