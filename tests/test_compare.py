@@ -120,6 +120,7 @@ def test_noise_floor_is_what_a_perfect_model_scores_against_a_unit_it_does_not_k
     that shared them (as before) told the user that a perfect model had a large gap left to explain."""
     import dataclasses
 
+    from ddsgen.fit.simulate import sensor_unit
     from effects_geometry import small_preset
 
     device = small_preset(160, 120)  # kinect_v1 scaled down: speckle fixed to the scene, dots off the lattice
@@ -130,12 +131,8 @@ def test_noise_floor_is_what_a_perfect_model_scores_against_a_unit_it_does_not_k
     def taken_by(unit: int, seed: int):
         taken = []
         for frame in frames:
-            sensor.unit = unit
-            try:
-                with torch.no_grad():
-                    scan = simulate(sensor, frame, seed)
-            finally:
-                sensor.unit = 0
+            with torch.no_grad(), sensor_unit(sensor, unit):
+                scan = simulate(sensor, frame, seed)
             taken.append(dataclasses.replace(frame, real_depth=scan.depth, real_valid=scan.valid))
         return taken
 

@@ -413,6 +413,17 @@ def frame_camera(sensor, intrinsics: Intrinsics):
         sensor.intr = old
 
 
+@contextlib.contextmanager
+def sensor_unit(sensor, unit: int):
+    """Temporarily make ``sensor`` another unit of its model (``DepthSensor.unit``: its own speckle and dots)."""
+    old = sensor.unit
+    sensor.unit = int(unit)
+    try:
+        yield sensor
+    finally:
+        sensor.unit = old
+
+
 def simulate(sensor, frame: FrameData, seed: int = 0):
     """Run the differentiable sensor on a prepared frame -> SensorOutput (gradients if enabled).
 
@@ -440,9 +451,5 @@ def simulate_twin(sensor, frame: FrameData, seed: int = 0):
     shared the speckle with the simulation scored far lower: 4.4 against 8.8 mm on the blind diagnose scans,
     docs/diagnose_real.md.)
     """
-    old = sensor.unit
-    sensor.unit = TWIN_UNIT
-    try:
+    with sensor_unit(sensor, TWIN_UNIT):
         return simulate(sensor, frame, seed + TWIN_SEED_OFFSET)
-    finally:
-        sensor.unit = old
