@@ -144,6 +144,28 @@ def test_noise_floor_is_what_a_perfect_model_scores_against_a_unit_it_does_not_k
     assert own_unit.gap < 0.7 * unknown_unit.noise_floor
 
 
+def test_floor_of_few_frames_averages_several_units(small):
+    """One unit's floor on one frame scatters by tens of percent (the real cat's object region: 0.40-1.50 mm over
+    eight units), so a comparison of few frames averages at least four unit draws: one frame gets four twins, each
+    another unit with its own speckle and dots; four frames or more get one each."""
+    from ddsgen.fit.simulate import FLOOR_DRAWS, twin_draws
+    from effects_geometry import small_preset
+
+    assert FLOOR_DRAWS == 4
+    assert [twin_draws(n) for n in (0, 1, 2, 3, 4, 9)] == [4, 4, 2, 2, 1, 1]
+    device = small_preset(160, 120)  # speckle fixed to the scene, dots off the lattice: units differ
+    frames = prepare_frames(device, read_scan_folder(small["real"]))
+    sensor = DepthSensor(device)
+    one = gap(sensor, frames[:1])
+    draws = one.noise_floor_draws
+    print("floor against each unit (mm):", [round(v, 2) for v in draws])
+    assert len(draws) == 4 and len({round(v, 6) for v in draws}) == 4  # four different units, not one repeated
+    assert one.noise_floor == pytest.approx(np.mean(draws))
+    assert one.to_dict()["noise_floor_draws"] == [round(v, 4) for v in draws]
+    # The first draw is the one-twin floor of before (unit 1), so a comparison of 4+ frames is unchanged.
+    assert gap(sensor, frames[:1] * 4).noise_floor_draws == pytest.approx([draws[0]], rel=1e-6)
+
+
 def test_compare_cli_writes_report_and_rejects_bad_input(small, tmp_path, capsys):
     report = tmp_path / "report"
     code = main(["compare", str(small["stock"]), str(small["real"]), "--report", str(report), "--quiet"])

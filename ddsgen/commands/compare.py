@@ -30,9 +30,10 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     1.5 deg of view, 15 px at 640 x 480) + noise-texture mismatch (|Sobel| roughness per depth
     bin) + validity disagreement (100 mm x squared difference of local valid rates), averaged
     over frames; the noise floor
-    is the same metric between the simulation and another unit of the simulated sensor (its own
-    noise, laser speckle and dot positions: no model can know the real unit's). Writes
-    REPORT/comparison.json (gap, noise_floor, per-frame values, parts binned by depth, incidence
+    is the same metric between the simulation and other units of the simulated sensor (their own
+    noise, laser speckle and dot positions: no model can know the real unit's), averaged over at
+    least 4 units (one frame: 4 twins). Writes REPORT/comparison.json (gap, noise_floor and the floor
+    against each unit, per-frame values, parts binned by depth, incidence
     angle and image radius, validity confusion, and the hole and quantisation statistics of real
     and sim), full-resolution real | simulated | difference pictures per frame, PNG plots and
     REPORT/index.html showing them all, and prints a short table. With --save-sim DIR the

@@ -77,8 +77,10 @@ def validity_log_likelihood(sim, frame) -> float:
 def frame_evaluation(sensor, frame, seed: int) -> tuple[float, float, float]:
     """(gap, noise floor, validity log-likelihood) of one frame: the gap between the simulation (noise draw
     ``seed``) and the real scan and between that simulation and its twin (another unit of the same sensor:
-    :func:`~ddsgen.fit.simulate.simulate_twin`), exactly as ``compare`` measures them, and
-    :func:`validity_log_likelihood` of the real scan."""
+    :func:`~ddsgen.fit.simulate.simulate_twin`), as ``compare`` measures them, and
+    :func:`validity_log_likelihood` of the real scan. One twin per frame (unit 1), where ``compare`` averages
+    several units on fewer than four frames: a diagnosis evaluates hundreds of models, and judges them by the
+    gap itself, so the floor's scatter only moves the reported gap beyond it."""
     sim = simulate(sensor, frame, seed)
     other = simulate_twin(sensor, frame, seed)
     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)

@@ -24,10 +24,12 @@ For each frame, on its comparison region R (modelled geometry visible and plausi
 
 These are exactly the loss terms of :mod:`ddsgen.fit.losses` (so ``fit`` minimises what
 ``compare`` reports). Two independent noise draws of the *same* sensor do not score 0:
-``noise_floor`` is the gap between the simulation and a twin of it
-(:func:`~ddsgen.fit.simulate.simulate_twin`: another unit of the same model, with its own noise
-draw and its own scene-fixed speckle and dot positions, as the real unit has), and
-``excess = gap - noise_floor`` is the part a better model could remove.
+``noise_floor`` is the gap between the simulation and twins of it
+(:func:`~ddsgen.fit.simulate.simulate_twin`: other units of the same model, each with its own noise
+draw and its own scene-fixed speckle and dot positions, as the real unit has), averaged over at
+least four units in all (one frame: four twins; four frames or more: one each), since one unit's
+draw on one frame scatters by tens of percent; ``excess = gap - noise_floor`` is the part a
+better model could remove.
 
 Parts reported besides: bias (median) and spread (1.4826 MAD) of sim - real, and of real -
 clean and sim - clean, binned by clean depth, incidence angle and image radius; validity
@@ -45,7 +47,7 @@ import numpy as np
 import torch
 
 from ddsgen.fit.losses import LossWeights, frame_loss
-from ddsgen.fit.simulate import FrameData, simulate, simulate_twin
+from ddsgen.fit.simulate import FrameData, simulate, simulate_twin, twin_draws
 
 DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
 INCIDENCE_EDGES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.01)
@@ -57,7 +59,9 @@ MIN_BIN_PIXELS = 20
 class GapReport:
     """Result of :func:`gap`.
 
-    gap: headline (mm); noise_floor: gap between the simulation and another unit's (mm, NaN if not computed);
+    gap: headline (mm); noise_floor: gap between the simulation and other units' (mm, NaN if not computed),
+    averaged over ``len(noise_floor_draws)`` units per frame; noise_floor_draws: the floor against each of them
+    (mean over frames, mm), whose spread is the floor's own scatter;
     frames: per-frame dicts (name, gap, depth_mm, gradient_mm, validity_mm, bias_mm, spread_mm,
     confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
     real depth, region) numpy arrays when requested (for residual plots); realism: the hole and
@@ -71,6 +75,7 @@ class GapReport:
     region: str = "all"
     maps: list[dict] = dataclasses.field(default_factory=list)
     realism: dict | None = None
+    noise_floor_draws: list[float] = dataclasses.field(default_factory=list)
 
     @property
     def excess(self) -> float:
@@ -78,7 +83,7 @@ class GapReport:
 
     def to_dict(self) -> dict:
         return {"gap": _r(self.gap), "noise_floor": _r(self.noise_floor), "excess": _r(self.excess),
-                "units": "mm", "region": self.region, "definition": DEFINITION, "region_rule": region_rule(self.region),
+                "noise_floor_draws": [_r(v) for v in self.noise_floor_draws], "units": "mm", "region": self.region, "definition": DEFINITION, "region_rule": region_rule(self.region),
                 "frames": self.frames,
                 "parts": self.parts, **({"realism": self.realism} if self.realism else {})}  # fmt: skip
 
@@ -195,7 +200,8 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         frames: from :func:`ddsgen.fit.simulate.prepare_frames`.
         region: ``"all"`` (every modelled, plausible pixel) or ``"objects"`` (only the objects').
         seed: noise seed of the simulation (the floor's twin: see :func:`~ddsgen.fit.simulate.simulate_twin`).
-        noise_floor: also compute the gap between the simulation and another unit of ``sensor``.
+        noise_floor: also compute the gap between the simulation and other units of ``sensor``: at least
+            ``FLOOR_DRAWS`` unit draws in all (:func:`~ddsgen.fit.simulate.twin_draws` per frame).
         keep_maps: keep per-frame depth maps in ``GapReport.maps`` (for residual plots).
         progress: show a progress bar.
         on_frame: called as ``on_frame(frame, sim)`` (FrameData, SensorOutput) after each frame's
@@ -207,6 +213,7 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
     from tqdm import tqdm
 
     per_frame, floors, maps = [], [], []
+    draws = twin_draws(len(frames))
     rows = {k: [] for k in ("depth", "incidence", "radius", "sim", "real", "clean", "sim_valid", "real_valid")}
     totals = {"both_valid": 0, "real_only": 0, "sim_only": 0, "neither": 0}
     n_total = 0
@@ -217,9 +224,11 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
             if on_frame is not None:
                 on_frame(frame, sim)
             if noise_floor:
-                other = simulate_twin(sensor, frame, seed)
-                twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
-                floors.append(frame_gap(sim, twin, region)["gap"] or 0.0)
+                floors.append([])
+                for draw in range(draws):
+                    other = simulate_twin(sensor, frame, seed, draw)
+                    twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
+                    floors[-1].append(frame_gap(sim, twin, region)["gap"] or 0.0)
             mask = region_mask(frame, region)
             rows["depth"].append(frame.clean_depth[mask].numpy())
             rows["incidence"].append(frame.incidence_deg[mask].numpy())
@@ -254,8 +263,10 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         },
     }
     headline = float(np.mean([f["gap"] or 0.0 for f in per_frame])) if per_frame else float("nan")
-    floor = float(np.mean(floors)) if floors else float("nan")
-    return GapReport(gap=headline, noise_floor=floor, frames=per_frame, parts=parts, region=region, maps=maps)
+    floor_draws = [float(v) for v in np.mean(floors, axis=0)] if floors else []
+    floor = float(np.mean(floor_draws)) if floors else float("nan")
+    return GapReport(gap=headline, noise_floor=floor, frames=per_frame, parts=parts, region=region, maps=maps,
+                     noise_floor_draws=floor_draws)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------ output
@@ -266,13 +277,15 @@ def table(report: GapReport, title: str = "") -> str:
     p = report.parts
     c = p["confusion"]
     lines = [title] if title else []
+    draws = report.noise_floor_draws
+    over = f" over {len(draws)} units: {min(draws):.2f}-{max(draws):.2f}" if len(draws) > 1 else ""
     lines += [
-        f"gap ({report.region} region)       {report.gap:8.2f} mm   (noise floor {report.noise_floor:.2f} mm, "
+        f"gap ({report.region} region)       {report.gap:8.2f} mm   (noise floor {report.noise_floor:.2f} mm{over}; "
         f"excess {report.excess:.2f} mm)",
     ]
     if report.excess < 0:
         lines.append("  below the floor: the real scans are as close to the simulation as another simulated unit is "
-                     "(the floor is one unit's draw; on few frames or a small region it scatters by tens of percent)")
+                     "(the floor scatters from unit to unit, by tens of percent on one frame or a small region)")
     lines += [
         f"  systematic depth D     {p['depth_mm']:8.2f} mm",
         f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
