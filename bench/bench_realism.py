@@ -6,6 +6,7 @@ Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statist
                     preset through the block size and the device's blind left columns)
   sim_cat_*         the same frame simulated at its ground-truth pose (ddsgen compare's region and seed 0)
   real_icbin_*      the nine real IC-BIN PrimeSense frames, whole image (min and max over the frames)
+  real_tum_*        the real TUM RGB-D frame (Kinect V1, another scene at 1.5-9 m, depth in 1/5000 m), whole image
   sim_render_*      frames of the built-in scene list (`ddsgen render PRESET -n 4`), whole image (min and max);
                     sim_render_frames_*: how many frames meet issue 12's per-frame targets (10-120 isolated
                     dropouts, their share of the invalid pixels <= 2 %, both)
@@ -117,6 +118,18 @@ def real_icbin() -> None:
     _print_range("real_icbin", [realism_statistics(_read_mm(p)) for p in paths])
 
 
+TUM_DEPTH = DATA / "tum_rgbd_frame_open3d" / "TUM_depth.png"
+TUM_UNITS_PER_M = 5000.0  # TUM RGB-D's depth PNG convention (its PROVENANCE.txt)
+
+
+def real_tum() -> None:
+    if not TUM_DEPTH.is_file():
+        print("# TUM RGB-D frame absent: skipped", flush=True)
+        return
+    depth = cv2.imread(str(TUM_DEPTH), cv2.IMREAD_UNCHANGED).astype(np.float64) / TUM_UNITS_PER_M
+    _print("real_tum", realism_statistics(depth))
+
+
 def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
     from ddsgen.runner import render_dataset
 
@@ -159,6 +172,7 @@ def main() -> int:
     if args.pictures is not None:
         args.pictures.mkdir(parents=True, exist_ok=True)
     real_icbin()
+    real_tum()
     distreal_step()
     cat_frame(args.preset, args.pictures)
     rendered(args.preset, args.frames, args.pictures)
