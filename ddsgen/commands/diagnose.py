@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import click
@@ -24,19 +25,25 @@ from ddsgen.errors import InputError
               help="Adam steps of the refit after each accepted effect.")
 @click.option("--candidates", multiple=True, metavar="NAMES",
               help="Effects to try (comma-separated or repeated). Default: the named library effects except "
-                   "disparity_distortion (opt-in: its 3x5 field can absorb an offset, a scale or a lens distortion).")
+                   "disparity_distortion (opt-in: its 3x5 field can absorb an offset, a scale or a lens distortion), "
+                   "plus the device behaviours the preset has switched off (edge_keeping_matches, hole_fill, "
+                   "narrow_gap_fill, speckle_removal: what a PrimeSense-family device does to its own matches).")
 @click.option("--grid-frames", type=int, default=4, show_default=True,
               help="Fit frames on which each candidate effect's parameters are searched (0: all of them).")
 @click.option("--max-effects", type=int, default=4, show_default=True, help="Stop after adding this many effects.")
 @click.option("--no-plane", is_flag=True, help="Do not add a RANSAC support plane fitted to the real depth.")
 @click.option("--plausible-px", type=float, default=2.0, show_default=True,
               help="Compare only where |real - clean| disparity is below this (px), or real is invalid.")
+@click.option("--region", type=click.Choice(["all", "objects"]), default="all", show_default=True,
+              help="Pixels every gap is measured on: 'all' (every modelled, plausible pixel: the objects and the "
+                   "support plane) or 'objects' (the annotated objects only, where unmodelled clutter and a second "
+                   "table level cannot enter).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation and frame split.")
 @threads_option(1, "Torch threads. The diagnosis runs many small simulations: on a shared machine one thread per "
                    "process is usually fastest.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_steps, candidates, grid_frames,
-             max_effects, no_plane, plausible_px, seed, threads, quiet):  # fmt: skip
+             max_effects, no_plane, plausible_px, region, seed, threads, quiet):  # fmt: skip
     """Find where the sensor PRESET and the real scans in REAL_DIR disagree and name the missing effect.
 
     1. fit the base sensor parameters on the fit frames;
@@ -57,6 +64,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     from ddsgen.diagnose import diagnose as run_diagnosis
     from ddsgen.diagnose.report import write_diagnosis
     from ddsgen.preset import PATTERN_DIR, save_preset
+    from ddsgen.diagnose.device_candidates import BEHAVIOURS
     from ddsgen.sensor.effects import REGISTRY
 
     if steps < 0:
@@ -72,9 +80,10 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     if apply_path is not None and Path(apply_path).suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--apply: {apply_path}: the extended preset must be a .yaml file")
     names = split_names(candidates)
-    unknown = [n for n in names if n not in REGISTRY]
+    unknown = [n for n in names if n not in REGISTRY and n not in BEHAVIOURS]
     if unknown:
-        raise InputError(f"--candidates: unknown effect(s) {', '.join(unknown)} (known: {', '.join(sorted(REGISTRY))})")
+        raise InputError(f"--candidates: unknown effect(s) {', '.join(unknown)} "
+                         f"(known: {', '.join(sorted(REGISTRY) + sorted(BEHAVIOURS))})")  # fmt: skip
 
     progress = not quiet
     use_threads(threads)
@@ -86,6 +95,10 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane,
                                                      plausible_px=plausible_px, seed=seed, progress=progress, echo=echo_stderr,
                                                      window_hint=False)  # diagnose measures the window itself  # fmt: skip
+    if region == "objects":
+        frames = [dataclasses.replace(f, region=f.object_region.clone()) for f in frames]
+        if not any(bool(f.region.any()) for f in frames):
+            raise InputError(f"{real_dir}: --region objects: no annotated object is visible in any frame")
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
                             seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames)  # fmt: skip
     result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)
@@ -98,6 +111,10 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         scale = float(sensor.focal_scale.detach())
         values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
         changes = dict(values, effects=[e.to_entry() for e in sensor.effects], name=f"{original.name}_diagnosed")
+        for step in result.steps:  # accepted device behaviours are preset keys
+            if step.effect in BEHAVIOURS:
+                key = BEHAVIOURS[step.effect].key
+                changes[key] = getattr(sensor.preset, key)
         if result.output_window is not None:  # measured on the scans: in the preset's own pixels
             changes.update(result.output_window.rescaled(camera_preset.width_px, camera_preset.height_px,
                                                          original.width_px, original.height_px).as_keys())  # fmt: skip

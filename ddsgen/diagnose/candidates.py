@@ -172,9 +172,32 @@ def default_grid(name: str) -> list[dict]:
     return grid
 
 
+def spec(name: str):
+    """What the diagnosis reads of a candidate (stage, description, signature, axis, params, generic): the
+    library effect's class, or a device behaviour (:mod:`ddsgen.diagnose.device_candidates`)."""
+    from ddsgen.diagnose.device_candidates import BEHAVIOURS
+
+    return BEHAVIOURS[name] if name in BEHAVIOURS else REGISTRY[name]
+
+
 def changes_depth(name: str) -> bool:
     """Whether an effect changes depth values (then the support plane must be re-estimated under it)."""
-    return REGISTRY[name].stage != "validity"
+    return spec(name).stage != "validity"
+
+
+def with_candidate(sensor, name: str, values: dict):
+    """``sensor`` with candidate ``name`` at ``values``: a library effect added, or a device behaviour switched on."""
+    from ddsgen.diagnose.device_candidates import is_device, with_behaviour
+
+    return with_behaviour(sensor, name, values) if is_device(name) else with_effect(sensor, name, values)
+
+
+def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None):
+    """:func:`fit_candidate` for a library effect, :func:`~ddsgen.diagnose.device_candidates.fit_behaviour` for
+    a device behaviour; both return (sensor, values, -credited fall)."""
+    from ddsgen.diagnose.device_candidates import fit_behaviour, is_device
+
+    return (fit_behaviour if is_device(name) else fit_candidate)(sensor, name, frames, config, base, sims)
 
 
 def with_effect(sensor, name: str, values: dict):

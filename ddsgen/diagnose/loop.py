@@ -15,7 +15,10 @@ The loop (:func:`diagnose`):
    depth effects start from their signature read off the residual
    (:func:`~ddsgen.diagnose.candidates.signature_guess`: a median or a least-squares fit, no
    extra simulation), validity effects from a coarse grid; a local search refines either.
-   Then the held-out gap and noise floor it leaves are measured.
+   Then the held-out gap and noise floor it leaves are measured. Besides the library effects, the device
+   behaviours the preset has switched off (:mod:`~ddsgen.diagnose.device_candidates`: keeping windows across
+   depth edges, filling small holes and narrow gaps, removing specks) are candidates too, searched on a grid
+   of their preset key.
 4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base
    parameters refitted with it, and the loop repeats with the remaining effects. A validity effect
    must also raise the held-out likelihood of the real hole map
@@ -74,7 +77,8 @@ import torch
 
 from ddsgen.diagnose.acceptance import MIN_RELATIVE_GAIN, bootstrap_fall, relative_fall, unexplained_axes
 from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axis_candidate, label, split_label
-from ddsgen.diagnose.candidates import changes_depth, fit_candidate, with_effect
+from ddsgen.diagnose.candidates import changes_depth, fit_any, spec, with_candidate
+from ddsgen.diagnose.device_candidates import device_candidates, is_device
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
@@ -136,7 +140,7 @@ def passes(candidate: Candidate, config: DiagnoseConfig) -> bool:
 
 def is_validity(label: str) -> bool:
     """Whether the candidate ``label`` (a named effect or ``TERM:AXIS``) only removes pixels."""
-    return REGISTRY[split_label(label)[0]].stage == "validity"
+    return spec(split_label(label)[0]).stage == "validity"
 
 
 
@@ -156,7 +160,7 @@ def structure_summary(analysis: dict, top: int = 3) -> str:
 
 def step_sentence(label: str, params: dict, before: Evaluation, after: Evaluation) -> str:
     name, options = split_label(label)
-    cls = REGISTRY[name]
+    cls = spec(name)
     pct = 100.0 * (1.0 - after.excess / before.excess) if before.excess > 0 else 0.0
     if cls.generic:
         axis = options["axis"]
@@ -218,8 +222,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     config = config or DiagnoseConfig()
-    names = list(config.candidates) if config.candidates else default_candidates()
-    unknown = [n for n in names if n not in REGISTRY]
+    names = list(config.candidates) if config.candidates else default_candidates() + device_candidates(preset)
+    unknown = [n for n in names if n not in REGISTRY and not is_device(n)]
     if unknown:
         raise ValueError(f"unknown candidate effect(s) {unknown}")
     notes = []
@@ -298,12 +302,12 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 n = config.screen_frames
                 if n and len(search_frames) > n:  # screening (see SCREEN_FRACTION): one frame's search first
                     screen_base = Evaluation(search_base.frame_gaps[:n], search_base.frame_floors[:n])
-                    fitted = fit_candidate(sensor, name, search_frames[:n], config, screen_base, search_sims[:n])
+                    fitted = fit_any(sensor, name, search_frames[:n], config, screen_base, search_sims[:n])
                     c = judge(name, fitted, f"screened: searched on {n} fit frame(s)")
                     if c.gain < SCREEN_FRACTION * config.min_relative_gain:
                         continue
                     results.remove(c)  # promising: searched on every search frame and judged again
-                judge(name, fit_candidate(sensor, name, search_frames, config, search_base, search_sims))
+                judge(name, fit_any(sensor, name, search_frames, config, search_base, search_sims))
             best = max(results, key=lambda c: c.gain) if results else None
             if config.axis_terms and not (best is not None and passes(best, config)):
                 # No named effect explains it: a generic smooth term along an axis with structure beyond noise.
@@ -332,14 +336,14 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             refit(new, replaned(new, fit_frames, config.seed), config, progress)
             name, options = split_label(best.effect)
             if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
-                new = with_effect(sensor, name, {**options, **best.params})  # the refit did not help: undo it
+                new = with_candidate(sensor, name, {**options, **best.params})  # the refit did not help: undo it
                 after = best.held
             else:
                 after = evaluate(new, held, held_seed, replane_steps=2)
-            params = new.effects[-1].values()
+            params = dict(best.params) if is_device(name) else new.effects[-1].values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
             name, options = split_label(best.effect)
-            axis = options.get("axis", REGISTRY[name].axis)
+            axis = options.get("axis", spec(name).axis)
             steps.append(Step(best.effect, params, current, after, axis,
                               step_sentence(best.effect, params, current, after), analysis, after_analysis))  # fmt: skip
             echo(f"      {best.effect}: held-out gap beyond the noise floor {current.excess:.2f} -> {after.excess:.2f} mm "

@@ -77,6 +77,11 @@ def reuse_matches(size: int = MATCH_ENTRIES):
         depth_sensor.match = original
 
 
+#: Preset keys read only by the validity stage (:meth:`~ddsgen.sensor.depth_sensor.DepthSensor.validity_stage`).
+#: Each is set to this value in the state.
+VALIDITY_STAGE_KEYS = {"cleanup_speckle_px": 0, "cleanup_hole_px": 0, "cleanup_fill_width_px": 0, "cleanup_max_diff_px": 1.0}
+
+
 def front_end_state(sensor) -> tuple:
     """Everything a sensor's front end depends on besides geometry and noise: the preset (without its effects),
     the camera, the values of every parameter and buffer except those of validity-stage effects and of the
@@ -87,7 +92,9 @@ def front_end_state(sensor) -> tuple:
                     if not any(name.startswith(prefix) for prefix in later))  # fmt: skip
     effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage != "validity")
     intr = sensor.intr
-    return (repr(sensor.preset.replace(effects=[])), (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy),
+    # The clean-up's keys act in the validity stage too (a device-behaviour candidate changes only them).
+    preset = sensor.preset.replace(effects=[], **VALIDITY_STAGE_KEYS)
+    return (repr(preset), (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy),
             tensors, effects, sensor.unit)  # fmt: skip
 
 

@@ -1,0 +1,134 @@
+"""What the device does to its own matches, as diagnosis candidates beside the library effects.
+
+A library effect (:mod:`ddsgen.sensor.effects`) adds something physical to the model: an offset, a lens, a
+dropout. A real PrimeSense-family device also *post-processes* its matches, and a model without that
+post-processing loses depth that the real frames keep: windows that straddle a depth edge are kept when a
+unique match nearby agrees, small holes inside one surface are filled, gaps narrow enough for a mostly lit
+window are bridged, and small specks of valid depth are removed. These are keys of the device model
+(``presets/kinect_v1.yaml``, each with its measurement), not effects. A preset that has one of them switched
+off -- ``kinect_v1_paper`` has all of them off -- gets it as a candidate: the key set to each value of a short
+grid (:data:`BEHAVIOURS`), judged by the same held-out rule as every effect, and named in the report like one.
+
+Measured on the real LineMOD cat, objects' region (``ddsgen compare``, one key of ``kinect_v1`` at a time on
+``kinect_v1_paper``): gap beyond the floor 1.69 mm -> 0.58 (windows across edges kept), 0.76 (the clean-up),
+0.15 with every device key of ``kinect_v1`` (docs/diagnose_real.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ddsgen.diagnose.acceptance import relative_fall
+from ddsgen.diagnose.evaluation import Evaluation, evaluate
+from ddsgen.diagnose.plane import replaned
+from ddsgen.sensor.effects.base import EffectParam
+
+if TYPE_CHECKING:
+    from ddsgen.diagnose.loop import DiagnoseConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class DeviceBehaviour:
+    """One device behaviour: a preset key, its value when the behaviour is off, and the values searched.
+
+    Carries the attributes the diagnosis reads off a library effect class (``stage``, ``description``,
+    ``signature``, ``axis``, ``params``, ``generic``), so that it is judged and reported like one.
+    """
+
+    name: str
+    key: str
+    off: float
+    grid: tuple
+    unit: str
+    stage: str  # "disparity": changes the matches (re-matched, plane re-estimated); "validity": after them
+    description: str
+    signature: str
+    axis: str
+    generic: bool = False
+
+    @property
+    def params(self) -> dict[str, EffectParam]:
+        return {self.key: EffectParam(self.off, min(self.grid), max(self.grid), self.unit, self.description)}
+
+
+BEHAVIOURS: dict[str, DeviceBehaviour] = {
+    b.name: b
+    for b in (
+        DeviceBehaviour(
+            "edge_keeping_matches", "confirmed_match_zncc", 1.0, (0.3, 0.35, 0.4, 0.5, 0.6), "ZNCC", "disparity",
+            "The device keeps a match whose window straddles a depth edge (two correlation peaks, so it fails the "
+            "uniqueness test) when a unique match within its window agrees with it, so objects keep their edges, "
+            "fattened by a pixel or two, instead of a ring of holes.",
+            "depth missing in the simulation, present in the real frame, along depth edges",
+            "edge_distance",
+        ),
+        DeviceBehaviour(
+            "hole_fill", "cleanup_hole_px", 0, (2, 4, 8, 16, 32), "px", "validity",
+            "The device fills invalid holes of a few pixels inside one surface from their nearest valid "
+            "neighbour, so surfaces carry no pepper of single missing pixels.",
+            "small holes on surfaces in the simulation that the real frame does not have",
+            "signal",
+        ),
+        DeviceBehaviour(
+            "narrow_gap_fill", "cleanup_fill_width_px", 0, (1, 2, 3, 4, 6), "px", "validity",
+            "A pixel in a gap so narrow that a matching window centred on it is mostly lit takes its nearest "
+            "valid neighbour's depth: thin projector shadows and cracks keep depth on the device.",
+            "thin bands of missing depth along edges in the simulation, valid in the real frame",
+            "edge_distance",
+        ),
+        DeviceBehaviour(
+            "speckle_removal", "cleanup_speckle_px", 0, (25, 50, 100, 200, 400), "px", "validity",
+            "The device removes small isolated regions of valid depth (stray matches in shadows and on dark "
+            "surfaces).",
+            "isolated specks of depth in the simulation where the real frame has none",
+            "signal",
+        ),
+    )
+}
+
+
+def is_device(name: str) -> bool:
+    return name in BEHAVIOURS
+
+
+def device_candidates(preset) -> list[str]:
+    """The behaviours switched off in ``preset`` (the ones it can be missing)."""
+    return [b.name for b in BEHAVIOURS.values() if getattr(preset, b.key) == b.off]
+
+
+def with_behaviour(sensor, name: str, values: dict):
+    """A new DepthSensor: ``sensor``'s current parameters, its preset's key of behaviour ``name`` set from
+    ``values`` ({key: value}; the behaviour's first grid value if absent)."""
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    b = BEHAVIOURS[name]
+    value = values.get(b.key, b.grid[0])
+    value = int(round(value)) if isinstance(b.off, int) else float(value)
+    new = DepthSensor(sensor.to_preset().replace(**{b.key: value}), intrinsics=sensor.intr, device=sensor.device_)
+    for p in new.parameters():
+        p.requires_grad_(False)
+    return new
+
+
+def fit_behaviour(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,
+                  sims=None) -> tuple[object, dict, float]:  # fmt: skip
+    """The behaviour's key searched over its grid on ``frames`` for the largest credited fall of the gap (the
+    acceptance criterion, as :func:`~ddsgen.diagnose.candidates.fit_candidate` does for effects; the support
+    plane re-estimated under each value when the behaviour changes the matches). ``sims`` is unused (no
+    signature guess: the values are a short discrete grid). Returns (sensor, {key: value}, -credited fall)."""
+    b = BEHAVIOURS[name]
+    best = None
+    for value in b.grid:
+        candidate = with_behaviour(sensor, name, {b.key: value})
+        trial = replaned(candidate, frames, config.seed) if b.stage != "validity" else frames
+        with torch.no_grad():
+            score = -relative_fall(base, evaluate(candidate, trial, config.seed))
+        if best is None or score < best[2]:
+            best = (candidate, {b.key: float(value)}, score)
+    if not np.isfinite(best[2]):
+        best = (best[0], best[1], float("inf"))
+    return best
