@@ -195,14 +195,21 @@ def fit_axis_coefficients(axis: str, values, target, weights=None, nuisance=None
         keep_quantile: trimmed fit (see :func:`least_squares`), e.g. 0.8.
 
     Returns:
-        ``n`` coefficients, clipped to the parameters' range (+-2 px), e.g. a starting point of
-        ``axis_disparity_term`` (``{"axis": axis, "coefficients": [...]}``).
+        ``n`` coefficients within the parameters' range, e.g. a starting point of ``axis_disparity_term``
+        (``{"axis": axis, "coefficients": [...]}``). When the pixels cover only part of the axis (the rows of
+        one object), a high degree fits them with coefficients far beyond the range, whose clipped shape has
+        nothing to do with the data; the degree is then lowered until the fit stays in range (the rest 0).
     """
     t = axis_coordinate(axis, torch.as_tensor(np.asarray(values, np.float64)))
-    design = legendre_basis(t, n).T.numpy()
-    coef = least_squares(design, target, weights, nuisance, keep_quantile)
     bound = AxisDisparityTerm.params["c0"].high
-    return [float(np.clip(c, -bound, bound)) for c in coef]
+    coef = np.zeros(n)
+    for degree in range(n, 0, -1):
+        design = legendre_basis(t, n).T.numpy()[:, :degree]
+        coef = least_squares(design, target, weights, nuisance, keep_quantile)
+        if np.all(np.abs(coef) <= bound):
+            break
+    coef = np.concatenate([np.clip(coef, -bound, bound), np.zeros(n - len(coef))])
+    return [float(c) for c in coef]
 
 
 def least_squares(design: np.ndarray, target, weights=None, nuisance=None, keep_quantile: float = 1.0) -> np.ndarray:
