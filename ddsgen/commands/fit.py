@@ -22,7 +22,8 @@ from ddsgen.errors import InputError
               help="Parameters to fit (comma-separated or repeated). Default: the paper's four sensor parameters "
                    "emitted_intensity (eta_c), read_noise_std, beta, baseline. Also: focal, speckle_scale, ambient, "
                    "read_noise_mean; the device keys projector_falloff, vignetting, speckle_grain, speckle_shape, "
-                   "shot_noise_gain, cleanup_speckle, cleanup_hole, cleanup_max_diff (1-D searches); effects, "
+                   "shot_noise_gain, cleanup_speckle, cleanup_hole, cleanup_max_diff, cleanup_fill_width, confirmed_match "
+                   "(1-D searches); effects, "
                    "effect:NAME[.PARAM], cnn (2-layer post-processing CNN).")
 @click.option("--steps", type=int, default=100, show_default=True, help="Adam steps.")
 @click.option("--tile", "tile_px", type=int, default=192, show_default=True,

@@ -80,6 +80,8 @@ SENSOR_PARAMS = {
     "cleanup_speckle": SensorParam(None, "cleanup_speckle_px", False, ("range", 0.0, 400.0), 100.0, "cleanup", 25.0),
     "cleanup_hole": SensorParam(None, "cleanup_hole_px", False, ("range", 0.0, 32.0), 8.0, "cleanup", 2.0),
     "cleanup_max_diff": SensorParam(None, "cleanup_max_diff_px", False, ("range", 0.25, 4.0), 1.0, "cleanup", 0.25),
+    "cleanup_fill_width": SensorParam(None, "cleanup_fill_width_px", False, ("range", 0.0, 8.0), 4.0, "cleanup", 1.0),
+    "confirmed_match": SensorParam(None, "confirmed_match_zncc", False, ("range", 0.2, 1.0), 0.5, "edges", 0.05),
 }  # fmt: skip
 LOG_LR_SCALE = 30.0
 LATTICE_MIN_COHERENCE = 0.3
