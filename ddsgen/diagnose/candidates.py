@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.acceptance import relative_fall
+from ddsgen.diagnose.device_candidates import BEHAVIOURS, fit_behaviour, is_device, with_behaviour
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.plane import replaned
 from ddsgen.sensor.effects import REGISTRY
@@ -175,8 +176,6 @@ def default_grid(name: str) -> list[dict]:
 def spec(name: str):
     """What the diagnosis reads of a candidate (stage, description, signature, axis, params, generic): the
     library effect's class, or a device behaviour (:mod:`ddsgen.diagnose.device_candidates`)."""
-    from ddsgen.diagnose.device_candidates import BEHAVIOURS
-
     return BEHAVIOURS[name] if name in BEHAVIOURS else REGISTRY[name]
 
 
@@ -187,16 +186,12 @@ def changes_depth(name: str) -> bool:
 
 def with_candidate(sensor, name: str, values: dict):
     """``sensor`` with candidate ``name`` at ``values``: a library effect added, or a device behaviour switched on."""
-    from ddsgen.diagnose.device_candidates import is_device, with_behaviour
-
     return with_behaviour(sensor, name, values) if is_device(name) else with_effect(sensor, name, values)
 
 
 def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None):
     """:func:`fit_candidate` for a library effect, :func:`~ddsgen.diagnose.device_candidates.fit_behaviour` for
     a device behaviour; both return (sensor, values, -credited fall)."""
-    from ddsgen.diagnose.device_candidates import fit_behaviour, is_device
-
     return (fit_behaviour if is_device(name) else fit_candidate)(sensor, name, frames, config, base, sims)
 
 

@@ -202,10 +202,9 @@ def fit_axis_coefficients(axis: str, values, target, weights=None, nuisance=None
     """
     t = axis_coordinate(axis, torch.as_tensor(np.asarray(values, np.float64)))
     bound = AxisDisparityTerm.params["c0"].high
-    coef = np.zeros(n)
+    design = legendre_basis(t, n).T.numpy()
     for degree in range(n, 0, -1):
-        design = legendre_basis(t, n).T.numpy()[:, :degree]
-        coef = least_squares(design, target, weights, nuisance, keep_quantile)
+        coef = least_squares(design[:, :degree], target, weights, nuisance, keep_quantile)
         if np.all(np.abs(coef) <= bound):
             break
     coef = np.concatenate([np.clip(coef, -bound, bound), np.zeros(n - len(coef))])
