@@ -176,6 +176,12 @@ class _Frame:
     object_region: torch.Tensor | None = None
     clean_depth: torch.Tensor | None = None
     hit: torch.Tensor | None = None
+    index: int = 0
+
+    def noise_seed(self, seed: int = 0) -> list[int]:  # as FrameData's
+        from ddsgen.fit.simulate import SIM_STREAM
+
+        return [int(seed), int(self.index), SIM_STREAM]
 
     def __post_init__(self):  # the image is the geometry's (not registered), as in FrameData
         self.clean_depth = self.geometry.clean_depth if self.clean_depth is None else self.clean_depth
@@ -671,3 +677,30 @@ def test_independent_measurement_model_writes_each_effect_by_its_formula():
     left = np.nonzero(front[mid])[0][0]  # first column of the rectangle on that row
     assert not (edges[mid, left - 3 : left + 3] > 0).any(), "within 3 px of the edge: no depth"
     assert (edges[mid, left + 5 : left + 15] > 0).all(), "beyond it: depth"
+
+
+def test_reported_floor_averages_several_units_and_leaves_the_rule_alone():
+    """Reported gaps beyond the floor average the floor over several units (as compare does); the acceptance rule
+    keeps comparing every model against the same single unit."""
+    from ddsgen.diagnose.evaluation import evaluate
+    from ddsgen.fit.compare import frame_gap_mm
+    from ddsgen.fit.simulate import simulate, simulate_twin
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    frame = _plane_frame()
+    sensor = DepthSensor(small_preset(160, 120))
+    one = evaluate(sensor, [frame], seed=3)
+    three = evaluate(sensor, [frame], seed=3, floor_draws=3)
+    assert one.reported_floors is None and one.floor == pytest.approx(one.frame_floors[0])
+    assert three.frame_gaps == one.frame_gaps and three.frame_floors == one.frame_floors
+    assert relative_fall(one, three) == pytest.approx(0.0)  # the rule sees no difference
+    with torch.no_grad():
+        sim = simulate(sensor, frame, 3)
+        units = []
+        for draw in range(3):
+            twin = simulate_twin(sensor, frame, 3, draw)
+            units.append(frame_gap_mm(sim, dataclasses.replace(frame, real_depth=twin.depth, real_valid=twin.valid)))
+    assert units[0] == pytest.approx(one.frame_floors[0])
+    assert len(set(np.round(units, 6))) == 3  # three different units
+    assert three.floor == pytest.approx(np.mean(units)) and three.floor_draws == 3
+    assert three.excess == pytest.approx(three.gap - np.mean(units))

@@ -59,6 +59,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     REPORT/report.html (one sentence per step; residual profiles before/after each step and
     full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """
+    from ddsgen.fit.compare import BELOW_FLOOR
     from ddsgen.fit.inputs import load_inputs
     from ddsgen.diagnose import DiagnoseConfig
     from ddsgen.diagnose import diagnose as run_diagnosis
@@ -132,6 +133,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     summary = ", ".join(f"{s.effect} ({s.gap_before:.2f} -> {s.gap_after:.2f} mm)" for s in result.steps) or "none"
     click.echo(f"held-out gap beyond the noise floor {result.baseline_gap:.2f} -> {result.final_gap:.2f} mm "
                f"(compare gap {result.baseline.gap:.2f} -> {result.final.gap:.2f} mm); effects added: {summary}")
+    if result.final_gap < 0:
+        click.echo(f"  {BELOW_FLOOR}")
     for u in result.unexplained:
         click.echo(f"unexplained: residual varies along {u['axis']} ({u['strength']:.1f} mm beyond noise)")
     click.echo(f"wrote {', '.join(str(p) for p in written)}")

@@ -88,7 +88,7 @@ from ddsgen.diagnose.split import split_note, split_single_frame
 from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
-from ddsgen.fit.simulate import simulate
+from ddsgen.fit.simulate import simulate, twin_draws
 from ddsgen.sensor.effects import REGISTRY, library_names
 from ddsgen.sensor.effects.axis_terms import PHYSICAL_CAUSES
 
@@ -245,7 +245,10 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     sensor = DepthSensor(preset)
     fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
                seed=config.seed, batch_frames=config.batch_frames)  # fmt: skip
-    current = evaluate(sensor, held, held_seed, replane_steps=2)
+    # Reported gaps beyond the floor average the floor over several units, as compare does (a split frame
+    # counts as one frame); the candidates are judged against one unit each (acceptance.frame_falls).
+    floor_draws = twin_draws(1 if len(frames) == 1 else len(held))
+    current = evaluate(sensor, held, held_seed, replane_steps=2, floor_draws=floor_draws)
     baseline, base_sensor = current, sensor  # accepted effects make new sensors: base_sensor stays as fitted
     echo(f"      held-out gap {current.gap:.2f} mm, noise floor {current.floor:.2f} mm: "
          f"{current.excess:.2f} mm beyond it")  # fmt: skip
@@ -337,9 +340,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             name, options = split_label(best.effect)
             if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
                 new = with_candidate(sensor, name, {**options, **best.params})  # the refit did not help: undo it
-                after = best.held
-            else:
-                after = evaluate(new, held, held_seed, replane_steps=2)
+            after = evaluate(new, held, held_seed, replane_steps=2, floor_draws=floor_draws)
             params = dict(best.params) if is_device(name) else new.effects[-1].values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
             name, options = split_label(best.effect)

@@ -34,6 +34,41 @@ class ResidualMap:
     real_only: np.ndarray
     sim_only: np.ndarray
     region: np.ndarray
+    origin: tuple[int, int] = (0, 0)  # (column, row) of the map's first pixel in the frame (a crop's offset)
+
+    def cropped(self, box: tuple[int, int, int, int]) -> ResidualMap:
+        """The map inside ``box`` = (x0, y0, x1, y1), pixels of this map (x1, y1 exclusive)."""
+        x0, y0, x1, y1 = box
+        cut = (slice(y0, y1), slice(x0, x1))
+        return ResidualMap(self.name, self.residual_mm[cut], self.real_only[cut], self.sim_only[cut],
+                           self.region[cut], (self.origin[0] + x0, self.origin[1] + y0))  # fmt: skip
+
+
+#: A map is cropped to its compared region (plus this margin, px) when the region's box is less than
+#: CROP_BELOW of the frame: with ``--region objects`` one object is otherwise a small patch of a 640 x 480 map.
+CROP_MARGIN_PX = 16
+CROP_BELOW = 0.5
+#: A crop is drawn enlarged by a whole factor (nearest neighbour) to at least this width, at most 4x.
+MIN_PANEL_WIDTH_PX = 320
+
+
+def crop_zoom(width: int) -> int:
+    """Whole enlargement factor (1-4) that draws a crop ``width`` px wide at least MIN_PANEL_WIDTH_PX wide."""
+    return int(min(4, max(1, -(-MIN_PANEL_WIDTH_PX // max(int(width), 1)))))
+
+
+def region_box(maps: list[ResidualMap], margin: int = CROP_MARGIN_PX) -> tuple[int, int, int, int] | None:
+    """The box (x0, y0, x1, y1) around the compared region of every map in ``maps`` (one frame under several
+    models), widened by ``margin`` and clipped to the frame; None when the box covers CROP_BELOW of the frame
+    or more (the whole map is shown) or the region is empty."""
+    region = np.logical_or.reduce([m.region for m in maps])
+    rows, cols = np.nonzero(region.any(1))[0], np.nonzero(region.any(0))[0]
+    if rows.size == 0:
+        return None
+    height, width = region.shape
+    x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, width)
+    y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, height)
+    return None if (x1 - x0) * (y1 - y0) >= CROP_BELOW * width * height else (x0, y0, x1, y1)
 
 
 def residual_maps(sensor, frames, seed: int) -> list[ResidualMap]:

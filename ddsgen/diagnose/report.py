@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.diagnose.acceptance import RULE
-from ddsgen.diagnose.maps import ResidualMap
+from ddsgen.diagnose.maps import ResidualMap, crop_zoom, region_box
+from ddsgen.fit.compare import BELOW_FLOOR
 from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
 
 
@@ -101,19 +102,23 @@ def strengths_figure(before: dict, after: dict, path: Path) -> None:
 REAL_ONLY_RGB, SIM_ONLY_RGB, NOT_COMPARED_RGB = (0.0, 0.0, 0.0), (0.1, 0.75, 0.2), (0.82, 0.82, 0.82)
 
 
-def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title: str) -> list[tuple[int, ...]]:
+def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title: str,
+                        zoom: int = 1) -> list[tuple[int, ...]]:  # fmt: skip
     """Residual maps side by side, each at the frame's full resolution (one figure pixel per image pixel) -> PNG.
 
     Colour: simulated minus real depth (mm) on a diverging scale shared by the panels (symmetric,
     the 99th percentile of |residual|); black: real depth but no simulated depth; green: simulated
-    depth but no real depth; grey: not compared. Axes in pixels, colour bar in millimetres.
+    depth but no real depth; grey: not compared. Axes in the frame's pixels (a crop keeps its place: the
+    axes start at its ``origin``), colour bar in millimetres. ``zoom``: each image pixel is drawn as a
+    square of that many figure pixels (for a crop: :func:`~ddsgen.diagnose.maps.crop_zoom`).
     Returns each panel's pixel box (x0, y0, x1, y1) in the PNG (x right, y down).
     """
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
 
-    height, width = panels[0][1].residual_mm.shape
+    rows, cols = panels[0][1].residual_mm.shape
+    height, width = rows * zoom, cols * zoom
     left, gap, right, top, bottom = 70, 70, 120, 60, 80
     fig_w, fig_h = left + len(panels) * width + (len(panels) - 1) * gap + right, top + height + bottom
     fig = _figure(fig_w, fig_h)
@@ -125,13 +130,15 @@ def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title
         x0 = left + i * (width + gap)
         boxes.append((x0, top, x0 + width, top + height))
         ax = fig.add_axes((x0 / fig_w, bottom / fig_h, width / fig_w, height / fig_h))
-        rgb = np.empty((height, width, 3))
+        rgb = np.empty((rows, cols, 3))
         rgb[:] = NOT_COMPARED_RGB
         finite = np.isfinite(m.residual_mm)
         rgb[finite] = cmap(norm(m.residual_mm[finite]))[:, :3]
         rgb[m.real_only] = REAL_ONLY_RGB
         rgb[m.sim_only] = SIM_ONLY_RGB
-        ax.imshow(rgb, interpolation="nearest", extent=(0, width, height, 0), aspect="auto")
+        rgb = np.repeat(np.repeat(rgb, zoom, 0), zoom, 1)  # whole pixels: the PNG stays pixel-sharp
+        (ox, oy) = m.origin
+        ax.imshow(rgb, interpolation="nearest", extent=(ox, ox + cols, oy + rows, oy), aspect="auto")
         ax.set_title(label, fontsize=11)
         ax.set_xlabel("column (px)")
         if i == 0:
@@ -239,7 +246,8 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
         f"{len(d.fit_frames)} frame(s) fitted, {len(d.held_frames)} held out. Held-out gap of the fitted base sensor: "
         f"{d.baseline.gap:.2f} mm, of which {d.baseline.floor:.2f} mm is its noise floor (two units of the same "
         f"simulated sensor, each with its own noise, speckle and dot positions, differ by this much, so no model can "
-        f"remove it): {d.baseline_gap:.2f} mm beyond it. "
+        f"remove it; averaged over {d.baseline.floor_draws} unit(s) per held-out frame): {d.baseline_gap:.2f} mm "
+        f"beyond it. "
         f"The gaps below (and in diagnosis.json) are gaps beyond the noise floor."
     )
     if d.steps:
@@ -247,7 +255,7 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
         pct = 100.0 * (1.0 - d.final_gap / d.baseline_gap) if d.baseline_gap > 0 else 0.0
         summary.append(f"Effects added, in order: {names}. Final held-out gap beyond the noise floor "
                        f"{d.final_gap:.2f} mm ({pct:.0f} % less; compare gap {d.final.gap:.2f} mm, noise floor "
-                       f"{d.final.floor:.2f} mm).")  # fmt: skip
+                       f"{d.final.floor:.2f} mm)." + (f" That is {BELOW_FLOOR}." if d.final_gap < 0 else ""))  # fmt: skip
     else:
         summary.append("No effect was added: the base sensor explains the scans as well as any library effect or "
                        "generic axis term would.")
@@ -287,9 +295,14 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     final_label = f"final model (with {', '.join(s.effect for s in d.steps)})" if d.steps else "no effect added"
     for i, (before, after) in enumerate(zip(d.maps_baseline, d.maps_final)):
         panels = [("fitted base sensor", before)] + ([(final_label, after)] if d.steps else [])
+        box = region_box([m for _, m in panels])  # a small region (--region objects) is shown, not the frame
+        panels = [(label, m.cropped(box)) for label, m in panels] if box else panels
+        where = (f", cropped to the compared region (columns {box[0]}-{box[2] - 1}, rows {box[1]}-{box[3] - 1})"
+                 if box else "")  # fmt: skip
         name = f"residual_map_{i}.png"
-        residual_map_figure(panels, plots / name, f"held-out frame {before.name}")
-        maps.append((f"Held-out frame {before.name}: simulated minus real depth", f"{PLOTS}/{name}"))
+        residual_map_figure(panels, plots / name, f"held-out frame {before.name}{where}",
+                            crop_zoom(box[2] - box[0]) if box else 1)  # fmt: skip
+        maps.append((f"Held-out frame {before.name}: simulated minus real depth{where}", f"{PLOTS}/{name}"))
     json_path, html_path = folder / "diagnosis.json", folder / "report.html"
     write_json(json_path, d.to_dict())
     write_html(html_path, title, summary, steps, overview, unexplained_text, RULE, rejected, maps)

@@ -98,6 +98,11 @@ DEFINITION = (
 )
 
 
+#: Said wherever a gap beyond the noise floor comes out negative.
+BELOW_FLOOR = ("below the floor: the real scans are as close to the simulation as another simulated unit is "
+               "(the floor scatters from unit to unit, by tens of percent on one frame or a small region)")
+
+
 def _r(x, nd=4):
     x = float(x)
     return round(x, nd) if math.isfinite(x) else None
@@ -284,8 +289,7 @@ def table(report: GapReport, title: str = "") -> str:
         f"excess {report.excess:.2f} mm)",
     ]
     if report.excess < 0:
-        lines.append("  below the floor: the real scans are as close to the simulation as another simulated unit is "
-                     "(the floor scatters from unit to unit, by tens of percent on one frame or a small region)")
+        lines.append("  " + BELOW_FLOOR)
     lines += [
         f"  systematic depth D     {p['depth_mm']:8.2f} mm",
         f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
