@@ -391,3 +391,35 @@ def test_refine_cli_on_bop_keeps_scene_gt_keys_row_major_rotation_and_millimetre
         # The report's change, recomputed from the files: the same only with row-major R and t in mm.
         assert deg == pytest.approx(change["rotation_deg"], abs=0.05) and mm == pytest.approx(change["translation_mm"], abs=0.05)
         assert 0 < mm < 20
+
+
+@pytest.mark.skipif(not LINEMOD.is_dir(), reason="shared LineMOD frame not available")
+@pytest.mark.parametrize("draw", [3, 7])
+def test_real_cat_perturbed_3_deg_8_mm_comes_back_to_the_published_pose(draw):
+    """Issue 16's real target on the shared cat (median within 1.5 deg / 3 mm of the published pose, from starts
+    3 deg / 8 mm off; measured over 20 starts by bench/bench_refine.py): no start goes astray. Draws 3 and 7 are
+    the two of 20 that did with a rotation step of 1e-2 rad (6.99 and 2.67 deg: the noisy steps let the
+    rotation wander into a worse pose, and the decayed steps did not bring it back); at 5e-3 every start ends
+    within 1.51 deg. (Single starts scatter by ~0.4 deg about the ~1.1 deg by which the published pose itself
+    disagrees with this frame's depth and outline: 2 deg, not 1.5, per start.)"""
+    from ddsgen.fit.inputs import adopt_camera
+    from ddsgen.fit.simulate import _load_object_mesh
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.scene_gradients.scan import refine_scan_frame
+
+    (frame,) = read_scan_folder(LINEMOD)
+    preset, _ = adopt_camera(load_preset("kinect_v1"), [frame])
+    (cat,) = frame.objects
+    published = cat.cam_T_obj.copy()
+    centre = published[:3, :3] @ _load_object_mesh(cat).bounds.mean(0) + published[:3, 3]
+    cat.cam_T_obj = perturb_pose(published, centre, 3.0, 8.0, np.random.default_rng(draw))
+    assert pose_difference(cat.cam_T_obj, published) == pytest.approx((3.0, 8.0))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the trajectory depends on the thread count (docs/scene_gradients.md)
+    try:
+        refined = refine_scan_frame(preset, frame, 0, RefineSettings()).result.refined[0]
+    finally:
+        torch.set_num_threads(threads)
+    deg, mm = pose_difference(refined, published)
+    print(f"draw {draw}: {deg:.2f} deg {mm:.2f} mm from the published pose")
+    assert deg <= 2.0 and mm <= 3.0
