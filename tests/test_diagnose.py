@@ -704,3 +704,23 @@ def test_reported_floor_averages_several_units_and_leaves_the_rule_alone():
     assert len(set(np.round(units, 6))) == 3  # three different units
     assert three.floor == pytest.approx(np.mean(units)) and three.floor_draws == 3
     assert three.excess == pytest.approx(three.gap - np.mean(units))
+
+
+def test_an_undone_refit_restores_the_candidate_as_judged_including_the_snr_its_search_moved():
+    """The loop refits an accepted candidate in place and undoes the refit when it does not help. The undo must give
+    back the sensor that was judged: a low-signal dropout's search also moves the SNR, which rebuilding the effect
+    on the previous sensor lost (the held-out gap of the 'undone' model was 19.2 mm where the judged one had 1.9)."""
+    from ddsgen.diagnose.candidates import copy_of, with_effect
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    base = DepthSensor(small_preset(160, 120))
+    judged = with_effect(base, "low_signal_dropout", {"threshold_counts": 4.0})
+    with torch.no_grad():
+        judged.log_emitted_intensity.add_(math.log(0.5))  # what the joint SNR x threshold search does
+    snapshot = copy_of(judged)
+    with torch.no_grad():
+        judged.log_emitted_intensity.add_(math.log(3.0))  # the refit moves the live sensor in place
+        judged.effects[-1].set_values(threshold_counts=9.0)
+    assert float(snapshot.log_emitted_intensity) == pytest.approx(float(base.log_emitted_intensity.detach()) + math.log(0.5))
+    assert snapshot.effects[-1].values()["threshold_counts"] == pytest.approx(4.0)
+    assert not any(p.requires_grad for p in snapshot.parameters())

@@ -195,6 +195,17 @@ def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,
     return (fit_behaviour if is_device(name) else fit_candidate)(sensor, name, frames, config, base, sims)
 
 
+def copy_of(sensor):
+    """A new DepthSensor with ``sensor``'s current parameters and effects (frozen): a snapshot that later
+    in-place fitting of ``sensor`` does not change."""
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    new = DepthSensor(sensor.to_preset(), intrinsics=sensor.intr, device=sensor.device_)
+    for p in new.parameters():
+        p.requires_grad_(False)
+    return new
+
+
 def with_effect(sensor, name: str, values: dict):
     """A new DepthSensor: ``sensor``'s current parameters plus effect ``name`` at ``values``."""
     from ddsgen.sensor.depth_sensor import DepthSensor

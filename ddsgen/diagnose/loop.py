@@ -77,7 +77,7 @@ import torch
 
 from ddsgen.diagnose.acceptance import MIN_RELATIVE_GAIN, bootstrap_fall, relative_fall, unexplained_axes
 from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axis_candidate, label, split_label
-from ddsgen.diagnose.candidates import changes_depth, fit_any, spec, with_candidate
+from ddsgen.diagnose.candidates import changes_depth, copy_of, fit_any, spec
 from ddsgen.diagnose.device_candidates import device_candidates, is_device
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
@@ -335,15 +335,15 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 break
             echo(f"[4/5] accepted {best.effect}; refitting the base parameters with it")
             new = best.sensor
+            judged = copy_of(new)  # the candidate as judged (with any SNR its search moved): the refit is in place
             fit_before = evaluate(new, grid_frames, config.seed, replane_steps=1)
             refit(new, replaned(new, fit_frames, config.seed), config, progress)
-            name, options = split_label(best.effect)
             if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
-                new = with_candidate(sensor, name, {**options, **best.params})  # the refit did not help: undo it
+                new = judged  # the refit did not help: undo it
             after = evaluate(new, held, held_seed, replane_steps=2, floor_draws=floor_draws)
+            name, options = split_label(best.effect)
             params = dict(best.params) if is_device(name) else new.effects[-1].values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)
-            name, options = split_label(best.effect)
             axis = options.get("axis", spec(name).axis)
             steps.append(Step(best.effect, params, current, after, axis,
                               step_sentence(best.effect, params, current, after), analysis, after_analysis))  # fmt: skip
