@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.acceptance import relative_fall
-from ddsgen.diagnose.device_candidates import BEHAVIOURS, fit_behaviour, is_device, with_behaviour
+from ddsgen.diagnose.device_candidates import BEHAVIOURS, fit_behaviour, is_device, sensor_like, with_behaviour
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.plane import replaned
 from ddsgen.sensor.effects import REGISTRY
@@ -198,24 +198,13 @@ def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,
 def copy_of(sensor):
     """A new DepthSensor with ``sensor``'s current parameters and effects (frozen): a snapshot that later
     in-place fitting of ``sensor`` does not change."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
-    new = DepthSensor(sensor.to_preset(), intrinsics=sensor.intr, device=sensor.device_)
-    for p in new.parameters():
-        p.requires_grad_(False)
-    return new
+    return sensor_like(sensor, sensor.to_preset())
 
 
 def with_effect(sensor, name: str, values: dict):
     """A new DepthSensor: ``sensor``'s current parameters plus effect ``name`` at ``values``."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     preset = sensor.to_preset()
-    entries = [dict(e) for e in preset.effects] + [{"name": name, **values}]
-    new = DepthSensor(preset.replace(effects=entries), intrinsics=sensor.intr, device=sensor.device_)
-    for p in new.parameters():
-        p.requires_grad_(False)
-    return new
+    return sensor_like(sensor, preset.replace(effects=[dict(e) for e in preset.effects] + [{"name": name, **values}]))
 
 
 def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,

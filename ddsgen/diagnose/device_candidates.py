@@ -99,18 +99,24 @@ def device_candidates(preset) -> list[str]:
     return [b.name for b in BEHAVIOURS.values() if getattr(preset, b.key) == b.off]
 
 
-def with_behaviour(sensor, name: str, values: dict):
-    """A new DepthSensor: ``sensor``'s current parameters, its preset's key of behaviour ``name`` set from
-    ``values`` ({key: value}; the behaviour's first grid value if absent)."""
+def sensor_like(sensor, preset):
+    """A new DepthSensor of ``preset`` with ``sensor``'s camera and device, its parameters frozen (candidates are
+    searched, not trained)."""
     from ddsgen.sensor.depth_sensor import DepthSensor
 
-    b = BEHAVIOURS[name]
-    value = values.get(b.key, b.grid[0])
-    value = int(round(value)) if isinstance(b.off, int) else float(value)
-    new = DepthSensor(sensor.to_preset().replace(**{b.key: value}), intrinsics=sensor.intr, device=sensor.device_)
+    new = DepthSensor(preset, intrinsics=sensor.intr, device=sensor.device_)
     for p in new.parameters():
         p.requires_grad_(False)
     return new
+
+
+def with_behaviour(sensor, name: str, values: dict):
+    """A new DepthSensor: ``sensor``'s current parameters, its preset's key of behaviour ``name`` set from
+    ``values`` ({key: value}; the behaviour's first grid value if absent)."""
+    b = BEHAVIOURS[name]
+    value = values.get(b.key, b.grid[0])
+    value = int(round(value)) if isinstance(b.off, int) else float(value)
+    return sensor_like(sensor, sensor.to_preset().replace(**{b.key: value}))
 
 
 def fit_behaviour(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,
