@@ -70,6 +70,33 @@ def test_parameter_recovery_and_held_out_gap(perturbed):
     assert after.gap < before.gap
 
 
+@pytest.mark.parametrize("span, optimum, expected", [(None, 0.3, 0.3), (2.0, 0.3, 0.3), (2.0, 1.0, math.log(2.0))])
+def test_snr_search_finds_the_minimum_within_its_span(monkeypatch, span, optimum, expected):
+    """The 1-D SNR search on an objective with a known minimum (log eta_c - log eta_start = ``optimum``): the whole
+    bounds (factor 0.25-4) in 16 evaluations; a refit's span (factor 2) in 12, never outside it, ending at its
+    edge when the minimum lies beyond."""
+    from ddsgen.fit import fitting
+    from effects_geometry import small_preset
+
+    sensor = DepthSensor(small_preset(160, 120))
+    sensor.requires_grad_(False)  # as fit_sensor leaves it for its searches
+    start = float(sensor.log_emitted_intensity)
+    seen = []
+
+    def objective(sensor, frames, seed, weights):
+        x = float(sensor.log_emitted_intensity) - start
+        seen.append(x)
+        return {"total": abs(x - optimum) ** 1.5}
+
+    monkeypatch.setattr(fitting, "_mean_terms", objective)
+    result = fitting.search_snr(sensor, [], "emitted_intensity", span=span)
+    assert math.log(result["multiplier"]) == pytest.approx(expected, abs=0.03)  # the golden section's last bracket
+    assert float(sensor.log_emitted_intensity) - start == pytest.approx(math.log(result["multiplier"]), abs=1e-6)
+    assert result["evaluations"] == len(set(seen)) == (16 if span is None else 12)
+    reach = math.log(4.0) if span is None else math.log(span)
+    assert max(abs(x) for x in seen) == pytest.approx(reach, abs=1e-6)
+
+
 def test_cnn_parameter_count_and_identity_at_start():
     cnn = PostProcessCNN()
     # 5x5x3x32 + 32 = 2,432; 1x1: 32x3 + 3 = 99; + 4 sensor parameters = the paper's 2,535.

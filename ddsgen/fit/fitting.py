@@ -239,11 +239,19 @@ def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
     return totals
 
 
+#: Spacing (natural log) of the SNR search's coarse grid: 9 points over the bounds' factor 0.25-4.
+SNR_GRID_STEP = math.log(16.0) / 8.0
+
+
 def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 16,
-               plane_nuisance: bool = False) -> dict:  # fmt: skip
+               plane_nuisance: bool = False, span: float | None = None) -> dict:  # fmt: skip
     """Golden-section search of log(eta_c) (``which="emitted_intensity"``) or log(sigma)
     (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames`` (with
-    ``plane_nuisance``, the texture on the objects: :func:`ddsgen.fit.losses.texture_pixels`)."""
+    ``plane_nuisance``, the texture on the objects: :func:`ddsgen.fit.losses.texture_pixels`).
+
+    ``span``: search only within this factor of the current value (a refit near a fitted optimum), on a
+    coarse grid of the same spacing (:data:`SNR_GRID_STEP`) and with the same golden-section steps after it;
+    None: the parameter's whole bounds."""
     spec = SENSOR_PARAMS[which]
     param = getattr(sensor, spec.attr)
     start = float(param)
@@ -260,14 +268,16 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
     start_value = objective(0.0)
     _, lo, hi = spec.bound  # a factor of the start value: the search stays within the bounds
     a, b = math.log(lo), math.log(hi)
+    if span is not None:
+        a, b = max(a, -math.log(span)), min(b, math.log(span))
     # Coarse grid first (the objective is noisy and may be flat far from the optimum), then golden section.
-    grid = np.linspace(a, b, 9)
+    grid = np.linspace(a, b, max(3, round((b - a) / SNR_GRID_STEP) + 1))
     values = [objective(float(x)) for x in grid]
     i = int(np.argmin(values))
     a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
     g = (math.sqrt(5.0) - 1.0) / 2.0
     c, d = b - g * (b - a), a + g * (b - a)
-    for _ in range(max(evaluations - len(grid) - 1, 0)):
+    for _ in range(max(evaluations - 9 - 1, 0)):  # golden steps: as many as after the whole bounds' 9-point grid
         if objective(c) < objective(d):
             b, d = d, c
             c = b - g * (b - a)
@@ -289,7 +299,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
                progress: bool = True, *, seed: int = 0, weights: LossWeights = LossWeights(), search: bool = True,
                batch_frames: int | None = None, callback: Callable[[int, dict], None] | None = None,
                prior_mm: float = DEFAULT_PRIOR_MM, start_effects: bool = False,
-               tile_px: int | None = None) -> FitResult:  # fmt: skip
+               tile_px: int | None = None, snr_span: float | None = None) -> FitResult:  # fmt: skip
     """Fit ``params`` of ``sensor`` (in place) to the real scans of ``frames``.
 
     Args:
@@ -310,6 +320,8 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         start_effects: start a fitted ``disparity_distortion`` grid from least squares (:mod:`ddsgen.fit.starts`).
         tile_px: each Adam step simulates a random ``tile_px``-px window of each chosen frame
             (:mod:`ddsgen.fit.tiles`; a stochastic gradient at a fraction of the price); None: whole frames.
+        snr_span: the SNR search stays within this factor of the current value (:func:`search_snr`; a refit
+            from fitted values); None: the whole bounds.
 
     Returns:
         :class:`FitResult`.
@@ -334,7 +346,8 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         searched.add("baseline")
     snr = [n for n in ("emitted_intensity", "read_noise_std") if n in resolved]
     if search and snr:
-        searches["snr"] = search_snr(sensor, frames, snr[0], seed, plane_nuisance=weights.plane_nuisance)
+        searches["snr"] = search_snr(sensor, frames, snr[0], seed, plane_nuisance=weights.plane_nuisance,
+                                     span=snr_span)
         searched.update(snr)  # the other one is not identifiable separately: held
     device_keys = [n for n in resolved if n in SENSOR_PARAMS and is_device_key(SENSOR_PARAMS[n])]
     if device_keys:  # always searched: they have no usable gradient (ddsgen.fit.device_keys)
