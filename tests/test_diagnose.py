@@ -724,3 +724,40 @@ def test_an_undone_refit_restores_the_candidate_as_judged_including_the_snr_its_
     assert float(snapshot.log_emitted_intensity) == pytest.approx(float(base.log_emitted_intensity.detach()) + math.log(0.5))
     assert snapshot.effects[-1].values()["threshold_counts"] == pytest.approx(4.0)
     assert not any(p.requires_grad for p in snapshot.parameters())
+
+
+def test_a_validity_candidate_is_judged_on_the_current_models_planes_and_front_ends():
+    """A validity candidate leaves every depth as it was, so it is judged on the held-out planes re-estimated under
+    the current model and reuses that model's front ends (no IR image rendered, nothing matched); a depth
+    candidate moves the plane and is judged on planes re-estimated under itself."""
+    from ddsgen.diagnose.candidates import with_effect
+    from ddsgen.diagnose.evaluation import evaluate
+    from ddsgen.diagnose.loop import HELD_REPLANE_STEPS, held_frames_for
+    from ddsgen.diagnose.match_cache import counting_computed_stages, reuse_front_ends, reuse_matches
+    from ddsgen.diagnose.plane import replaned
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    held = [_plane_frame()]
+    sensor = DepthSensor(small_preset(160, 120))
+    sensor.requires_grad_(False)
+    with torch.no_grad():  # fitted values: their exp-log round trip through a preset is not exact
+        sensor.log_read_noise_std.add_(-0.2)
+        sensor.log_emitted_intensity.add_(0.123456)
+    with counting_computed_stages() as counts, reuse_matches(), reuse_front_ends():
+        held_now = replaned(sensor, held, 1, HELD_REPLANE_STEPS)
+        current = evaluate(sensor, held_now, 1)
+        before = dict(counts)
+        dropout = with_effect(sensor, "grazing_dropout", {"angle_deg": 30.0})  # plane tilted 20 deg, rays up to 28
+        judged = evaluate(dropout, held_frames_for("grazing_dropout", dropout, held, held_now, 1), 1)
+        assert counts["front_end"] == before["front_end"]  # sim and twin: both served from the cache
+        assert counts["validity_stage"] == before["validity_stage"] + 2
+        assert judged.frame_gaps != current.frame_gaps  # it did remove pixels
+        offset = with_effect(sensor, "disparity_offset", {"offset_px": 0.5})
+        moved = held_frames_for("disparity_offset", offset, held, held_now, 1)
+        assert counts["front_end"] > before["front_end"]
+    assert held_frames_for("grazing_dropout", dropout, held, held_now, 1)[0] is held_now[0]
+    # The offset's plane is its own: the model adds 0.5 px of disparity, so the plane that matches the real depth
+    # under it lies farther, by z 0.5 / (d - 0.5) ~ 0.1 m at z = 1.4 m, d = f b / z ~ 7.8 px (f = 145 px at 160 px).
+    shift = moved[0].plane.offset - held_now[0].plane.offset
+    print(f"plane moved by {shift:.4f} m")
+    assert 0.05 < shift < 0.15

@@ -105,6 +105,14 @@ def sensor_like(sensor, preset):
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     new = DepthSensor(preset, intrinsics=sensor.intr, device=sensor.device_)
+    # The tensors ``sensor`` shares with it are copied, not rebuilt from the preset: exp then log moves a fitted
+    # value by an ulp, and the candidate would no longer be the current model plus one thing (nor share its
+    # cached front ends). The focal scale stays 1: the preset's focal length already carries it.
+    source = dict(sensor.named_parameters()) | dict(sensor.named_buffers())
+    with torch.no_grad():
+        for name, t in (*new.named_parameters(), *new.named_buffers()):
+            if name != "log_focal_scale" and name in source and source[name].shape == t.shape:
+                t.copy_(source[name])
     for p in new.parameters():
         p.requires_grad_(False)
     return new

@@ -60,7 +60,8 @@ Speed: effects that act after block matching (disparity, depth and validity stag
 change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches` serves the
 matcher's result from a cache keyed by the IR image; validity effects do not move the plane
 either, so their whole search reuses the sensor's front end (IR image, matching, depth:
-:func:`~ddsgen.diagnose.match_cache.reuse_front_ends`) and uses every fit frame; depth effects
+:func:`~ddsgen.diagnose.match_cache.reuse_front_ends`) and uses every fit frame, and they are judged on the
+held-out planes re-estimated under the current model (:data:`HELD_REPLANE_STEPS`); depth effects
 are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames. **Screening** (:data:`SCREEN_FRACTION`):
 each candidate is first searched on one fit frame and judged on the held-out frames at those values; only a
 candidate whose credited fall there reaches a fifth of the acceptance threshold is searched on every search
@@ -130,6 +131,13 @@ class DiagnoseConfig:
 #: noisy trials on one frame: +0.9 % .. +2 % for candidates at -2 % .. -7 % on held-out frames, measured).
 SCREEN_FRACTION = 0.2
 
+#: Gauss-Newton steps that re-estimate the held-out frames' support planes under a model, from the planes fitted
+#: to the real depth: the current model's (baseline, and after each accepted effect) and each depth candidate's.
+#: A validity candidate leaves every depth as it was, so it is judged on the current model's planes: the
+#: comparison then credits only the pixels it removes, and the current model's cached front ends serve it. (Its own
+#: re-estimate moved the planes by the fit's scatter: it changed credited falls by up to 2 % of the gap.)
+HELD_REPLANE_STEPS = 2
+
 
 def passes(candidate: Candidate, config: DiagnoseConfig) -> bool:
     """The acceptance rule (:data:`~ddsgen.diagnose.acceptance.RULE`); a validity effect must also make the
@@ -142,6 +150,12 @@ def is_validity(label: str) -> bool:
     """Whether the candidate ``label`` (a named effect or ``TERM:AXIS``) only removes pixels."""
     return spec(split_label(label)[0]).stage == "validity"
 
+
+
+def held_frames_for(name: str, cand_sensor, held: list, held_now: list, seed: int) -> list:
+    """The held-out frames a candidate is judged on (see :data:`HELD_REPLANE_STEPS`): ``held_now`` (the current
+    model's planes) for a validity candidate, else ``held`` re-planed under the candidate ``cand_sensor``."""
+    return held_now if is_validity(name) else replaned(cand_sensor, held, seed, HELD_REPLANE_STEPS)
 
 
 def analysis_of(sensor, frames, seed: int, edges: dict | None = None, stride: int = 1) -> dict:
@@ -254,7 +268,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     # Reported gaps beyond the floor average the floor over several units, as compare does (a split frame
     # counts as one frame); the candidates are judged against one unit each (acceptance.frame_falls).
     floor_draws = twin_draws(1 if len(frames) == 1 else len(held))
-    current = evaluate(sensor, held, held_seed, replane_steps=2, floor_draws=floor_draws)
+    held_now = replaned(sensor, held, held_seed, HELD_REPLANE_STEPS)  # the held-out planes under the current model
+    current = evaluate(sensor, held_now, held_seed, floor_draws=floor_draws)
     baseline, base_sensor = current, sensor  # accepted effects make new sensors: base_sensor stays as fitted
     echo(f"      held-out gap {current.gap:.2f} mm, noise floor {current.floor:.2f} mm: "
          f"{current.excess:.2f} mm beyond it")  # fmt: skip
@@ -293,7 +308,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
 
             def judge(name, fitted, screened: str = ""):
                 cand_sensor, values, fit_score = fitted
-                held_eval = evaluate(cand_sensor, held, held_seed, replane_steps=2)
+                judged_on = held_frames_for(name, cand_sensor, held, held_now, held_seed)
+                held_eval = evaluate(cand_sensor, judged_on, held_seed)
                 c = Candidate(name, values, fit_score, held_eval, sensor=cand_sensor, screened=bool(screened))
                 c.gain = relative_fall(current, held_eval)
                 c.gain_low = bootstrap_fall(current, held_eval, rng)
@@ -346,7 +362,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             refit(new, replaned(new, fit_frames, config.seed), config, progress)
             if relative_fall(fit_before, evaluate(new, grid_frames, config.seed, replane_steps=1)) < 0.0:
                 new = judged  # the refit did not help: undo it
-            after = evaluate(new, held, held_seed, replane_steps=2, floor_draws=floor_draws)
+            held_now = replaned(new, held, held_seed, HELD_REPLANE_STEPS)
+            after = evaluate(new, held_now, held_seed, floor_draws=floor_draws)
             name, options = split_label(best.effect)
             params = dict(best.params) if is_device(name) else new.effects[-1].values()
             after_analysis = analysis_of(new, analysis_frames, held_seed, edges=edges, stride=analysis_stride)

@@ -82,6 +82,12 @@ def reuse_matches(size: int = MATCH_ENTRIES):
 VALIDITY_STAGE_KEYS = {"cleanup_speckle_px": 0, "cleanup_hole_px": 0, "cleanup_fill_width_px": 0, "cleanup_max_diff_px": 1.0}
 
 
+#: Preset keys the sensor holds as parameters (:class:`~ddsgen.sensor.depth_sensor.DepthSensor`) and its front end
+#: reads nowhere else (the baseline's preset value places the ray casts, which the geometry holds).
+PARAMETER_KEYS = ("emitted_intensity", "speckle_scale", "read_noise_std_counts", "read_noise_mean_counts",
+                  "ambient_counts", "softargmax_beta", "baseline_m")  # fmt: skip
+
+
 def front_end_state(sensor) -> tuple:
     """Everything a sensor's front end depends on besides geometry and noise: the preset (without its effects),
     the camera, the values of every parameter and buffer except those of validity-stage effects and of the
@@ -92,8 +98,11 @@ def front_end_state(sensor) -> tuple:
                     if not any(name.startswith(prefix) for prefix in later))  # fmt: skip
     effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage != "validity")
     intr = sensor.intr
-    # The clean-up's keys act in the validity stage too (a device-behaviour candidate changes only them).
-    preset = sensor.preset.replace(effects=[], **VALIDITY_STAGE_KEYS)
+    # The clean-up's keys act in the validity stage too (a device-behaviour candidate changes only them). The keys
+    # held as parameters take the parameters' values: the preset's only started them (a candidate's preset holds
+    # the float32 round trip of the current values, 1500000.375 for 1500000.0: the same front end).
+    current = sensor.physical_parameters()
+    preset = sensor.preset.replace(effects=[], **VALIDITY_STAGE_KEYS, **{k: current[k] for k in PARAMETER_KEYS})
     return (repr(preset), (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy),
             tensors, effects, sensor.unit)  # fmt: skip
 
