@@ -2,8 +2,8 @@
 
 Renders 8 frames of tests/diagnose_scenes.yaml at 640 x 480 with a hidden effect (``--effect``, default a
 0.3 px disparity offset), then times :func:`ddsgen.diagnose.diagnose` from the stock preset with the
-command's default settings (``ddsgen diagnose`` without options) on 2 torch threads. Prints
-`bench: NAME VALUE UNIT` lines:
+command's default settings (``ddsgen diagnose`` without options) on 2 torch threads. Prints the diagnosis' own
+lines, each prefixed with the wall time (s) at which it was reached, then `bench: NAME VALUE UNIT` lines:
 
   diagnose_640x480_8frames_s          wall time of the whole diagnosis (target 120 s on 2 cores)
   diagnose_640x480_8frames_cpu_s      its process CPU time
@@ -87,8 +87,12 @@ def main() -> int:
         config = dataclasses.replace(config, screen_frames=args.screen_frames)
     log: list[str] = []
     wall, cpu = time.perf_counter(), time.process_time()
+
+    def timed(line: str) -> None:  # each stage line with the wall time it was reached at: where the time goes
+        log.append(f"{time.perf_counter() - wall:6.1f} s  {line}")
+
     with counting_computed_stages() as counts:  # outside diagnose's caches: what they serve is not counted
-        result = diagnose(stock, frames, config, echo=log.append)
+        result = diagnose(stock, frames, config, echo=timed)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print("\n".join("# " + line for line in log), flush=True)
     bench("diagnose_640x480_8frames_s", wall, "s")
