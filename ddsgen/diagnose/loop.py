@@ -20,7 +20,10 @@ The loop (:func:`diagnose`):
    depth edges, filling small holes and narrow gaps, removing specks) are candidates too, searched on a grid
    of their preset key.
 4. **Acceptance** (:data:`~ddsgen.diagnose.acceptance.RULE`). Accepted: named, added, the base
-   parameters refitted with it, and the loop repeats with the remaining effects. A validity effect
+   parameters refitted with it, and the loop repeats with the remaining effects -- unless the held-out gap
+   is now below its noise floor (averaged over units): the real scans are then as close to the model as
+   another unit of it is, and a further effect could only be fitted to this unit's noise (the real cat,
+   `--region objects`, added a 0.02 px offset at -0.48 mm beyond the floor before this rule). A validity effect
    must also raise the held-out likelihood of the real hole map
    (:func:`~ddsgen.diagnose.evaluation.validity_log_likelihood`).
 4b. **Beyond the library** (:mod:`~ddsgen.diagnose.axis_candidates`). When no named effect is accepted,
@@ -374,6 +377,12 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                  f"(compare gap {current.gap:.2f} -> {after.gap:.2f} mm; {_fmt(params)})")  # fmt: skip
             sensor, current, analysis = new, after, after_analysis
             in_model.add(best.effect)
+            if current.excess <= 0.0:
+                notes.append(f"Stopped after {best.effect}: the held-out gap is below its noise floor now "
+                             f"({current.gap:.2f} mm against {current.floor:.2f} mm); nothing is left beyond the "
+                             f"floor to explain.")  # fmt: skip
+                echo("[4/5] " + notes[-1])
+                break
 
     unexplained = unexplained_axes(analysis)
     if unexplained:
@@ -381,7 +390,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     else:
         echo("[5/5] no residual structure beyond noise remains")
     # A split frame is mapped whole (fit and held-out blocks): its pieces alone would show a checkerboard.
-    map_frames = frames[:1] if notes else held[:MAP_FRAMES]
+    map_frames = frames[:1] if len(frames) == 1 else held[:MAP_FRAMES]
     maps_baseline = residual_maps(base_sensor, map_frames, held_seed)
     maps_final = residual_maps(sensor, map_frames, held_seed) if steps else maps_baseline
     return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
