@@ -239,8 +239,8 @@ def _mean_terms(sensor, frames, seed, weights, grad=False) -> dict:
     return totals
 
 
-#: Spacing (natural log) of the SNR search's coarse grid: 9 points over the bounds' factor 0.25-4.
-SNR_GRID_STEP = math.log(16.0) / 8.0
+#: Points of the SNR search's coarse grid over the parameter's whole bounds; a search within a span keeps their spacing.
+SNR_COARSE_POINTS = 9
 
 
 def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evaluations: int = 16,
@@ -250,7 +250,7 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
     ``plane_nuisance``, the texture on the objects: :func:`ddsgen.fit.losses.texture_pixels`).
 
     ``span``: search only within this factor of the current value (a refit near a fitted optimum), on a
-    coarse grid of the same spacing (:data:`SNR_GRID_STEP`) and with the same golden-section steps after it;
+    coarse grid of the same spacing (:data:`SNR_COARSE_POINTS`) and with the same golden-section steps after it;
     None: the parameter's whole bounds."""
     spec = SENSOR_PARAMS[which]
     param = getattr(sensor, spec.attr)
@@ -268,16 +268,17 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
     start_value = objective(0.0)
     _, lo, hi = spec.bound  # a factor of the start value: the search stays within the bounds
     a, b = math.log(lo), math.log(hi)
+    spacing = (b - a) / (SNR_COARSE_POINTS - 1)
     if span is not None:
         a, b = max(a, -math.log(span)), min(b, math.log(span))
     # Coarse grid first (the objective is noisy and may be flat far from the optimum), then golden section.
-    grid = np.linspace(a, b, max(3, round((b - a) / SNR_GRID_STEP) + 1))
+    grid = np.linspace(a, b, max(3, round((b - a) / spacing) + 1))
     values = [objective(float(x)) for x in grid]
     i = int(np.argmin(values))
     a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
     g = (math.sqrt(5.0) - 1.0) / 2.0
     c, d = b - g * (b - a), a + g * (b - a)
-    for _ in range(max(evaluations - 9 - 1, 0)):  # golden steps: as many as after the whole bounds' 9-point grid
+    for _ in range(max(evaluations - SNR_COARSE_POINTS - 1, 0)):  # as many steps as after the whole bounds' grid
         if objective(c) < objective(d):
             b, d = d, c
             c = b - g * (b - a)
