@@ -121,8 +121,6 @@ def replane_all(sensor, frames, seed: int) -> list:
     return out
 
 
-#: Validity effects that a lower SNR mimics (both drop the pixels of low signal first): the base fit lowers
-
 def replaned(sensor, frames, seed: int, steps: int = 1) -> list:
     """``frames`` with their support planes re-estimated under ``sensor`` (``steps`` Gauss-Newton steps)."""
     for _ in range(steps):
