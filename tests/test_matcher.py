@@ -619,3 +619,35 @@ def test_paper_presets_keep_the_uniqueness_test_alone():
     for name in ("kinect_v1_paper", "matterport_pro2"):
         assert load_preset(name).confirmed_match_zncc == 1.0  # the neutral value: the rule is off
     assert load_preset("kinect_v1").confirmed_match_zncc < 1.0
+
+
+def test_c_and_torch_confirmations_agree_on_surfaces_with_edges_and_noise():
+    """The confirmed-match rule's C kernel (stops at the first agreeing neighbour) and its torch twin (gathers the
+    whole window) confirm the same pixels for both peaks, at image borders too; a peak two px off a unique
+    neighbour is not confirmed, one px off is."""
+    if M.integer_search_backend() != "c":
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(3)
+    height, width, block = 60, 90, 9
+    columns = torch.arange(width)
+    k_int = torch.where(columns < 45, 20, 35).expand(height, width).clone()  # two surfaces, an edge at column 45
+    k_int += torch.randint(-1, 2, (height, width), generator=g)  # +-1 px of matching noise
+    unique = torch.rand(height, width, generator=g) < 0.2
+    candidates = ~unique & (torch.rand(height, width, generator=g) < 0.5)
+    second = torch.where(torch.rand(height, width, generator=g) < 0.5, 55 - k_int, torch.full_like(k_int, -1))
+    results = {backend: M._confirmed_by_a_unique_neighbour(k_int, unique, candidates, block, (k_int, second),
+                                                           backend=backend) for backend in ("c", "torch")}  # fmt: skip
+    for c_out, torch_out in zip(results["c"], results["torch"]):
+        assert torch.equal(c_out, torch_out)
+    by_best, by_second = results["c"]
+    assert int(by_best.sum()) > 0.9 * int(candidates.sum())  # every surface has unique matches nearby
+    assert not bool((by_best & ~candidates).any()) and not bool((by_second & ~candidates).any())
+    # One unique neighbour at disparity 10 in an empty field: 9 and 11 agree with it, 8 does not.
+    lone = torch.zeros(height, width, dtype=torch.bool)
+    lone[30, 40] = True
+    peaks = tuple(torch.full((height, width), d) for d in (9, 11, 8))
+    for backend in ("c", "torch"):
+        near = M._confirmed_by_a_unique_neighbour(torch.full((height, width), 10), lone, ~lone, block, peaks,
+                                                  backend=backend)  # fmt: skip
+        assert [bool(p[30, 44]) for p in near] == [True, True, False]  # 4 px away: within the 9-px window
+        assert not any(bool(p[30, 45]) for p in near)  # 5 px away: outside it

@@ -76,7 +76,8 @@ from dataclasses import dataclass, fields
 import torch
 
 from ddsgen.sensor.matcher.autograd import _ObservedStatsC, _RefineC
-from ddsgen.sensor.matcher.kernel import _integer_search_c, _load_kernel, integer_search_backend
+from ddsgen.sensor.matcher.kernel import (_integer_search_c, _load_kernel, confirm_by_unique_neighbour_c,
+                                          integer_search_backend)
 from ddsgen.sensor.matcher.reference import RefineGeometry, _prepare_reference
 from ddsgen.sensor.matcher.stereo import stereo_reference_phases
 from ddsgen.sensor.matcher.torch_path import _integer_search_torch, _refine_torch, _want_compile
@@ -124,7 +125,7 @@ class MatchResult:
 
 def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, candidates: torch.Tensor,
                                      block: int, peaks: tuple[torch.Tensor, ...] | None = None,
-                                     chunk: int = 32768) -> list[torch.Tensor]:  # fmt: skip
+                                     chunk: int = 32768, backend: str | None = None) -> list[torch.Tensor]:  # fmt: skip
     """[(H, W) bool per peak]: candidate pixels whose peak's integer disparity a unique match within
     their block x block window has (within 1 px).
 
@@ -139,6 +140,8 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
         peaks: the candidates' peak disparities to check, each (H, W) (default: ``(k_int,)``, the best
             peak); the neighbours' disparities are always their best peaks'.
         chunk: candidates gathered at once (bounds memory to chunk x block^2 elements).
+        backend: "c" (the C kernel: it stops at the first agreeing neighbour, ~10x faster) or "torch";
+            default: :func:`~ddsgen.sensor.matcher.kernel.integer_search_backend` of the tensors' device.
     """
     peaks = (k_int,) if peaks is None else peaks
     h = block // 2
@@ -151,8 +154,12 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
     window = (dy * width + dx).reshape(1, -1)  # offsets of a window's pixels from its top-left corner
     ys, xs = torch.nonzero(candidates, as_tuple=True)
     owns = [peak[ys, xs].to(torch.int32) for peak in peaks]
-    corner = ys * width + xs
     outs = [torch.zeros_like(candidates) for _ in peaks]
+    if (backend or integer_search_backend(k_int.device)) == "c":
+        for out, agreed in zip(outs, confirm_by_unique_neighbour_c(_load_kernel(), seeds, width, ys, xs, owns, block)):
+            out[ys, xs] = agreed
+        return outs
+    corner = ys * width + xs
     for start in range(0, ys.numel(), chunk):
         part = slice(start, start + chunk)
         at = (corner[part, None] + window).reshape(-1)  # index_select: ~3x faster than seeds[2-D index]

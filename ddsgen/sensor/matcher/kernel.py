@@ -84,7 +84,9 @@ def _load_kernel():
                                           p, p, p, p, p, p, i]  # fmt: skip
             lib.ddsgen_observed_stats.argtypes = [p, i, i, i, f, p, p, p, p, p, i]
             lib.ddsgen_window_cross_grad.argtypes = [p, i, p, i, i, i, i, i, p, i, i, i, i, i, p, i, i]
-            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad, lib.ddsgen_observed_stats):
+            lib.ddsgen_confirm_by_unique_neighbour.argtypes = [p, i, p, p, q, p, i, i, p, i]
+            for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad, lib.ddsgen_observed_stats,
+                       lib.ddsgen_confirm_by_unique_neighbour):
                 fn.restype = None
             _KERNEL = lib
         except (OSError, subprocess.SubprocessError) as error:
@@ -135,3 +137,23 @@ def _call_refine(lib, o, osum, oinv, beta: float, k, ref: _Reference, geom: Refi
                       ref.stat_base,
                       osum.data_ptr(), oinv.data_ptr(), beta, 2**geom.n_sub, geom.d_min - 1e-6, geom.d_max + 1e-6, ptr(disp),
                       ptr(gd), ptr(g_band), ptr(d_os), ptr(d_oi), ptr(d_beta), _n_threads())  # fmt: skip
+
+
+def confirm_by_unique_neighbour_c(lib, seeds: torch.Tensor, width: int, ys: torch.Tensor, xs: torch.Tensor,
+                                  owns: list[torch.Tensor], block: int) -> list[torch.Tensor]:
+    """The C twin of :func:`ddsgen.sensor.matcher._confirmed_by_a_unique_neighbour`'s gather: per peak, (N,) bool
+    whether a unique neighbour within the window of each candidate (``ys``, ``xs``: (N,) int64) agrees with it.
+
+    Args:
+        seeds: flat int32 ((H + 2h) * width,) disparities of the unique matches, padded by h, a sentinel elsewhere.
+        width: the padded row length W + 2h.
+        owns: the candidates' peak disparities, each (N,) int32.
+    """
+    n = int(ys.numel())
+    own = torch.stack(owns).to(torch.int32).contiguous() if owns else torch.empty(0, n, dtype=torch.int32)
+    out = torch.empty(len(owns), n, dtype=torch.uint8)
+    if n:
+        seeds, ys, xs = seeds.contiguous(), ys.contiguous(), xs.contiguous()
+        lib.ddsgen_confirm_by_unique_neighbour(seeds.data_ptr(), int(width), ys.data_ptr(), xs.data_ptr(), n,
+                                               own.data_ptr(), len(owns), int(block), out.data_ptr(), _n_threads())
+    return list(out.bool())

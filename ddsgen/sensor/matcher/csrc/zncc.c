@@ -5,7 +5,7 @@
  * at (v, u) against the window of R at (v, u - d), scored by zero-mean normalised
  * cross-correlation,
  *     ZNCC = (sum O R - sum O sum R / n) / sqrt(var_O + floor) / sqrt(var_R + floor),  n = block^2,
- * where the variance floor keeps flat windows finite. Four entry points, called through ctypes
+ * where the variance floor keeps flat windows finite. Five entry points, called through ctypes
  * from kernel.py / autograd.py (plain C11 + GCC vector extensions + OpenMP over rows):
  *   ddsgen_observed_stats     the mirrored, padded O and its per-pixel window sum and 1 / std;
  *   ddsgen_zncc_search        stage 1: ZNCC at every integer disparity, streaming (no cost
@@ -15,9 +15,13 @@
  *                             against the reference phases, then the soft-argmax
  *                             d = sum_t softmax(beta ZNCC)_t d_t; in backward mode also the
  *                             gradients w.r.t. the cross-correlations, O's statistics and beta;
- *   ddsgen_window_cross_grad  the backward of the window cross-correlations w.r.t. O.
- * The torch twin of all four is torch_path.py + windows.py; tests/test_matcher.py checks that
- * both give the same disparities and gradients. Every pixel is computed in a fixed order, so
+ *   ddsgen_window_cross_grad  the backward of the window cross-correlations w.r.t. O;
+ *   ddsgen_confirm_by_unique_neighbour  the confirmed-match rule of the validity (a unique
+ *                             match within the window agrees with a peak), stopping at the
+ *                             first agreeing neighbour.
+ * The torch twin of the first four is torch_path.py + windows.py, of the last
+ * matcher._confirmed_by_a_unique_neighbour; tests/test_matcher.py checks that both give the same
+ * disparities, gradients and confirmations. Every pixel is computed in a fixed order, so
  * results depend neither on the thread count nor on the row-band split.
  *
  * Built on first use with the system compiler (cc -O3 -march=native -fopenmp), cached in
@@ -518,6 +522,38 @@ void ddsgen_window_cross_grad(const float *restrict G, int CG, const float *rest
                     for (int j = 0; j < b; j++) d[j] += sv[j];  /* scalar: store-forwarding friendly */
                 }
             }
+        }
+    }
+}
+
+/* ---- confirmed matches: a unique neighbour within the window agrees with a peak -------------------------
+ *
+ * For each candidate pixel i at (ys[i], xs[i]) and each of its n_peaks peak disparities own[j * n + i]:
+ * out[j * n + i] = 1 when some pixel of the block x block window centred on it holds a unique match whose
+ * integer disparity is within 1 px of that peak. seeds is the (H + 2h) x Ws grid (Ws = W + 2h, h = block / 2)
+ * of the unique matches' disparities, padded by h and holding a sentinel far from every disparity elsewhere,
+ * so the window of pixel (y, x) is rows y .. y + 2h, columns x .. x + 2h of it. The scan stops at the first
+ * agreeing neighbour (the torch twin, matcher._confirmed_by_a_unique_neighbour, gathers all block^2). */
+void ddsgen_confirm_by_unique_neighbour(const int32_t *restrict seeds, int Ws, const int64_t *restrict ys,
+                                        const int64_t *restrict xs, int64_t n, const int32_t *restrict own,
+                                        int n_peaks, int block, uint8_t *restrict out, int n_threads) {
+#pragma omp parallel for schedule(static) num_threads(n_threads)
+    for (int64_t i = 0; i < n; i++) {
+        const int32_t *corner = seeds + ys[i] * (int64_t)Ws + xs[i];
+        for (int j = 0; j < n_peaks; j++) {
+            const int32_t peak = own[(int64_t)j * n + i];
+            uint8_t found = 0;
+            for (int dy = 0; dy < block && !found; dy++) {
+                const int32_t *row = corner + (int64_t)dy * Ws;
+                for (int dx = 0; dx < block; dx++) {
+                    const int32_t diff = row[dx] - peak;
+                    if (diff >= -1 && diff <= 1) {
+                        found = 1;
+                        break;
+                    }
+                }
+            }
+            out[(int64_t)j * n + i] = found;
         }
     }
 }
