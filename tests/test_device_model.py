@@ -547,3 +547,26 @@ def test_noise_drawn_for_the_depth_grid_only_is_refused_when_the_ir_image_is_wid
     narrow = IRNoise.draw(120, 160, 4.54, np.random.default_rng(0))
     with pytest.raises(ValueError, match="draw it with DepthSensor.draw_noise"):
         sensor(_plane_with_margin(sensor.intr, 4), noise=narrow)
+
+
+def test_the_scene_speckle_is_memoised_on_the_geometry_and_drawn_anew_when_it_changes():
+    """A diagnosis simulates one frame hundreds of times: the scene's speckle field is drawn once per geometry and
+    unit (the same array as a fresh draw), a copy reaches the noise (changing it leaves the memo intact), and an
+    in-place change of the geometry draws it anew."""
+    from ddsgen.sensor.speckle import scene_seed, speckle_field
+
+    sensor = _device(speckle_fixed_to_scene=True)
+    plane = plane_geometry(sensor.intr, 1.0)
+    p, height, width = sensor.preset, sensor.intr.height, sensor.intr.width + sensor.ir_margin_px
+    first = sensor.draw_noise(1, plane)
+    assert len(plane._speckle_memo) == 1
+    first.speckle_unit.mul_(0.0)  # the caller's copy
+    again = sensor.draw_noise(2, plane)
+    fresh = speckle_field(height, width, p.speckle_shape, p.speckle_grain_px,
+                          np.random.default_rng(scene_seed(plane.points, plane.hit)))  # fmt: skip
+    assert np.array_equal(again.speckle_unit.numpy(), fresh) and len(plane._speckle_memo) == 1
+    plane.points[..., 2] += 0.5  # the plane moved (in place): another scene, another speckle
+    moved = sensor.draw_noise(1, plane)
+    assert not torch.equal(moved.speckle_unit, again.speckle_unit)
+    assert np.array_equal(moved.speckle_unit.numpy(), speckle_field(
+        height, width, p.speckle_shape, p.speckle_grain_px, np.random.default_rng(scene_seed(plane.points, plane.hit))))

@@ -28,7 +28,7 @@ from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
 from ddsgen.sensor.registration import cropped_index, gather_flat, register, register_images, splat_fill_index
-from ddsgen.sensor.speckle import scene_seed
+from ddsgen.sensor.speckle import scene_speckle
 
 # Fraction of disparity range added to the reference padding, so that fitting the
 # baseline or focal length a little up does not run out of reference pattern.
@@ -303,13 +303,13 @@ class DepthSensor(nn.Module):
         """
         p = self.preset
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-        speckle_rng = None
+        # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
+        height, width = self.intr.height, self.intr.width + self.ir_margin_px
+        speckle = None
         if p.speckle_fixed_to_scene and geometry is not None:
             unit_salt = [self.unit] if self.unit else []  # unit 0: the seed renders have always used
-            speckle_rng = np.random.default_rng(scene_seed(geometry.points, geometry.hit) + unit_salt)
-        # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
-        return IRNoise.draw(self.intr.height, self.intr.width + self.ir_margin_px, p.speckle_shape, rng, self.device_,
-                            p.speckle_grain_px, speckle_rng)  # fmt: skip
+            speckle = scene_speckle(geometry, unit_salt, height, width, p.speckle_shape, p.speckle_grain_px)
+        return IRNoise.draw(height, width, p.speckle_shape, rng, self.device_, p.speckle_grain_px, speckle)
 
     # ---- the pipeline ---------------------------------------------------------------------
     def forward(

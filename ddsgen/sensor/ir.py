@@ -69,18 +69,21 @@ class IRNoise:
 
     @classmethod
     def draw(cls, height: int, width: int, speckle_shape: float, rng: np.random.Generator, device="cpu",
-             speckle_grain_px: float = 0.0, speckle_rng: np.random.Generator | None = None) -> "IRNoise":
+             speckle_grain_px: float = 0.0, speckle: np.ndarray | None = None) -> "IRNoise":
         """Draw a frame's noise.
 
         Args:
-            rng: the frame's generator (read noise; the speckle too unless ``speckle_rng`` is given).
+            rng: the frame's generator (read noise; the speckle too unless ``speckle`` is given).
             speckle_grain_px: correlation sigma of the speckle (camera px); 0 = independent per pixel.
-            speckle_rng: the scene's generator, to fix the speckle to the scene.
+            speckle: (height, width) float32 speckle factors fixed to the scene
+                (:func:`ddsgen.sensor.speckle.scene_speckle`; copied, not drawn).
         """
-        if speckle_grain_px <= 0 and speckle_rng is None:
+        if speckle is not None:
+            speckle = np.array(speckle, dtype=np.float32)  # a copy: the scene's field may be memoised
+        elif speckle_grain_px <= 0:
             speckle = rng.gamma(speckle_shape, 1.0, size=(height, width)).astype(np.float32)
         else:
-            speckle = speckle_field(height, width, speckle_shape, speckle_grain_px, speckle_rng or rng)
+            speckle = speckle_field(height, width, speckle_shape, speckle_grain_px, rng)
         read = rng.standard_normal(size=(height, width)).astype(np.float32)
         return cls(torch.from_numpy(speckle).to(device), torch.from_numpy(read).to(device))
 

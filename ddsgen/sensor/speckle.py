@@ -15,7 +15,8 @@ Gamma(shape, 1) marginal that Landau et al. 2016 fitted to a real Kinect (a Gaus
 copula). ``grain_px = 0`` gives the independent per-pixel draws of the paper's model.
 
 The field is seeded by the scene: :func:`scene_seed` hashes the ray-cast geometry, so the
-same static scene gives the same speckle in any frame, worker or process.
+same static scene gives the same speckle in any frame, worker or process (:func:`scene_speckle`
+draws it, memoised on the geometry).
 """
 
 from __future__ import annotations
@@ -102,3 +103,29 @@ def scene_seed(*arrays: torch.Tensor | np.ndarray) -> list[int]:
         digest.update(np.ascontiguousarray(a).tobytes())
     raw = digest.digest()
     return [int.from_bytes(raw[i : i + 4], "little") for i in range(0, 16, 4)]
+
+
+#: Speckle fields memoised per geometry object (its units and twins): a diagnosis simulates one frame hundreds of
+#: times, and hashing its geometry and drawing the field cost ~11 % of a 640 x 480 simulation.
+SCENE_SPECKLE_MEMO = 8
+
+
+def scene_speckle(geometry, unit_salt: list[int], height: int, width: int, shape: float,
+                  grain_px: float) -> np.ndarray:  # fmt: skip
+    """(height, width) float32 speckle factors fixed to the scene: :func:`speckle_field` drawn from
+    ``default_rng(scene_seed(geometry.points, geometry.hit) + unit_salt)``.
+
+    Memoised on the ``geometry`` object (a :class:`~ddsgen.sensor.depth_sensor.SensorGeometry`): an entry holds
+    the very tensors it was drawn for and their version counters, so new tensors or an in-place change of the
+    points or the hit mask draw anew. The array returned may be shared: do not modify it.
+    """
+    points, hit = geometry.points, geometry.hit
+    key = (points._version, hit._version, tuple(unit_salt), height, width, float(shape), float(grain_px))
+    memo = geometry.__dict__.setdefault("_speckle_memo", {})
+    entry = memo.get(key)
+    if entry is None or entry[0] is not points or entry[1] is not hit:
+        if len(memo) >= SCENE_SPECKLE_MEMO:
+            memo.pop(next(iter(memo)))
+        rng = np.random.default_rng(scene_seed(points, hit) + list(unit_salt))
+        entry = memo[key] = (points, hit, speckle_field(height, width, shape, grain_px, rng))
+    return entry[2]
