@@ -12,13 +12,10 @@ lines, each prefixed with the wall time (s) at which it was reached, then `bench
   diagnose_front_ends                 sensor front ends computed (IR image + matching; cache hits not counted)
   diagnose_validity_stages            validity stages computed (one per simulation, front end cached or not);
                                       both counts are machine-independent: what the loop costs in work
-  diagnose_front_end_passes           the front ends' pixels in passes of the 8 frames (a tile counts its share)
-  diagnose_validity_stage_passes      the same for the validity stages
   diagnose_named_first                1 when the hidden effect is named first (the answer must stay right)
   diagnose_load_average               the 1-minute load average at the end (timings on a loaded machine lie)
 
 Usage: python bench/bench_diagnose.py [--effect NAME KEY=VALUE ...] [--threads N] [--screen-frames N]
-       [--no-search-tiles]
 """
 
 from __future__ import annotations
@@ -59,8 +56,6 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--screen-frames", type=int, default=None,
                         help="DiagnoseConfig.screen_frames (0: no screening; default: the command's)")
-    parser.add_argument("--search-tiles", action=argparse.BooleanOptionalAction, default=True,
-                        help="DiagnoseConfig.search_tiles (library depth effects searched on tiles; default on)")
     args = parser.parse_args()
     effect = {"name": args.effect[0], **{k: float(v) for k, v in (a.split("=") for a in args.effect[1:])}}
 
@@ -87,7 +82,7 @@ def main() -> int:
             passes.append(time.perf_counter() - start)
         one_pass = sorted(passes)[1]
 
-    config = DiagnoseConfig(search_tiles=args.search_tiles)
+    config = DiagnoseConfig()
     if args.screen_frames is not None:
         config = dataclasses.replace(config, screen_frames=args.screen_frames)
     log: list[str] = []
@@ -106,10 +101,6 @@ def main() -> int:
     bench("diagnose_simulations_equivalent", wall / one_pass, "passes")
     bench("diagnose_front_ends", counts["front_end"])
     bench("diagnose_validity_stages", counts["validity_stage"])
-    bench("diagnose_front_end_passes", counts["front_end_pixels"] / sum(f.shape[0] * f.shape[1] for f in frames),
-          "passes of the frames")  # fmt: skip
-    bench("diagnose_validity_stage_passes",
-          counts["validity_stage_pixels"] / sum(f.shape[0] * f.shape[1] for f in frames), "passes of the frames")
     bench("diagnose_named_first", float(bool(result.steps) and result.steps[0].effect == effect["name"]))
     bench("diagnose_load_average", os.getloadavg()[0])
     return 0

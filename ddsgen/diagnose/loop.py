@@ -65,9 +65,7 @@ matcher's result from a cache keyed by the IR image; validity effects do not mov
 either, so their whole search reuses the sensor's front end (IR image, matching, depth:
 :func:`~ddsgen.diagnose.match_cache.reuse_front_ends`) and uses every fit frame, and they are judged on the
 held-out planes re-estimated under the current model (:data:`HELD_REPLANE_STEPS`); depth effects
-are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames, the library's on five fixed tiles of each
-(:mod:`~ddsgen.diagnose.search_tiles`: 42 % of a 640 x 480 frame, the same values found) and judged on whole
-held-out frames. **Screening** (:data:`SCREEN_FRACTION`):
+are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames. **Screening** (:data:`SCREEN_FRACTION`):
 each candidate is first searched on one fit frame and judged on the held-out frames at those values; only a
 candidate whose credited fall there reaches a fifth of the acceptance threshold is searched on every search
 frame and judged again (the others cannot be accepted, so the answer is the full search's).
@@ -90,7 +88,6 @@ from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
-from ddsgen.diagnose.search_tiles import search_tiles
 from ddsgen.diagnose.split import split_note, split_single_frame
 from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
@@ -123,7 +120,6 @@ class DiagnoseConfig:
     min_relative_gain: float = MIN_RELATIVE_GAIN
     axis_terms: bool = True  # try generic axis terms when no named effect clears the rule
     screen_frames: int = 1  # each candidate is searched on this many fit frames first (0: no screening)
-    search_tiles: bool = True  # library depth effects searched on tiles of the grid frames (diagnose.search_tiles)
 
 
 #: Screening rule (speed, issue 15). Each candidate's search runs first on the first ``screen_frames`` fit frames of
@@ -163,15 +159,6 @@ def held_frames_for(name: str, cand_sensor, held: list, held_now: list, seed: in
     """The held-out frames a candidate is judged on (see :data:`HELD_REPLANE_STEPS`): ``held_now`` (the current
     model's planes) for a validity candidate, else ``held`` re-planed under the candidate ``cand_sensor``."""
     return held_now if is_validity(name) else replaned(cand_sensor, held, seed, HELD_REPLANE_STEPS)
-
-
-def search_set_of(name: str) -> str:
-    """Which frames candidate ``name`` is searched on: ``"validity"`` (every fit frame; its trials reuse the front
-    ends), ``"tiles"`` for a library effect that changes depth (:mod:`~ddsgen.diagnose.search_tiles`), ``"depth"``
-    (the whole grid frames) for a device behaviour that changes depth."""
-    if not changes_depth(name):
-        return "validity"
-    return "depth" if is_device(name) else "tiles"
 
 
 def analysis_of(sensor, frames, seed: int, edges: dict | None = None, stride: int = 1) -> dict:
@@ -307,31 +294,19 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             if not todo and not config.axis_terms:
                 break
             echo(f"[3/5] round {len(rounds) + 1}: fitting {len(todo)} candidate effect(s) on the fit frames")
-            # Depth-changing effects are searched on grid_frames (each trial re-planes and re-matches), the library's
-            # on tiles of them (search_tiles); validity effects on every fit frame (their trials reuse the matcher's
-            # results: cheap).
+            # Depth-changing effects are searched on grid_frames (each trial re-planes and re-matches);
+            # validity effects on every fit frame (their trials reuse the matcher's results: cheap).
             all_fit = replaned(sensor, fit_frames, config.seed)
             all_base = evaluate(sensor, all_fit, config.seed)
             with torch.no_grad():
                 all_sims = [simulate(sensor, f, config.seed) for f in all_fit]
             n_grid = len(all_fit[: config.grid_frames or None])  # grid frames: the first n_grid fit frames
             grid_frames = all_fit[:n_grid]
-            screen = config.screen_frames
-            search_sets = {  # (frames, the current model's evaluation and simulations of them, frames screened on)
-                "depth": (grid_frames, Evaluation(all_base.frame_gaps[:n_grid], all_base.frame_floors[:n_grid]),
-                          all_sims[:n_grid], screen),
-                "validity": (all_fit, all_base, all_sims, screen),
+            search_sets = {
+                True: (grid_frames, Evaluation(all_base.frame_gaps[:n_grid], all_base.frame_floors[:n_grid]),
+                       all_sims[:n_grid]),
+                False: (all_fit, all_base, all_sims),
             }  # fmt: skip
-            tiled = config.search_tiles and len(frames) > 1  # a split frame's pieces are scattered blocks: not tiled
-            if tiled and any(search_set_of(n) == "tiles" for n in todo):
-                tiles = search_tiles(grid_frames, preset.block_size_px)
-                with torch.no_grad():
-                    tile_sims = [simulate(sensor, f, config.seed) for f in tiles]
-                screened_on = {f.index for f in grid_frames[:screen]}
-                search_sets["tiles"] = (tiles, evaluate(sensor, tiles, config.seed), tile_sims,
-                                        sum(f.index in screened_on for f in tiles))  # fmt: skip
-            else:
-                search_sets["tiles"] = search_sets["depth"]
             results = []
 
             def judge(name, fitted, screened: str = ""):
@@ -351,11 +326,12 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 return c
 
             for name in todo:
-                search_frames, search_base, search_sims, n = search_sets[search_set_of(name)]
-                if 0 < n < len(search_frames):  # screening (see SCREEN_FRACTION): one frame's search first
+                search_frames, search_base, search_sims = search_sets[changes_depth(name)]
+                n = config.screen_frames
+                if n and len(search_frames) > n:  # screening (see SCREEN_FRACTION): one frame's search first
                     screen_base = Evaluation(search_base.frame_gaps[:n], search_base.frame_floors[:n])
                     fitted = fit_any(sensor, name, search_frames[:n], config, screen_base, search_sims[:n])
-                    c = judge(name, fitted, f"screened: searched on {screen} fit frame(s)")
+                    c = judge(name, fitted, f"screened: searched on {n} fit frame(s)")
                     if c.gain < SCREEN_FRACTION * config.min_relative_gain:
                         continue
                     results.remove(c)  # promising: searched on every search frame and judged again
@@ -368,8 +344,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                     if any(e.name == term for e in sensor.effects):  # a preset holds one term of each kind
                         continue
                     for axis in axes:
-                        search_frames, search_base, search_sims, _ = search_sets[
-                            "depth" if term == DISPARITY_TERM else "validity"]
+                        search_frames, search_base, search_sims = search_sets[term == DISPARITY_TERM]
                         fitted = fit_axis_candidate(sensor, term, axis, search_frames, config, search_base,
                                                     search_sims)  # fmt: skip
                         if fitted is not None:

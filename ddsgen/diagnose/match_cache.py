@@ -146,30 +146,25 @@ def reuse_front_ends(size: int = FRONT_END_ENTRIES):
 @contextlib.contextmanager
 def counting_computed_stages():
     """Count the sensor stages actually computed while the context is active: yields a dict
-    ``{"front_end": n, "validity_stage": n, "front_end_pixels": n, "validity_stage_pixels": n}`` that grows with
-    every call of those :class:`~ddsgen.sensor.depth_sensor.DepthSensor` methods (calls, and the pixels of the
-    images they computed: a tile costs less than a frame). Enter it *before* :func:`reuse_front_ends`
+    ``{"front_end": n, "validity_stage": n}`` that grows with every call of those
+    :class:`~ddsgen.sensor.depth_sensor.DepthSensor` methods. Enter it *before* :func:`reuse_front_ends`
     wraps them, so that what the caches serve is not counted (machine-independent work, for
     benchmarks and tests)."""
     from ddsgen.sensor.depth_sensor import DepthSensor
 
-    names = ("front_end", "validity_stage")
-    counts = {**{name: 0 for name in names}, **{f"{name}_pixels": 0 for name in names}}
-    originals = {name: getattr(DepthSensor, name) for name in names}
-    geometry_at = {"front_end": 0, "validity_stage": 1}  # position of the geometry argument
+    counts = {"front_end": 0, "validity_stage": 0}
+    originals = {name: getattr(DepthSensor, name) for name in counts}
 
     def counted(name):
         method = originals[name]
 
         def wrapper(self, *args, **kwargs):
             counts[name] += 1
-            geometry = kwargs["geometry"] if "geometry" in kwargs else args[geometry_at[name]]
-            counts[f"{name}_pixels"] += int(geometry.shape[0] * geometry.shape[1])
             return method(self, *args, **kwargs)
 
         return wrapper
 
-    for name in names:
+    for name in counts:
         setattr(DepthSensor, name, counted(name))
     try:
         yield counts
