@@ -15,7 +15,7 @@ lines, each prefixed with the wall time (s) at which it was reached, then `bench
   diagnose_named_first                1 when the hidden effect is named first (the answer must stay right)
   diagnose_load_average               the 1-minute load average at the end (timings on a loaded machine lie)
 
-Usage: python bench/bench_diagnose.py [--effect NAME KEY=VALUE ...] [--threads N] [--screen-frames N]
+Usage: python bench/bench_diagnose.py [--effect NAME KEY=VALUE ...] [--threads N] [--screen-frames N] [--tile-px N]
 """
 
 from __future__ import annotations
@@ -56,6 +56,8 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--screen-frames", type=int, default=None,
                         help="DiagnoseConfig.screen_frames (0: no screening; default: the command's)")
+    parser.add_argument("--tile-px", type=int, default=None,
+                        help="DiagnoseConfig.tile_px (Adam steps of the base fit and refits on tiles; 0: whole frames)")
     args = parser.parse_args()
     effect = {"name": args.effect[0], **{k: float(v) for k, v in (a.split("=") for a in args.effect[1:])}}
 
@@ -83,6 +85,8 @@ def main() -> int:
         one_pass = sorted(passes)[1]
 
     config = DiagnoseConfig()
+    if args.tile_px is not None:
+        config = dataclasses.replace(config, tile_px=args.tile_px or None)
     if args.screen_frames is not None:
         config = dataclasses.replace(config, screen_frames=args.screen_frames)
     log: list[str] = []

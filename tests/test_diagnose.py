@@ -535,6 +535,10 @@ def test_diagnose_command_rejects_bad_input_with_one_line(tmp_path, capsys):
     assert len(err) == 1 and "edge_dropuot" in err[0]
     assert main(["diagnose", "kinect_v1", str(scans), "--apply", str(tmp_path / "x.txt"), "--quiet"]) == 2
     assert not (tmp_path / "x.txt").exists()
+    capsys.readouterr()
+    assert main(["diagnose", "kinect_v1", str(scans), "--tile", "-1", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--tile" in err[0]
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import click
 
 from ddsgen.commands import echo_stderr, split_names, threads_option, use_threads
 from ddsgen.errors import InputError
+from ddsgen.fit import DEFAULT_TILE_PX
 
 
 @click.command("diagnose")
@@ -23,6 +24,9 @@ from ddsgen.errors import InputError
 @click.option("--steps", type=int, default=15, show_default=True, help="Adam steps of the base fit.")
 @click.option("--refit-steps", type=int, default=10, show_default=True,
               help="Adam steps of the refit after each accepted effect.")
+@click.option("--tile", "tile_px", type=int, default=DEFAULT_TILE_PX, show_default=True,
+              help="Each Adam step of the base fit and the refits simulates a random TILE x TILE window of each fit "
+                   "frame, as `ddsgen fit` does (a stochastic gradient at a fraction of the price); 0: whole frames.")
 @click.option("--candidates", multiple=True, metavar="NAMES",
               help="Effects to try (comma-separated or repeated). Default: the named library effects except "
                    "disparity_distortion (opt-in: its 3x5 field can absorb an offset, a scale or a lens distortion), "
@@ -42,7 +46,7 @@ from ddsgen.errors import InputError
 @threads_option(1, "Torch threads. The diagnosis runs many small simulations: on a shared machine one thread per "
                    "process is usually fastest.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
-def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_steps, candidates, grid_frames,
+def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_steps, tile_px, candidates, grid_frames,
              max_effects, no_plane, plausible_px, region, seed, threads, quiet):  # fmt: skip
     """Find where the sensor PRESET and the real scans in REAL_DIR disagree and name the missing effect.
 
@@ -72,6 +76,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if refit_steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--refit-steps")
+    if tile_px < 0:
+        raise click.BadParameter("must be >= 0", param_hint="--tile")
     if grid_frames < 0:
         raise click.BadParameter("must be >= 0", param_hint="--grid-frames")
     if max_effects < 0:
@@ -101,7 +107,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         if not any(bool(f.region.any()) for f in frames):
             raise InputError(f"{real_dir}: --region objects: no annotated object is visible in any frame")
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
-                            seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames)  # fmt: skip
+                            seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames,
+                            tile_px=tile_px or None)  # fmt: skip
     result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)
 
     written = write_diagnosis(result, report_dir, f"ddsgen diagnose: {original.name} vs {real_dir}",

@@ -10,6 +10,7 @@ import click
 from ddsgen.commands import (REPRODUCIBLE_THREADS_HELP, common_options, echo_stderr, split_names, threads_option,
                              use_threads)
 from ddsgen.fit.inputs import load_inputs
+from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.errors import InputError
 
 
@@ -26,7 +27,7 @@ from ddsgen.errors import InputError
                    "(1-D searches); effects, "
                    "effect:NAME[.PARAM], cnn (2-layer post-processing CNN).")
 @click.option("--steps", type=int, default=100, show_default=True, help="Adam steps.")
-@click.option("--tile", "tile_px", type=int, default=192, show_default=True,
+@click.option("--tile", "tile_px", type=int, default=DEFAULT_TILE_PX, show_default=True,
               help="Each Adam step simulates a random TILE x TILE window of each fit frame (a stochastic gradient "
                    "at a fraction of the price); 0: whole frames.")
 @click.option("--lr", type=float, default=1e-3, show_default=True,

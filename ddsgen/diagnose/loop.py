@@ -93,6 +93,7 @@ from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.simulate import simulate, twin_draws
+from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.sensor.effects import REGISTRY, library_names
 from ddsgen.sensor.effects.axis_terms import PHYSICAL_CAUSES
 
@@ -110,6 +111,7 @@ class DiagnoseConfig:
     base_params: tuple = BASE_PARAMS
     base_steps: int = 15  # Adam steps of the base fit (after its 1-D searches)
     refit_steps: int = 10  # Adam steps of the refit after accepting an effect
+    tile_px: int | None = DEFAULT_TILE_PX  # each Adam step on a random tile of each frame, as ddsgen fit (None: whole)
     refine_rounds: int = 2  # halving rounds of the local search around a candidate's best grid point
     lr: float = 1e-3
     batch_frames: int | None = 2
@@ -213,7 +215,7 @@ def refit(sensor, frames, config: DiagnoseConfig, progress: bool) -> None:
     names = list(config.base_params) + [f"effect:{e.name}" for e in sensor.effects
                                         if changes_depth(e.name) and not e.generic]  # fmt: skip
     fit_sensor(sensor, frames, names, steps=config.refit_steps, lr=config.lr, progress=progress, seed=config.seed,
-               batch_frames=config.batch_frames, snr_span=REFIT_SNR_SPAN)  # fmt: skip
+               batch_frames=config.batch_frames, snr_span=REFIT_SNR_SPAN, tile_px=config.tile_px)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------ the loop
@@ -267,7 +269,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
          f"({len(held)} held out)")  # fmt: skip
     sensor = DepthSensor(preset)
     fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
-               seed=config.seed, batch_frames=config.batch_frames)  # fmt: skip
+               seed=config.seed, batch_frames=config.batch_frames, tile_px=config.tile_px)  # fmt: skip
     # Reported gaps beyond the floor average the floor over several units, as compare does (a split frame
     # counts as one frame); the candidates are judged against one unit each (acceptance.frame_falls).
     floor_draws = twin_draws(1 if len(frames) == 1 else len(held))
