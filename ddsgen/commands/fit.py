@@ -9,8 +9,8 @@ import click
 
 from ddsgen.commands import (REPRODUCIBLE_THREADS_HELP, common_options, echo_stderr, split_names, threads_option,
                              use_threads)
-from ddsgen.fit.inputs import load_inputs
 from ddsgen.fit import DEFAULT_TILE_PX
+from ddsgen.fit.inputs import load_inputs
 from ddsgen.errors import InputError
 
 

@@ -91,9 +91,9 @@ from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
 from ddsgen.diagnose.split import split_note, split_single_frame
 from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
+from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.simulate import simulate, twin_draws
-from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.sensor.effects import REGISTRY, library_names
 from ddsgen.sensor.effects.axis_terms import PHYSICAL_CAUSES
 

@@ -149,9 +149,6 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
     # Disparities of the unique matches, far from any disparity elsewhere, padded by h: (H + 2h) x width, flat.
     seeds = torch.where(unique, k_int.to(torch.int32), torch.full_like(k_int, -(2**20), dtype=torch.int32))
     seeds = torch.nn.functional.pad(seeds[None], (h, h, h, h), value=-(2**20))[0].reshape(-1)
-    dy, dx = torch.meshgrid(torch.arange(block, device=k_int.device), torch.arange(block, device=k_int.device),
-                            indexing="ij")  # fmt: skip
-    window = (dy * width + dx).reshape(1, -1)  # offsets of a window's pixels from its top-left corner
     ys, xs = torch.nonzero(candidates, as_tuple=True)
     owns = [peak[ys, xs].to(torch.int32) for peak in peaks]
     outs = [torch.zeros_like(candidates) for _ in peaks]
@@ -159,6 +156,9 @@ def _confirmed_by_a_unique_neighbour(k_int: torch.Tensor, unique: torch.Tensor, 
         for out, agreed in zip(outs, confirm_by_unique_neighbour_c(_load_kernel(), seeds, width, ys, xs, owns, block)):
             out[ys, xs] = agreed
         return outs
+    dy, dx = torch.meshgrid(torch.arange(block, device=k_int.device), torch.arange(block, device=k_int.device),
+                            indexing="ij")  # fmt: skip
+    window = (dy * width + dx).reshape(1, -1)  # offsets of a window's pixels from its top-left corner
     corner = ys * width + xs
     for start in range(0, ys.numel(), chunk):
         part = slice(start, start + chunk)
