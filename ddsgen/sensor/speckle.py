@@ -124,7 +124,7 @@ def scene_speckle(geometry, unit_salt: list[int], height: int, width: int, shape
     memo = geometry.__dict__.setdefault("_speckle_memo", {})
     entry = memo.get(key)
     if entry is None or entry[0] is not points or entry[1] is not hit:
-        if len(memo) >= SCENE_SPECKLE_MEMO:
+        if key not in memo and len(memo) >= SCENE_SPECKLE_MEMO:  # a stale entry under this key is overwritten
             memo.pop(next(iter(memo)))
         rng = np.random.default_rng(scene_seed(points, hit) + list(unit_salt))
         entry = memo[key] = (points, hit, speckle_field(height, width, shape, grain_px, rng))
