@@ -234,6 +234,26 @@ def test_hole_fill_spares_holes_at_depth_edges():
     assert every[~valid].all()
 
 
+def test_component_pixels_from_bounding_boxes_are_the_whole_image_scan():
+    """The hole fill reads its small holes' pixels from their bounding boxes: the same pixels, in the same row-major
+    order, as a scan of the whole label image, for holes of every shape (diagonal chains, L shapes, boxes shared
+    with other holes) and when large components send it to the whole-image path."""
+    import cv2
+
+    from ddsgen.sensor.cleanup import _component_pixels
+
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        height, width = rng.integers(3, 70, 2)
+        invalid = (rng.random((height, width)) < rng.uniform(0.05, 0.7)).astype(np.uint8)
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(invalid, connectivity=8)
+        for limit in (2, 8, 10**6):
+            chosen = stats[:, cv2.CC_STAT_AREA] < limit
+            chosen[0] = trial % 2 == 0 and limit == 10**6  # the background too, now and then
+            expected = np.flatnonzero(np.take(chosen, labels))
+            np.testing.assert_array_equal(_component_pixels(labels, stats, chosen), expected)
+
+
 def test_nearest_valid_source_is_the_euclidean_nearest_valid_pixel():
     """Against a brute-force search over every valid pixel: the chosen source is at the smallest Euclidean
     distance (exactly within the 3-px ring; beyond it the distance transform's L2 approximation, within 5 %)."""

@@ -51,8 +51,12 @@ def remove_valid_specks(disparity: np.ndarray, valid: np.ndarray, speckle_px: in
     """
     if speckle_px <= 0:
         return valid.copy()
-    fixed = np.where(valid, np.clip(np.round(disparity * _FIXED_POINT), 1, np.iinfo(np.int16).max), 0).astype(np.int16)
+    scaled = np.asarray(disparity * _FIXED_POINT)  # a new array: rounded and clipped in place
+    np.rint(scaled, out=scaled)
+    np.clip(scaled, 1, np.iinfo(np.int16).max, out=scaled)
+    fixed = scaled.astype(np.int16)
     # Invalid pixels hold newVal = 0, which filterSpeckles never joins into a region.
+    fixed[~valid] = 0
     cv2.filterSpeckles(fixed, 0, int(speckle_px), float(max_diff_px * _FIXED_POINT))
     return valid & (fixed != 0)
 
@@ -60,9 +64,10 @@ def remove_valid_specks(disparity: np.ndarray, valid: np.ndarray, speckle_px: in
 _NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
 
-def _one_surface(labels: np.ndarray, candidates: np.ndarray, disparity: np.ndarray, valid: np.ndarray,
-                 max_diff_px: float) -> np.ndarray:
-    """(N,) bool per label: is each candidate hole's rim one surface?
+def _one_surface(labels: np.ndarray, candidates: np.ndarray, pixels: np.ndarray, disparity: np.ndarray,
+                 valid: np.ndarray, max_diff_px: float) -> np.ndarray:  # fmt: skip
+    """(N,) bool per label: is each candidate hole's rim one surface? ``pixels``: the candidates' pixels, flat
+    indices in row-major order (:func:`_component_pixels`).
 
     The rim of a hole is the valid pixels 8-adjacent to it (a rim pixel touching two holes counts
     for one of them). It is one surface when every two 8-adjacent rim pixels differ by at most
@@ -71,7 +76,7 @@ def _one_surface(labels: np.ndarray, candidates: np.ndarray, disparity: np.ndarr
     the holes' pixels and their neighbours only (a few thousand), not on whole images.
     """
     height, width = labels.shape
-    rows, cols = np.nonzero(np.take(candidates, labels))  # np.take: a small table over a whole image, fast
+    rows, cols = np.divmod(pixels, width)
     hole_of = labels[rows, cols]
     rim_label = np.zeros(height * width, np.int64)  # flat: the hole each rim pixel belongs to (labels are >= 1)
     rim_pixels = []
@@ -121,13 +126,36 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
     _, labels, stats, _ = cv2.connectedComponentsWithStats(invalid, connectivity=8)
     small = stats[:, cv2.CC_STAT_AREA] < hole_px
     small[0] = False  # label 0 is the valid background
-    if disparity is not None and max_diff_px is not None and small.any():
-        small = _one_surface(labels, small, np.asarray(disparity), valid, max_diff_px)
-    filled = np.take(small, labels)
-    if not filled.any():
+    pixels = _component_pixels(labels, stats, small)
+    if disparity is not None and max_diff_px is not None and len(pixels):
+        small = _one_surface(labels, small, pixels, np.asarray(disparity), valid, max_diff_px)
+        pixels = pixels[small[labels.reshape(-1)[pixels]]]
+    filled = np.zeros_like(valid)
+    if not len(pixels):
         return source, filled
-    source.reshape(-1)[np.flatnonzero(filled)] = nearest_valid_source(valid, np.flatnonzero(filled))
+    filled.reshape(-1)[pixels] = True
+    source.reshape(-1)[pixels] = nearest_valid_source(valid, pixels)
     return source, filled
+
+
+def _component_pixels(labels: np.ndarray, stats: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """(N,) int64: the flat indices, in row-major order, of the pixels of the components ``chosen`` (bool per label)
+    of ``cv2.connectedComponentsWithStats``' ``labels`` and ``stats``. Small components are read from their
+    bounding boxes (a few thousand pixels), not from a pass over the whole image (~1 ms at 640 x 480)."""
+    ids = np.flatnonzero(chosen)
+    height, width = labels.shape
+    if not len(ids):
+        return np.zeros(0, np.int64)
+    x0, y0 = stats[ids, cv2.CC_STAT_LEFT], stats[ids, cv2.CC_STAT_TOP]
+    box_w, box_h = stats[ids, cv2.CC_STAT_WIDTH], stats[ids, cv2.CC_STAT_HEIGHT]
+    side = int(max(box_w.max(), box_h.max()))
+    if len(ids) * side * side > height * width // 4:  # large components: the whole image is cheaper
+        return np.flatnonzero(np.take(chosen, labels))
+    dy, dx = np.divmod(np.arange(side * side), side)
+    inside = (dy < box_h[:, None]) & (dx < box_w[:, None])
+    flat = ((y0[:, None] + dy) * width + x0[:, None] + dx)[inside]
+    own = np.broadcast_to(ids[:, None], inside.shape)[inside]
+    return np.sort(flat[labels.reshape(-1)[flat] == own])
 
 
 def fill_narrow_gaps(valid: np.ndarray, width_px: int) -> np.ndarray:
@@ -157,13 +185,15 @@ def narrow_gap_sources(valid: np.ndarray, width_px: int) -> tuple[np.ndarray, np
     height, width = valid.shape
     flat_valid = valid.reshape(-1)
     sources = np.full(len(rows), -1, np.int64)
+    todo = np.arange(len(rows))  # the pixels without a source yet: most find one a pixel away
     for step in range(1, width_px + 1):
         for dy, dx in ((0, -step), (0, step), (-step, 0), (step, 0)):
-            r, c = rows + dy, cols + dx
+            r, c = rows[todo] + dy, cols[todo] + dx
             inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
             candidate = np.where(inside, r * width + c, 0)
-            take = (sources < 0) & inside & flat_valid[candidate]
-            sources[take] = candidate[take]
+            found = inside & flat_valid[candidate]
+            sources[todo[found]] = candidate[found]
+            todo = todo[~found]
     pixels = rows.astype(np.int64) * width + cols
     unresolved = sources < 0
     if unresolved.any():
