@@ -220,6 +220,15 @@ def test_replane_recovers_the_plane_a_disparity_offset_was_added_to():
     assert torch.allclose(new.geometry.clean_depth, truth, rtol=1e-4)
     assert np.allclose(new.plane.normal, n, atol=1e-4) and new.plane.offset == pytest.approx(d, rel=1e-4)
     assert torch.allclose(new.geometry.normals[60, 80], torch.tensor(n, dtype=torch.float32), atol=1e-4)
+    # The same real surface: the re-estimated geometry shows the scene's speckle (drawn once, for the scene), not a
+    # new field per estimate of the plane's pose; so does a re-estimate of the re-estimate.
+    from ddsgen.sensor.speckle import scene_speckle
+
+    assert new.geometry.speckle_scene is biased and replane(new, sim).geometry.speckle_scene is biased
+    field = scene_speckle(biased, [], 12, 16, 4.5, 1.0)
+    assert scene_speckle(new.geometry, [], 12, 16, 4.5, 1.0) is field
+    moved = dataclasses.replace(biased, points=new.geometry.points.clone())  # another scene: its own field
+    assert not np.array_equal(scene_speckle(moved, [], 12, 16, 4.5, 1.0), field)
 
 
 def test_one_frame_is_split_into_disjoint_pieces_that_each_cover_the_whole_image():

@@ -109,7 +109,11 @@ def _replaned_geometry(g, intr, n, d, new_n, new_d, on_plane):
     points = torch.where(moved, torch.stack([xn.float() * z, yn.float() * z, z], -1), g.points)
     normals = torch.where(moved, torch.tensor(new_n, dtype=torch.float32), g.normals)
     clean = torch.where(ok, z, g.clean_depth)
-    return dataclasses.replace(g, points=points, normals=normals, clean_depth=clean, hit=g.hit & (ok | ~pixels))
+    # The same real surface: the speckle stays the scene's (a new field per estimate would add noise to every
+    # comparison between models judged on re-estimated planes).
+    scene = g.speckle_scene if g.speckle_scene is not None else g
+    return dataclasses.replace(g, points=points, normals=normals, clean_depth=clean, hit=g.hit & (ok | ~pixels),
+                               speckle_scene=scene)  # fmt: skip
 
 
 def replane_all(sensor, frames, seed: int) -> list:

@@ -51,6 +51,9 @@ class SensorGeometry:
     are then the IR camera's view, whose principal point is ``registration_shift_px`` left of the output's and
     whose centre is ``registration_offset_m`` left (-x) of the output camera's. None: the output image is the
     IR camera's.
+    speckle_scene: the geometry whose speckle this one shows, or None (its own). A copy of a real scene whose
+    support plane was re-estimated (:mod:`ddsgen.diagnose.plane`) is the same real surface: its speckle stays that
+    of the scene, not of our estimate of the plane's pose.
     """
 
     points: torch.Tensor
@@ -63,6 +66,7 @@ class SensorGeometry:
     registration: torch.Tensor | None = None
     registration_shift_px: float = 0.0
     registration_offset_m: float = 0.0
+    speckle_scene: "SensorGeometry | None" = None
 
     @classmethod
     def from_hits(cls, hits, device="cpu", ir_margin=None, registration=None, registration_shift_px: float = 0.0,

@@ -117,8 +117,11 @@ def scene_speckle(geometry, unit_salt: list[int], height: int, width: int, shape
 
     Memoised on the ``geometry`` object (a :class:`~ddsgen.sensor.depth_sensor.SensorGeometry`): an entry holds
     the very tensors it was drawn for and their version counters, so new tensors or an in-place change of the
-    points or the hit mask draw anew. The array returned may be shared: do not modify it.
+    points or the hit mask draw anew. A geometry with a ``speckle_scene`` shows that geometry's field. The array
+    returned may be shared: do not modify it.
     """
+    if getattr(geometry, "speckle_scene", None) is not None:  # a re-estimated copy shows its scene's speckle
+        geometry = geometry.speckle_scene
     points, hit = geometry.points, geometry.hit
     key = (points._version, hit._version, tuple(unit_salt), height, width, float(shape), float(grain_px))
     memo = geometry.__dict__.setdefault("_speckle_memo", {})
