@@ -41,6 +41,11 @@ GRIDS: dict[str, list[dict]] = {
 #: intensity (besides 1) and keeps the best pair (see fit_candidate).
 CONFOUNDED_WITH_SNR = ("low_signal_dropout",)
 SNR_FACTORS = (1.15, 1.3, 1.5, 1.75, 2.0)
+#: The factors of a screening search (one frame, :data:`~ddsgen.diagnose.loop.SCREEN_FRACTION`): every other one.
+#: The screen asks whether the effect explains anything on held-out frames, not where its optimum lies; each factor
+#: costs a front end and the threshold's whole grid (9 trials of two simulations), and with all five the screen was
+#: the diagnosis' dearest (8-10 s of the 640 x 480 bench, session 31), mostly for candidates crediting nothing.
+SCREEN_SNR_FACTORS = (1.3, 1.75)
 
 #: Values tried for the other parameters of an effect, one at a time, after its first parameter is set.
 SECONDARY_GRIDS: dict[str, dict[str, tuple]] = {
@@ -189,10 +194,13 @@ def with_candidate(sensor, name: str, values: dict):
     return with_behaviour(sensor, name, values) if is_device(name) else with_effect(sensor, name, values)
 
 
-def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None):
+def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None, screening: bool = False):
     """:func:`fit_candidate` for a library effect, :func:`~ddsgen.diagnose.device_candidates.fit_behaviour` for
-    a device behaviour; both return (sensor, values, -credited fall)."""
-    return (fit_behaviour if is_device(name) else fit_candidate)(sensor, name, frames, config, base, sims)
+    a device behaviour; both return (sensor, values, -credited fall). ``screening``: a one-frame screening search
+    (:data:`SCREEN_SNR_FACTORS`)."""
+    if is_device(name):
+        return fit_behaviour(sensor, name, frames, config, base, sims)
+    return fit_candidate(sensor, name, frames, config, base, sims, SCREEN_SNR_FACTORS if screening else SNR_FACTORS)
 
 
 def copy_of(sensor):
@@ -207,8 +215,8 @@ def with_effect(sensor, name: str, values: dict):
     return sensor_like(sensor, preset.replace(effects=[dict(e) for e in preset.effects] + [{"name": name, **values}]))
 
 
-def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation,
-                  sims=None) -> tuple[object, dict, float]:  # fmt: skip
+def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None,
+                  snr_factors: tuple = SNR_FACTORS) -> tuple[object, dict, float]:  # fmt: skip
     """Add effect ``name`` to (a copy of) ``sensor`` and fit its parameters on ``frames``.
 
     ``frames`` are fit frames re-planed under ``sensor`` and ``base`` is ``sensor``'s evaluation on
@@ -216,7 +224,8 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evalu
     (:func:`frame_falls`), with the support plane re-estimated under every trial value of an
     effect that changes depth. The first parameter is searched on a coarse grid,
     then by ``refine_rounds`` rounds of halving the interval around the best value; the other
-    parameters on :data:`SECONDARY_GRIDS`. Returns (sensor with the effect, values, -credited fall).
+    parameters on :data:`SECONDARY_GRIDS`; an effect that a lower SNR mimics (:data:`CONFOUNDED_WITH_SNR`) at
+    the fitted SNR and at each of ``snr_factors`` times it. Returns (sensor with the effect, values, -credited fall).
     """
     cls = REGISTRY[name]
     candidate = with_effect(sensor, name, {})
@@ -276,7 +285,7 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evalu
         log_eta = candidate.log_emitted_intensity
         start = float(log_eta.detach())
         scored = []
-        for shift in (0.0, *(math.log(f) for f in SNR_FACTORS)):
+        for shift in (0.0, *(math.log(f) for f in snr_factors)):
             with torch.no_grad():
                 log_eta.fill_(start + shift)
             point = search(refine=False)
