@@ -102,8 +102,9 @@ def _validity_frame(height: int = 30, width: int = 40):
     real_valid = torch.rand(height, width, generator=g) > 0.2
     depth = torch.full((height, width), 1.2)
     frame = SimpleNamespace(region=region, real_depth=torch.where(real_valid, depth, torch.zeros_like(depth)),
-                            real_valid=real_valid, clean_depth=depth, instance=torch.zeros(height, width, dtype=torch.int32),
-                            plane=None, intrinsics=SimpleNamespace(fx=100.0))  # fmt: skip
+                            real_valid=real_valid, clean_depth=depth, plane=None,
+                            instance=torch.zeros(height, width, dtype=torch.int32),
+                            intrinsics=SimpleNamespace(fx=100.0))  # fmt: skip
     soft = torch.rand(height, width, generator=g)
     sim = SimpleNamespace(depth=depth, valid=soft > 0.5, valid_soft=soft)
     return frame, sim

@@ -335,7 +335,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 n = config.screen_frames
                 if n and len(search_frames) > n:  # screening (see SCREEN_FRACTION): one frame's search first
                     screen_base = Evaluation(search_base.frame_gaps[:n], search_base.frame_floors[:n])
-                    fitted = fit_any(sensor, name, search_frames[:n], config, screen_base, search_sims[:n], screening=True)
+                    fitted = fit_any(sensor, name, search_frames[:n], config, screen_base, search_sims[:n],
+                                     screening=True)
                     c = judge(name, fitted, f"screened: searched on {n} fit frame(s)")
                     if c.gain < SCREEN_FRACTION * config.min_relative_gain:
                         continue
