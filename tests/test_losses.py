@@ -132,3 +132,24 @@ def test_validity_term_with_the_memoised_real_side_follows_the_real_mask():
     frame.region[:, 30:] = False
     assert float(frame_loss(sim, frame, LossWeights())["validity"]) == pytest.approx(_reference_validity(frame, sim),
                                                                                      rel=1e-5)  # fmt: skip
+
+
+def test_tensor_memo_follows_its_tensors_and_stays_bounded():
+    """The memo behind the speckle field and the real validity side: one computation per tensor state; a new tensor
+    or an in-place change computes anew; a full memo evicts its oldest entry only when a key is added."""
+    from ddsgen.tensor_memo import memoised
+
+    memo, calls = {}, []
+    a, b = torch.zeros(3), torch.ones(3)
+
+    def compute(x):
+        calls.append(float(x.sum()))
+        return x.sum().item()
+
+    assert memoised(memo, (a,), ("k",), 2, lambda: compute(a)) == 0.0
+    assert memoised(memo, (a,), ("k",), 2, lambda: compute(a)) == 0.0 and len(calls) == 1  # served
+    assert memoised(memo, (a,), ("other",), 2, lambda: compute(a)) == 0.0 and len(calls) == 2  # another key
+    a += 2.0  # in place: its version counter moves
+    assert memoised(memo, (a,), ("k",), 2, lambda: compute(a)) == 6.0 and len(calls) == 3
+    assert len(memo) == 2  # the oldest went to make room
+    assert memoised(memo, (b,), ("k",), 2, lambda: compute(b)) == 3.0 and len(memo) == 2

@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 
 from ddsgen.sensor.box_filter import box_mean, erode, opencv_can_filter
+from ddsgen.tensor_memo import memoised
 
 #: Huber threshold (mm).
 HUBER_DELTA_MM = 5.0
@@ -92,16 +93,19 @@ def huber(x: torch.Tensor, delta: float = HUBER_DELTA_MM) -> torch.Tensor:
     return torch.where(a <= delta, 0.5 * x * x / delta, a - 0.5 * delta)
 
 
-def masked_local_mean(x: torch.Tensor, mask: torch.Tensor, k: int = LOCAL_WINDOW) -> tuple[torch.Tensor, torch.Tensor]:
+def masked_local_mean(x: torch.Tensor, mask: torch.Tensor, k: int = LOCAL_WINDOW,
+                      support: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """Mean of ``x`` over the masked pixels of each k x k window.
+
+    ``support``: the mask's support (below) when already known (it is computed otherwise).
 
     Returns:
         (mean (H, W), support (H, W) = fraction of the window that is masked).
     """
-    m = mask.to(x.dtype)[None, None]
-    num = box_mean((x * mask.to(x.dtype))[None, None], k)
-    den = box_mean(m, k)
-    return (num / den.clamp_min(1e-6))[0, 0], den[0, 0]
+    num = box_mean((x * mask.to(x.dtype))[None, None], k)[0, 0]
+    if support is None:
+        support = box_mean(mask.to(x.dtype)[None, None], k)[0, 0]
+    return num / support.clamp_min(1e-6), support
 
 
 _SOBEL_X = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
@@ -227,16 +231,11 @@ def _real_local_validity(real_valid: torch.Tensor, region: torch.Tensor, k: int,
                          dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """``(support, rate)``, both (H, W): the share of each k x k window in ``region`` and the real valid rate over it
     (:func:`masked_local_mean` of ``real_valid``). Constant for a frame, whose real side the fit and the diagnosis
-    compare with hundreds of simulations, so memoised: an entry holds the very masks it was computed for and
-    their version counters (new masks or an in-place change compute anew). Shared results: do not modify."""
-    key = (id(real_valid), real_valid._version, id(region), region._version, k, dtype, str(region.device))
-    entry = _real_validity_memo.get(key)
-    if entry is None or entry[0] is not real_valid or entry[1] is not region:
-        if key not in _real_validity_memo and len(_real_validity_memo) >= REAL_VALIDITY_MEMO:
-            _real_validity_memo.pop(next(iter(_real_validity_memo)))
-        rate, support = masked_local_mean(real_valid.to(dtype), region, k)
-        entry = _real_validity_memo[key] = (real_valid, region, support, rate)
-    return entry[2], entry[3]
+    compare with hundreds of simulations, so memoised (:func:`~ddsgen.tensor_memo.memoised`: new masks or an
+    in-place change compute anew). Shared results: do not modify."""
+    rate, support = memoised(_real_validity_memo, (real_valid, region), (k, dtype, str(region.device)),
+                             REAL_VALIDITY_MEMO, lambda: masked_local_mean(real_valid.to(dtype), region, k))
+    return support, rate
 
 
 def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, torch.Tensor]:
@@ -277,7 +276,7 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
     if bool(region.any()):
         support, lr = _real_local_validity(frame.real_valid, region, k, simd.dtype)
         soft = sim.valid_soft.to(simd.dtype)
-        ls = box_mean((soft * region.to(simd.dtype))[None, None], k)[0, 0] / support.clamp_min(1e-6)
+        ls, _ = masked_local_mean(soft, region, k, support)
         terms["validity"] = VALIDITY_MM * masked_mean((ls - lr) ** 2, region)
     terms["total"] = (weights.depth * terms["depth"] + weights.gradient * terms["gradient"]
                       + weights.validity * terms["validity"] + weights.pixel * terms["pixel"])  # fmt: skip

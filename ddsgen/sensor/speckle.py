@@ -29,6 +29,8 @@ import cv2
 import numpy as np
 import torch
 
+from ddsgen.tensor_memo import memoised
+
 # Quantile table resolution (normal scores from -_Z_MAX to _Z_MAX); beyond it the table's ends
 # are used (probability < 1e-9 per pixel).
 _TABLE_SIZE = 4097
@@ -123,12 +125,10 @@ def scene_speckle(geometry, unit_salt: list[int], height: int, width: int, shape
     if getattr(geometry, "speckle_scene", None) is not None:  # a re-estimated copy shows its scene's speckle
         geometry = geometry.speckle_scene
     points, hit = geometry.points, geometry.hit
-    key = (points._version, hit._version, tuple(unit_salt), height, width, float(shape), float(grain_px))
-    memo = geometry.__dict__.setdefault("_speckle_memo", {})
-    entry = memo.get(key)
-    if entry is None or entry[0] is not points or entry[1] is not hit:
-        if key not in memo and len(memo) >= SCENE_SPECKLE_MEMO:  # a stale entry under this key is overwritten
-            memo.pop(next(iter(memo)))
+
+    def draw() -> np.ndarray:
         rng = np.random.default_rng(scene_seed(points, hit) + list(unit_salt))
-        entry = memo[key] = (points, hit, speckle_field(height, width, shape, grain_px, rng))
-    return entry[2]
+        return speckle_field(height, width, shape, grain_px, rng)
+
+    key = (tuple(unit_salt), height, width, float(shape), float(grain_px))
+    return memoised(geometry.__dict__.setdefault("_speckle_memo", {}), (points, hit), key, SCENE_SPECKLE_MEMO, draw)
