@@ -131,10 +131,10 @@ def test_depth_edges_follow_jumps_through_holes_and_count_dropouts_per_edge_leng
 
 
 @pytest.mark.xfail(strict=True, reason="issue 12: some rendered edges are still ragged: 3.3-18.0 isolated "
-                   "dropouts per 1000 edge px over 16 frames (median 9.1) against the real frames' 5-11; frames 0 and 2 of these 4 have 13 "
-                   "and 18, most of them (33 of 40, 46 of 60) the registration's 1-2 px disocclusion band right of "
-                   "near objects broken into rows by the splat (docs/realism.md, sessions 25 and 32); passes once "
-                   "the sensor fixes it")
+                   "dropouts per 1000 edge px over 16 frames (median 9.1) against the real frames' 5-11; frames 0 "
+                   "and 2 of these 4 have 13 and 18, most of them (33 of 40, 46 of 60) the registration's 1-2 px "
+                   "disocclusion band right of near objects broken into rows by the splat (docs/realism.md, "
+                   "sessions 25 and 32); passes once the sensor fixes it")
 def test_rendered_frames_have_as_few_isolated_dropouts_per_edge_as_real_ones(tmp_path):
     import cv2
 
