@@ -254,6 +254,12 @@ def _edge_bands(on_board, shadow, width=4):
     return away & ~shadow, (top, bottom, left, right)
 
 
+def _shadow_band(on_board, shadow):
+    """``(rows, columns)``: the board's rows but its first and last two, and the columns of the shadow left of it."""
+    rows = np.nonzero(on_board.any(1))[0][2:-2]
+    return rows, np.nonzero(shadow[rows].any(0))[0]
+
+
 @pytest.mark.parametrize("z_wall, width", [(1.25, 4), (2.2, 12)])
 def test_without_the_shadow_mask_the_matcher_alone_decides_how_much_of_a_shadow_is_lost(z_wall, width):
     """``shadow_always_invalid: false`` (kinect_v1): no ray-cast oracle, the matcher decides. A window at a shadow's
@@ -272,9 +278,7 @@ def test_without_the_shadow_mask_the_matcher_alone_decides_how_much_of_a_shadow_
         matcher_only = DepthSensor(device)(geometry, seed=3)
         filled = DepthSensor(with_fill)(geometry, seed=3)
         masked_filled = DepthSensor(with_fill.replace(shadow_always_invalid=True))(geometry, seed=3)
-    rows = np.nonzero(on_board.any(1))[0][2:-2]
-    band = shadow[rows]
-    columns = np.nonzero(band.any(0))[0]
+    rows, columns = _shadow_band(on_board, shadow)
     assert len(columns) == width  # f b (1/z_board - 1/z_wall) at 320 px
     assert not masked.valid.numpy()[shadow].any()
     # The narrow fill (4 px): the 4-px shadow takes the wall's depth on its left and the board's on its right, with
@@ -321,9 +325,9 @@ def test_depth_edges_keep_their_depth_and_only_the_projector_shadow_is_lost(boar
     # The one-sided projector shadow (8 px) loses its core: kinect_v1 has no shadow map, and a window there sees
     # too little of either lit surface (measured per column, device 0.80 0.36 | 0.19 0.08 0.06 0.30 | 0.73 0.94,
     # uniqueness only 0.31 0.08 | 0.08 0 0.03 0.05 | 0.28 0.67).
+    rows, columns = _shadow_band(on_board, shadow)
     for out in outputs.values():
-        rows = np.nonzero(on_board.any(1))[0][2:-2]
-        band = out.valid.numpy()[rows][:, np.nonzero(shadow[rows].any(0))[0]]
+        band = out.valid.numpy()[rows][:, columns]
         assert band[:, 2:-2].mean() <= 0.3, band.mean(0)
     # Fattening: the board's depth reaches over the wall by a pixel or two (measured 1.7-1.9 px on average at the
     # preset's 0.35; 1.3-1.7 at 0.4, 2.0-2.1 at 0.3),
