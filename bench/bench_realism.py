@@ -36,7 +36,7 @@ from ddsgen.depth_statistics import realism_statistics  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
         "isolated_dropout_share": "", "depth_step_at_1m_mm": "mm", "jump_holes_left": "",
-        "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": ""}  # fmt: skip
+        "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "", "isolated_one_surface_share": ""}  # fmt: skip
 
 
 def _print(name: str, stats: dict) -> None:

@@ -32,6 +32,12 @@ there):
   the sensor leaves them: the ten real frames have 5.3-11.0 per 1000 edge pixels whatever their
   content (cluttered bins at 0.6 m, a table at 1 m).
 
+* **isolated dropouts inside one surface**: the share of the isolated dropouts whose rim (the valid pixels
+  8-adjacent to them) is one surface, disparities f b / z within ``ONE_SURFACE_DISPARITY_PX`` = 1 px (the
+  device's hole-fill rule; f b of a Kinect V1 by default). The eleven real frames: 18 % (71 of 386, most of them
+  1-2 px); the rest sit at depth edges. A simulation with many more has holes no real device leaves, such as a
+  registration band drawn inside the near surface (docs/realism.md, session 33).
+
 A ``region`` (bool (H, W)) restricts every statistic to the pixels that count (e.g. the
 modelled geometry of a real frame); components are still found on the whole image, and a
 component counts for the region when any of its pixels lies in it.
@@ -52,6 +58,7 @@ STATISTIC_LABELS = {
     "jump_holes_left": "depth jumps, hole left of near",
     "jump_holes_right": "depth jumps, hole right of near",
     "isolated_dropouts_per_1000_edge_px": "isolated dropouts / 1000 edge px",
+    "isolated_one_surface_share": "  their share inside one surface",
 }
 ISOLATED_MAX_PX = 20
 CORNER_RADIUS = 0.7
@@ -60,6 +67,9 @@ JUMP_FLAT_PX = 4
 JUMP_MAX_GAP_PX = 40
 EDGE_MIN_RELATIVE = 0.03
 EDGE_NEAR_VALID_PX = 8
+ONE_SURFACE_DISPARITY_PX = 1.0
+#: f b of a Kinect V1 (px m, f = 572.41 px, b = 75 mm): the disparity of depth z is f b / z.
+KINECT_FOCAL_BASELINE_PX_M = 572.41 * 0.075
 #: Flatness tolerance of the surfaces on either side of a jump (m).
 _JUMP_FLAT_M = 0.02
 # Depth values are compared within this relative window around each reference depth.
@@ -92,6 +102,41 @@ def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
     invalid_in_region = int((invalid.astype(bool) & region).sum())
     isolated_pixels = int((small[labels] & region & invalid.astype(bool)).sum())
     return count, (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
+
+
+def isolated_dropouts_by_rim(depth_m: np.ndarray, region: np.ndarray | None = None,
+                             focal_baseline_px_m: float = KINECT_FOCAL_BASELINE_PX_M) -> tuple[int, int]:
+    """(inside one surface, at a depth edge): the isolated dropouts touching the region, split by their rim.
+
+    Args:
+        depth_m: (H, W) metres, 0 = invalid.
+        region: (H, W) bool or None (whole image).
+        focal_baseline_px_m: f b (px m) of the disparity f b / z the one-surface test compares.
+    """
+    depth = np.asarray(depth_m, np.float64)
+    valid = depth > 0
+    region = _region(depth.shape, region)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((~valid).astype(np.uint8), connectivity=8)
+    disparity = np.divide(focal_baseline_px_m, depth, out=np.zeros_like(depth), where=valid)
+    height, width = depth.shape
+    inside = at_edge = 0
+    for label in np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < ISOLATED_MAX_PX):
+        if label == 0:
+            continue  # the valid pixels
+        x, y, w, h = stats[label, :4]
+        y0, y1, x0, x1 = max(y - 1, 0), min(y + h + 1, height), max(x - 1, 0), min(x + w + 1, width)
+        hole = labels[y0:y1, x0:x1] == label
+        if not (hole & region[y0:y1, x0:x1]).any():
+            continue
+        rim = cv2.dilate(hole.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & valid[y0:y1, x0:x1]
+        if not rim.any():
+            continue  # inside the image's border only: no rim to judge
+        rim_disparity = disparity[y0:y1, x0:x1][rim]
+        if rim_disparity.max() - rim_disparity.min() <= ONE_SURFACE_DISPARITY_PX:
+            inside += 1
+        else:
+            at_edge += 1
+    return inside, at_edge
 
 
 def depth_edges(depth_m: np.ndarray, min_relative: float = EDGE_MIN_RELATIVE,
@@ -212,7 +257,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),
     ``isolated_dropout_share`` (of the invalid pixels), ``depth_step_at_1m_mm``, ``jump_holes_left``,
     ``jump_holes_right`` (:func:`holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
-    (:func:`depth_edges`; None without edges), ``pixels``.
+    (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
+    None without isolated dropouts), ``pixels``.
     """
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
@@ -223,6 +269,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     valid_depth = np.where(valid, depth, 0.0)
     left, right = holes_at_depth_jumps(valid_depth, region)
     edge_px = int((depth_edges(valid_depth) & region).sum())
+    one_surface, at_edge = isolated_dropouts_by_rim(valid_depth, region)
     return {
         "valid_share": whole,
         "corner_valid_share": corner,
@@ -232,5 +279,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "jump_holes_left": left,
         "jump_holes_right": right,
         "isolated_dropouts_per_1000_edge_px": 1000.0 * count / edge_px if edge_px else None,
+        "isolated_one_surface_share": one_surface / (one_surface + at_edge) if one_surface + at_edge else None,
         "pixels": int(region.sum()),
     }
