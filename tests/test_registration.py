@@ -15,7 +15,9 @@ from ddsgen.scene.sampling import FrameScene, PlacedObject
 from ddsgen.scene.shapes import plane_mesh
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.sensor_cast import cast_for_sensor
-from ddsgen.sensor.registration import cropped_index, output_projector_x_m, register, splat_fill_index
+from ddsgen.sensor.registration import (
+    band_hole_fill_index, cropped_index, output_projector_x_m, register, splat_fill_index,
+)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -151,6 +153,65 @@ def test_the_dense_splat_closes_one_pixel_holes_from_their_lower_right():
     holes = {tuple(p) for p in torch.nonzero(filled == 0).tolist()}
     assert holes == {(3, 3), (3, 4), (5, 6)}  # the 2 x 3 hole lost its right column and bottom row
     assert torch.equal(filled[valid], depth[valid])
+
+
+def test_band_holes_inside_one_surface_take_their_nearest_valid_source_and_others_stay():
+    """Only a small hole the registration made (most pixels unseen by the IR camera) whose rim is one surface
+    (disparities within 1 px) is filled, each pixel from its nearest valid pixel's IR source; a band hole at a
+    depth edge, the matcher's own hole inside a surface and a band hole too large for the fill keep their pixels."""
+    height, width = 12, 40
+    index = torch.arange(height * width).reshape(height, width) + 1000  # IR sources, all distinct
+    disparity = torch.full((height, width), 50.0)
+    disparity[:, 30:] = 30.0  # a far surface from column 30 on
+    valid = torch.ones(height, width, dtype=torch.bool)
+    unseen = torch.zeros(height, width, dtype=torch.bool)
+    band = (2, slice(4, 7))  # 3 unseen px inside the near surface -> filled
+    edge_band = (2, slice(28, 30))  # 2 unseen px with the far surface on their right -> kept
+    matcher_hole = (6, slice(4, 7))  # 3 px the matcher left inside the surface (seen) -> kept
+    wide_band = (9, slice(10, 20))  # 10 unseen px, the fill takes fewer than 8 -> kept
+    for rows, cols in (band, edge_band, matcher_hole, wide_band):
+        valid[rows, cols] = False
+    for rows, cols in (band, edge_band, wide_band):
+        unseen[rows, cols] = True
+        index[rows, cols] = -1
+    filled = band_hole_fill_index(index, unseen, valid, torch.where(valid, disparity, 0.0), 8, 1.0)
+    assert (filled[band] >= 1000).all()
+    for col in range(4, 7):  # the source of a valid pixel 1 px away (the nearest; equidistant ones: either)
+        assert int(filled[2, col]) in {int(index[2 + dy, col + dx]) for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1))
+                                       if valid[2 + dy, col + dx]}  # fmt: skip
+    assert (filled[edge_band] == -1).all() and (filled[wide_band] == -1).all()
+    assert torch.equal(filled[matcher_hole], index[matcher_hole])  # left to the IR-view clean-up: still a hole
+    assert torch.equal(filled[valid], index[valid])  # valid pixels keep their sources
+
+
+def test_a_slanted_edge_before_a_far_wall_has_no_dashed_line_inside_the_near_surface():
+    """A board at 0.8 m over the upper half of the image, its lower edge rising 1 row per 7 columns to the right like
+    the table's front edge of a rendered frame (frame 13 at tabletop range), a wall at 1.7 m behind. The IR camera does not see a 1-row band of wall below the edge (f b_r
+    (1/0.8 - 1/1.7) = 10 px per row); the matcher carries the board a few rows onto the wall. Mapped back by the
+    ray-cast geometry, every row keeps a short hole with board depth above and below it (measured without the
+    fill: dozens of such isolated dropouts inside one surface); the device's forward map covers it (the real
+    LineMOD table edge has none). Band holes at the depth edge itself stay."""
+    from ddsgen.depth_statistics import isolated_dropouts_by_rim
+
+    preset = _strip(rows=120)
+    wall = PlacedObject(0, "wall", "plane", plane_mesh(40.0, 40.0), _translation(z=1.7), 0.8)
+    tilt = -np.arctan(1.0 / 7.0)  # (an edge falling to the right has no such band: measured 1 isolated dropout)
+    pose = _translation(y=-0.2, z=0.8)  # the board's lower edge 0 m below the optical axis before the tilt
+    pose[:3, :3] = [[np.cos(tilt), -np.sin(tilt), 0.0], [np.sin(tilt), np.cos(tilt), 0.0], [0.0, 0.0, 1.0]]
+    board = PlacedObject(1, "board", "board", trimesh.creation.box(extents=[2.0, 0.4, 0.01]), pose, 0.8)
+    scene = FrameScene([board], [wall], np.eye(4), 0, 0)
+    _, geometry = cast_for_sensor(scene, preset.intrinsics, preset)
+    counts = {}
+    for fill in (False, True):
+        sensor = DepthSensor(preset.replace(registration_fill_band_holes=fill)).eval()
+        with torch.no_grad():
+            out = sensor(geometry, seed=3)
+        depth = out.depth.numpy()[:, 40:-40]
+        counts[fill] = isolated_dropouts_by_rim(depth)
+        assert 0.6 < out.valid.numpy()[:, 40:-40].mean() < 1.0
+    assert counts[False][0] >= 30  # the dashed line (measured: 72 inside one surface, 8 at the edge)
+    assert counts[True][0] <= 5  # measured 0; the 8 at the edge stay
+    assert counts[True][1] >= 3
 
 
 def test_the_paper_preset_is_not_registered_and_the_device_preset_is():

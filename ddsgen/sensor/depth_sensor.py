@@ -27,7 +27,9 @@ from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
-from ddsgen.sensor.registration import cropped_index, gather_flat, register, register_images, splat_fill_index
+from ddsgen.sensor.registration import (
+    band_hole_fill_index, cropped_index, gather_flat, register, register_images, splat_fill_index,
+)
 from ddsgen.sensor.speckle import scene_speckle
 
 # Fraction of disparity range added to the reference padding, so that fitting the
@@ -439,6 +441,9 @@ class DepthSensor(nn.Module):
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
                 fill = splat_fill_index(register(valid, index))
                 index = torch.where(fill >= 0, gather_flat(index, fill.clamp(min=0)), -1)
+            if p.registration_fill_band_holes and p.cleanup_hole_px:  # as the device's forward map would
+                index = band_hole_fill_index(index, geometry.registration < 0, register(valid, index),
+                                             register(disparity, index), p.cleanup_hole_px, p.cleanup_max_diff_px)
             depth, valid, valid_soft, disparity, confidence, raw_depth = register_images(
                 (depth, valid, valid_soft, disparity, confidence, raw_depth), index)  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
