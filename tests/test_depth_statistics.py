@@ -175,11 +175,11 @@ def test_rendered_frames_have_few_isolated_dropouts_inside_one_surface(default_f
     assert inside / (inside + at_edge) <= 0.35
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12: some rendered edges are still ragged: 3.3-18.0 isolated "
-                   "dropouts per 1000 edge px over 16 frames (median 9.1) against the real frames' 5-11; frames 0 "
-                   "and 2 of these 4 have 13 and 18, most of them (33 of 40, 46 of 60) the registration's 1-2 px "
-                   "disocclusion band right of near objects broken into rows by the splat (docs/realism.md, "
-                   "sessions 25 and 32); passes once the sensor fixes it")
+@pytest.mark.xfail(strict=True, reason="issue 12: some rendered edges are still ragged: 2.6-13.4 isolated "
+                   "dropouts per 1000 edge px over 16 frames (median 6.3) against the real frames' 5-11; frame 2 "
+                   "of these 4 has 13.4 (the others 6.3, 2.6, 7.7), at depth edges since the registration's band "
+                   "inside one surface is filled (docs/realism.md, sessions 25, 32 and 33); passes once the sensor "
+                   "fixes it")
 def test_rendered_frames_have_as_few_isolated_dropouts_per_edge_as_real_ones(default_frames):
     for frame, depth in enumerate(default_frames):
         assert realism_statistics(depth)["isolated_dropouts_per_1000_edge_px"] <= 12, frame

@@ -168,7 +168,7 @@ def band_hole_fill_index(index: torch.Tensor, unseen: torch.Tensor, valid: torch
     cover it. :func:`registration_index` maps back by the ray-cast geometry: it leaves that band open and shows
     the carried pixels one band further on, so along a near-horizontal edge (a table's front edge above the
     floor) every row keeps a 1-3 px hole with the near surface above and below it: a dashed line inside one
-    surface. Measured (docs/realism.md): 44 % of the isolated dropouts of 16 rendered frames had a rim within
+    surface. Measured (docs/realism.md): 45 % of the isolated dropouts of 16 rendered frames had a rim within
     one surface (54 % at tabletop range), against 18 % on the 11 real frames; the real LineMOD table edge has none.
     A hole is the registration's when at least half its pixels are ``unseen``; holes the matcher made in the IR
     image keep their pixels.
