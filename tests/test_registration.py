@@ -186,17 +186,17 @@ def test_band_holes_inside_one_surface_take_their_nearest_valid_source_and_other
 
 def test_a_slanted_edge_before_a_far_wall_has_no_dashed_line_inside_the_near_surface():
     """A board at 0.8 m over the upper half of the image, its lower edge rising 1 row per 7 columns to the right like
-    the table's front edge of a rendered frame (frame 13 at tabletop range), a wall at 1.7 m behind. The IR camera does not see a 1-row band of wall below the edge (f b_r
-    (1/0.8 - 1/1.7) = 10 px per row); the matcher carries the board a few rows onto the wall. Mapped back by the
-    ray-cast geometry, every row keeps a short hole with board depth above and below it (measured without the
-    fill: dozens of such isolated dropouts inside one surface); the device's forward map covers it (the real
-    LineMOD table edge has none). Band holes at the depth edge itself stay."""
+    the table's front edge of a rendered frame (frame 13 at tabletop range), a wall at 1.7 m behind. The IR camera
+    does not see a 1-row band of wall below the edge (f b_r (1/0.8 - 1/1.7) = 10 px per row); the matcher carries
+    the board a few rows onto the wall. Mapped back by the ray-cast geometry, every row keeps a short hole with
+    board depth above and below it (measured without the fill: 72 such isolated dropouts inside one surface); the
+    device's forward map covers it (the real LineMOD table edge has none). Band holes at the depth edge stay."""
     from ddsgen.depth_statistics import isolated_dropouts_by_rim
 
     preset = _strip(rows=120)
     wall = PlacedObject(0, "wall", "plane", plane_mesh(40.0, 40.0), _translation(z=1.7), 0.8)
     tilt = -np.arctan(1.0 / 7.0)  # (an edge falling to the right has no such band: measured 1 isolated dropout)
-    pose = _translation(y=-0.2, z=0.8)  # the board's lower edge 0 m below the optical axis before the tilt
+    pose = _translation(y=-0.2, z=0.8)  # the board's lower edge on the optical axis before the tilt
     pose[:3, :3] = [[np.cos(tilt), -np.sin(tilt), 0.0], [np.sin(tilt), np.cos(tilt), 0.0], [0.0, 0.0, 1.0]]
     board = PlacedObject(1, "board", "board", trimesh.creation.box(extents=[2.0, 0.4, 0.01]), pose, 0.8)
     scene = FrameScene([board], [wall], np.eye(4), 0, 0)

@@ -105,7 +105,8 @@ def _one_surface(labels: np.ndarray, candidates: np.ndarray, pixels: np.ndarray,
 
 
 def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | None = None,
-                     max_diff_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                     max_diff_px: float | None = None,
+                     mostly_in: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Nearest-valid-pixel source of every pixel of a small hole inside one surface.
 
     Args:
@@ -113,6 +114,8 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
         hole_px: invalid 8-connected components of fewer pixels are filled (0: none).
         disparity: (H, W) px; with ``max_diff_px``, only holes whose rim is one surface (8-adjacent
             rim pixels within ``max_diff_px``) are filled (None: every small hole).
+        mostly_in: (H, W) bool or None; only holes at least half of whose pixels it marks are filled (the
+            registration's band holes, :func:`ddsgen.sensor.registration.band_hole_fill_index`).
 
     Returns:
         source: (H, W) int64 flat index of the pixel whose value each pixel takes (itself unless filled).
@@ -126,6 +129,9 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
     _, labels, stats, _ = cv2.connectedComponentsWithStats(invalid, connectivity=8)
     small = stats[:, cv2.CC_STAT_AREA] < hole_px
     small[0] = False  # label 0 is the valid background
+    if mostly_in is not None:
+        marked = np.bincount(labels[np.asarray(mostly_in, bool)], minlength=len(small))
+        small &= 2 * marked >= stats[:, cv2.CC_STAT_AREA]
     pixels = _component_pixels(labels, stats, small)
     if disparity is not None and max_diff_px is not None and len(pixels):
         small = _one_surface(labels, small, pixels, np.asarray(disparity), valid, max_diff_px)

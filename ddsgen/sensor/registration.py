@@ -181,20 +181,11 @@ def band_hole_fill_index(index: torch.Tensor, unseen: torch.Tensor, valid: torch
         disparity: (H, W) px, the registered disparity (any grad; read only).
         hole_px, max_diff_px: the device's hole fill (``cleanup_hole_px``, ``cleanup_max_diff_px``).
     """
-    import cv2
-
     from ddsgen.sensor.cleanup import fill_small_holes
 
-    v = valid.detach().cpu().numpy()
-    source, filled = fill_small_holes(v, hole_px, disparity.detach().cpu().numpy(), max_diff_px)
-    if not filled.any():
-        return index
-    n_labels, labels = cv2.connectedComponents((~v).astype(np.uint8), connectivity=8)
-    no_source = unseen.cpu().numpy().reshape(-1)
-    flat_labels = labels.reshape(-1)
-    pixels = np.bincount(flat_labels, minlength=n_labels)
-    without_source = np.bincount(flat_labels[no_source], minlength=n_labels)
-    chosen = np.flatnonzero(filled.reshape(-1) & (2 * without_source >= pixels)[flat_labels])
+    source, filled = fill_small_holes(valid.detach().cpu().numpy(), hole_px, disparity.detach().cpu().numpy(),
+                                      max_diff_px, mostly_in=unseen.cpu().numpy())  # fmt: skip
+    chosen = np.flatnonzero(filled)
     if not len(chosen):
         return index
     flat = index.reshape(-1).clone()
