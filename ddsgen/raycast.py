@@ -109,7 +109,8 @@ def _mesh_bvh(mesh) -> _MeshBVH:
     embree = rtcore_scene.EmbreeScene()
     TriangleMesh(embree, np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.int32))
     try:
-        hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):  # a flat mesh's hull: trimesh divides by its 0 volume
+            hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
     except Exception:  # degenerate (flat) meshes: all vertices do
         hull = np.asarray(vertices, dtype=np.float64)
     centre = (hull.min(axis=0) + hull.max(axis=0)) / 2.0

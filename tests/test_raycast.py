@@ -281,3 +281,15 @@ def test_labels_without_cached_coverage_cast_the_object_alone():
     with_cache = object_labels(scene, hits, K_MID)
     hits.coverage = {}
     assert object_labels(scene, hits, K_MID) == with_cache
+
+
+def test_a_flat_board_object_casts_without_numpy_warnings():
+    """A flat mesh as an object (the noise study's board) has a hull without volume; casting it must not print
+    numpy's 'invalid value encountered in divide' from trimesh's centre of mass to the user's terminal."""
+    import warnings
+
+    board = PlacedObject(1, "board", "plane", plane_mesh(0.5, 0.4), pose(translation=(0.0, 0.0, 1.0)), 0.8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hits = cast(frame(objects=[board]), K_SMALL, 0.075, 0.005)
+    assert hits.hit.any() and np.allclose(hits.depth[hits.hit], 1.0, atol=1e-5)
