@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from ddsgen.preset import Intrinsics
+from ddsgen.sensor.cleanup import fill_small_holes
 
 #: Depth agreement of an output pixel's point and the IR pixel it maps to, besides half a pixel's slope:
 #: a relative part (m/m) and an absolute part (m), for the float32 ray casts.
@@ -181,8 +182,6 @@ def band_hole_fill_index(index: torch.Tensor, unseen: torch.Tensor, valid: torch
         disparity: (H, W) px, the registered disparity (any grad; read only).
         hole_px, max_diff_px: the device's hole fill (``cleanup_hole_px``, ``cleanup_max_diff_px``).
     """
-    from ddsgen.sensor.cleanup import fill_small_holes
-
     source, filled = fill_small_holes(valid.detach().cpu().numpy(), hole_px, disparity.detach().cpu().numpy(),
                                       max_diff_px, mostly_in=unseen.cpu().numpy())  # fmt: skip
     chosen = np.flatnonzero(filled)
