@@ -33,9 +33,10 @@ there):
   content (cluttered bins at 0.6 m, a table at 1 m).
 
 * **isolated dropouts inside one surface**: the share of the isolated dropouts whose rim (the valid pixels
-  8-adjacent to them) is one surface, disparities f b / z within ``ONE_SURFACE_DISPARITY_PX`` = 1 px (the
-  device's hole-fill rule; f b of a Kinect V1 by default). The eleven real frames: 18 % (71 of 386, most of them
-  1-2 px); the rest sit at depth edges. A simulation with many more has holes no real device leaves, such as a
+  8-adjacent to them) is one surface: all its disparities f b / z within ``ONE_SURFACE_DISPARITY_PX`` = 1 px of
+  each other (the hole fill's tolerance applied to the whole rim's range, stricter than
+  ``ddsgen.sensor.cleanup``'s rule on adjacent rim pixels, which a slanted rim can pass; f b of a Kinect V1 by
+  default). The eleven real frames: 18 % (71 of 386, most of them 1-2 px); the rest sit at depth edges. A simulation with many more has holes no real device leaves, such as a
   registration band drawn inside the near surface (docs/realism.md, session 33).
 
 A ``region`` (bool (H, W)) restricts every statistic to the pixels that count (e.g. the
