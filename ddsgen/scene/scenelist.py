@@ -402,28 +402,28 @@ def default_scene_list_dict() -> dict:
          "class": "bracket", "albedo": [0.2, 0.7]},
     ]
     return {
-        "description": "built-in default: procedural shapes dropped on a table 0.75 m above the floor, Kinect-range"
-                       " camera (0.6-2.5 m)",
+        "description": "built-in default: procedural shapes dropped on a table 0.75 m above the floor, camera at"
+                       " tabletop range (0.7-1.6 m)",
         "scenes": [
             {
                 "name": "tabletop",
                 "frames": 4,
                 "objects": pool,
-                "clutter": {"count": [3, 7], "area": [0.6, 0.6], "min_gap": 0.005},
+                "clutter": {"count": [6, 12], "area": [0.5, 0.5], "min_gap": 0.005},
                 "ground": {"size": [1.2, 0.8], "albedo": [0.4, 0.7]},
                 "floor": {"depth": 0.75, "size": [6.0, 6.0], "albedo": [0.2, 0.6]},
-                "camera": {"distance": [0.8, 1.8], "elevation_deg": [30, 70], "azimuth_deg": [-180, 180],
+                "camera": {"distance": [0.7, 1.4], "elevation_deg": [30, 70], "azimuth_deg": [-180, 180],
                            "look_at_jitter": 0.05},
             },
             {
                 "name": "against_wall",
                 "frames": 4,
                 "objects": pool,
-                "clutter": {"count": [2, 5], "area": [0.6, 0.4], "min_gap": 0.005},
+                "clutter": {"count": [4, 8], "area": [0.5, 0.35], "min_gap": 0.005},
                 "ground": {"size": [1.4, 0.9], "albedo": [0.4, 0.7]},
                 "floor": {"depth": 0.75, "size": [6.0, 6.0], "albedo": [0.2, 0.6]},
                 "wall": {"distance": 0.45, "width": 4.0, "height": 2.0, "albedo": [0.5, 0.8]},
-                "camera": {"distance": [0.9, 2.0], "elevation_deg": [15, 45], "azimuth_deg": [-50, 50],
+                "camera": {"distance": [0.8, 1.6], "elevation_deg": [15, 45], "azimuth_deg": [-50, 50],
                            "look_at_jitter": 0.05},
             },
         ],
