@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ddsgen.depth_statistics import (corner_valid_share, depth_edges, depth_step_at_1m, holes_at_depth_jumps,
-                                     isolated_dropouts, isolated_dropouts_by_rim, realism_statistics)
+                                     isolated_dropouts, isolated_dropouts_by_rim, realism_statistics, wide_band_holes)
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -97,6 +97,38 @@ def test_real_primesense_frames_have_clustered_holes_and_eighth_pixel_steps():
         assert s["isolated_one_surface_share"] <= 0.35, path
 
 
+def test_wide_bands_are_counted_right_of_near_surfaces_on_vertical_edges_only():
+    # A board at 0.8 m on the left, a wall at 1.6 m on the right: band f b_r (1/0.8 - 1/1.6) = 9.7 px.
+    depth = np.full((40, 120), 1.6)
+    depth[:, :60] = 0.8
+    assert wide_band_holes(depth) == (0, 36)  # rows 2-37 (two rows up and down must show the edge)
+    open_band = depth.copy()
+    open_band[:, 60:69] = 0.0
+    assert wide_band_holes(open_band) == (36, 36)
+    assert realism_statistics(open_band)["wide_band_hole_share"] == 1.0
+    # The same hole with the near surface on the right (a projector shadow's side) is not a band.
+    assert wide_band_holes(open_band[:, ::-1]) == (0, 0)
+    # A horizontal edge (board above the wall) and a small band (board at 1.4 m: 1.4 px) are not counted.
+    assert wide_band_holes(open_band.T.copy()) == (0, 0)
+    near_far = np.where(depth < 1.0, 1.4, 1.6)
+    assert wide_band_holes(near_far) == (0, 0)
+    assert realism_statistics(near_far)["wide_band_hole_share"] is None
+
+
+@pytest.mark.skipif(not (SHARED / "icbin_primesense_unpaired").is_dir(), reason="../shared/data is absent")
+def test_real_registered_frames_keep_wide_registration_bands_open():
+    """Measured: IC-BIN 694 of 708 (per frame 0.94-1.00), the LineMOD cat 100 of 108."""
+    import cv2
+
+    files = sorted((SHARED / "icbin_primesense_unpaired").glob("seq*/depth/*.png"))
+    files.append(SHARED / "linemod_bop" / "test" / "000006" / "depth" / "000000.png")
+    counts = np.array([wide_band_holes(cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0)
+                       for p in files])  # fmt: skip
+    assert counts[:, 1].sum() >= 500
+    assert counts[:, 0].sum() >= 0.85 * counts[:, 1].sum()
+    assert counts[-1, 0] >= 0.8 * counts[-1, 1]  # the cat
+
+
 @pytest.mark.skipif(not (SHARED / "tum_rgbd_frame_open3d").is_dir(), reason="../shared/data is absent")
 def test_a_real_kinect_frame_of_another_scene_and_depth_convention_reads_like_the_others():
     """The TUM RGB-D frame (Kinect V1, an office at 1.5-9 m, depth in 1/5000 m) was tuned on by nothing: read in
@@ -182,3 +214,14 @@ def test_rendered_frames_have_as_few_isolated_dropouts_per_edge_as_real_ones(def
     built-in list to tabletop range: with sparse far scenes frame 2 had 13.4, its edge holes on little edge."""
     for frame, depth in enumerate(default_frames):
         assert realism_statistics(depth)["isolated_dropouts_per_1000_edge_px"] <= 12, frame
+
+
+@pytest.mark.xfail(strict=True, reason="issue 12: kinect_v1 closes the registration's wide bands (8 of 460 kept open "
+                   "on these frames, real 0.98): its registration maps back by the ray-cast geometry, so the "
+                   "matcher's carried near surface shows one band further on, beside the far surface; a forward map by "
+                   "the measured depth keeps them open but draws a dashed line along near-horizontal edges "
+                   "(docs/realism.md, session 34); passes once the sensor keeps them open")
+def test_rendered_frames_keep_wide_registration_bands_open_like_real_ones(default_frames):
+    kept, jumps = np.sum([wide_band_holes(depth) for depth in default_frames], axis=0)
+    assert jumps >= 100
+    assert kept >= 0.85 * jumps
