@@ -16,7 +16,7 @@ from ddsgen.scene.shapes import plane_mesh
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.sensor_cast import cast_for_sensor
 from ddsgen.sensor.registration import (
-    band_hole_fill_index, cropped_index, output_projector_x_m, register, splat_fill_index,
+    band_hole_fill_index, cropped_index, forward_registration_index, output_projector_x_m, register, splat_fill_index,
 )
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -212,6 +212,60 @@ def test_a_slanted_edge_before_a_far_wall_has_no_dashed_line_inside_the_near_sur
     assert counts[False][0] >= 30  # the dashed line (measured: 72 inside one surface, 8 at the edge)
     assert counts[True][0] <= 5  # measured 0; the 8 at the edge stay
     assert counts[True][1] >= 3
+
+
+def test_the_forward_map_keeps_the_band_beside_the_carried_near_surface_and_closes_only_short_runs():
+    """IR row: a board at 0.8 m in columns 0-29, the matcher's carry of it over columns 30-31 (measured 0.8 m, the
+    wall behind), the wall at 1.6 m from column 32. f b_r = 15.45 px m, s = 0: the board lands at u - 19.3 px,
+    the wall at u - 9.7 px, so a band of f b_r (1/0.8 - 1/1.6) = 9.7 px opens right of the board and its carry."""
+    fbr = 15.45
+    depth = torch.full((3, 60), 1.6)
+    depth[:, :32] = 0.8
+    valid = torch.ones(3, 60, dtype=torch.bool)
+    index = forward_registration_index(valid, depth, 0.0, fbr, gap_px=4)[1].numpy()
+    columns = np.where(index >= 0, index - 60, -1)  # row 1's sources as IR columns
+    assert columns[10] == 29 and columns[11] == 30 and columns[12] == 31  # the carry lands beside the board
+    assert (columns[13:22] == -1).all()  # the band: 9 px open (wider than the gap fill)
+    assert columns[22] == 32  # rint(32 - 9.66)
+    closed = forward_registration_index(valid, depth, 0.0, fbr, gap_px=9)[1].numpy()
+    assert (closed[13:22] == 60 + 31).all()  # a run of 9 closed with the nearer side (the carried board)
+    # Near on the right (a projector shadow's side): the board (IR columns 28-59) lands from column 9 on, over the
+    # targets of the wall's IR columns 19-27 (8.3-17.3): the nearest wins, and no gap opens.
+    flipped = forward_registration_index(valid, depth.flip(1), 0.0, fbr, gap_px=0)[1].numpy() - 60
+    assert flipped[9] == 28 and flipped[8] == 18 and (flipped[9:20] >= 28).all()
+
+
+def test_the_forward_map_closes_resampling_cracks_of_a_receding_surface():
+    """A surface receding to the right: the shift f b_r / Z falls by 0.5 px per IR column, so the targets are 1.5 px
+    apart and every other output pixel is a 1-px crack, which a rasteriser's one-pixel gap fill closes."""
+    fbr = 15.45
+    inverse = 1.5 - 0.5 * torch.arange(40, dtype=torch.float64) / fbr
+    depth = (1.0 / inverse).repeat(2, 1)
+    valid = torch.ones(2, 40, dtype=torch.bool)
+    open_ = forward_registration_index(valid, depth, 30.0, fbr, gap_px=0)[0].numpy()
+    written = np.flatnonzero(open_ >= 0)
+    assert (open_[written.min(): written.max() + 1] == -1).sum() >= 8  # measured 10 of 32
+    closed = forward_registration_index(valid, depth, 30.0, fbr, gap_px=1)[0].numpy()
+    assert (closed[written.min(): written.max() + 1] >= 0).all()
+
+
+def test_a_forward_registered_device_keeps_the_band_between_a_near_box_and_the_wall():
+    """The box at 0.8 m before the wall at 1.5 m: the RGB view's band right of the box is 9 px. Mapped back by the
+    ray-cast geometry (stock kinect_v1), the pixels the matcher carried past the box show box depth one band
+    further on, beside the wall, so the band reads as a hole inside the box's depth (measured: 0 of 82 rows keep a
+    hole between box and wall). Mapped forward (registration_forward_gap_px 4) the carry lands beside the box and
+    the band stays open between the two surfaces (92 of 92), as on real registered frames (0.98)."""
+    from ddsgen.depth_statistics import wide_band_holes
+
+    preset = _strip(rows=96)
+    _, geometry = cast_for_sensor(_scene(1.5, 0.8), preset.intrinsics, preset)
+    kept = {}
+    for gap in (0, 4):
+        sensor = DepthSensor(preset.replace(registration_forward_gap_px=gap)).eval()
+        with torch.no_grad():
+            kept[gap] = wide_band_holes(sensor(geometry, seed=2).depth.numpy())
+    assert kept[0][1] >= 60 and kept[0][0] <= 0.1 * kept[0][1]
+    assert kept[4][1] >= 60 and kept[4][0] == kept[4][1]
 
 
 def test_the_paper_preset_is_not_registered_and_the_device_preset_is():

@@ -28,7 +28,8 @@ from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
 from ddsgen.sensor.registration import (
-    band_hole_fill_index, cropped_index, gather_flat, register, register_images, splat_fill_index,
+    band_hole_fill_index, cropped_index, forward_registration_index, gather_flat, register, register_images,
+    splat_fill_index,
 )
 from ddsgen.sensor.speckle import scene_speckle
 
@@ -438,6 +439,9 @@ class DepthSensor(nn.Module):
         confidence = front.confidence
         if geometry.registration is not None:  # the IR camera's depth, written in the RGB camera's image
             index = geometry.registration
+            if p.registration_forward_gap_px:  # mapped forward by the measured depth, as the device does
+                index = forward_registration_index(valid, depth, p.registration_shift_px,
+                                                   intr.fx * p.registration_ir_offset_m, p.registration_forward_gap_px)
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
                 fill = splat_fill_index(register(valid, index))
                 index = torch.where(fill >= 0, gather_flat(index, fill.clamp(min=0)), -1)

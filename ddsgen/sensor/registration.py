@@ -193,6 +193,61 @@ def band_hole_fill_index(index: torch.Tensor, unseen: torch.Tensor, valid: torch
     return flat.reshape(index.shape)
 
 
+def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_px: float, focal_offset_px_m: float,
+                               gap_px: int) -> torch.Tensor:  # fmt: skip
+    """(H, W) int64: the IR image's depth mapped forward into the output (RGB) image, as the device does: for each
+    output pixel the flat index of the IR pixel whose depth it shows, -1 where none.
+
+    Each valid IR pixel (u, v) with measured depth Z goes to column rint(u + s - f b_r / Z) of row v; where several
+    land on one pixel the nearest wins (a z-buffer). A run of at most ``gap_px`` empty pixels between two written
+    pixels whose IR sources are neighbours in one IR row takes the nearer one's source (a rasteriser's gap fill:
+    resampling cracks and narrow bands close). Unlike :func:`registration_index` (back by the ray-cast geometry),
+    the near surface the matcher carried past a depth edge lands next to that surface, and the band right of it
+    (f b_r (1/Z_near - 1/Z_far) px) stays a hole between the two surfaces when wider than ``gap_px``: real
+    registered frames keep bands of 6 px and more open at 98 % of such edges (docs/realism.md, session 34).
+
+    Args:
+        valid: (H, W) bool, the IR image's valid pixels.
+        depth: (H, W) m, the IR image's measured depth (read only, no gradient: the result is a selection).
+        shift_px: s, ``registration_shift_px``; focal_offset_px_m: f b_r (px m).
+        gap_px: the longest run closed (0 = none).
+    """
+    height, width = valid.shape
+    z_all = depth.detach().cpu().numpy()
+    rows, cols = np.nonzero(valid.cpu().numpy() & (z_all > 0))
+    z = z_all[rows, cols]
+    target = np.rint(cols + shift_px - focal_offset_px_m / z).astype(np.int64)
+    inside = (target >= 0) & (target < width)
+    rows, cols, z, target = rows[inside], cols[inside], z[inside], target[inside]
+    key = rows * width + target
+    order = np.lexsort((z, key))  # by output pixel, then nearest first
+    key, source = key[order], (rows * width + cols)[order]
+    first = np.ones(len(key), dtype=bool)
+    first[1:] = key[1:] != key[:-1]
+    index = np.full(height * width, -1, dtype=np.int64)
+    index[key[first]] = source[first]
+    if gap_px > 0:
+        _fill_gaps(index, z_all.reshape(-1), width, gap_px)
+    return torch.from_numpy(index.reshape(height, width)).to(valid.device)
+
+
+def _fill_gaps(index: np.ndarray, depth: np.ndarray, width: int, gap_px: int) -> None:
+    """In place on a flat (H*W,) forward index: short runs between IR-row neighbours take the nearer source."""
+    written = np.flatnonzero(index >= 0)  # row-major: consecutive entries of one row are left to right
+    a, b = written[:-1], written[1:]
+    gap = b - a - 1
+    source_a, source_b = index[a], index[b]
+    take = ((a // width) == (b // width)) & (gap > 0) & (gap <= gap_px)
+    take &= (np.abs(source_b - source_a) == 1) & ((source_a // width) == (source_b // width))
+    if not take.any():
+        return
+    a, gap = a[take], gap[take]
+    chosen = np.where(depth[source_a[take]] <= depth[source_b[take]], source_a[take], source_b[take])
+    starts = np.repeat(a + 1, gap)
+    offsets = np.arange(int(gap.sum())) - np.repeat(np.cumsum(gap) - gap, gap)
+    index[starts + offsets] = np.repeat(chosen, gap)
+
+
 def ir_frame_validity(depth_m: np.ndarray, preset) -> np.ndarray:
     """(H, W) bool: the IR-frame pixels a registered depth image (H, W, m, 0 = invalid; in the preset's camera)
     shows, each valid output pixel (u, v, Z) marking IR pixel (round(u + f b_r / Z - s), v): the map
