@@ -45,7 +45,7 @@ there):
   (at most ``JUMP_MAX_GAP_PX``) between, an edge within 45 deg of vertical (a jump of the same sign within
   ``BAND_EDGE_COLUMNS`` columns two rows above and below), and a band predicted from the two measured depths of at
   least ``WIDE_BAND_PX`` = 6 px. The statistic is the share of those jumps with a hole between the surfaces. Real
-  frames keep nearly all such bands open (IC-BIN 0.98 pooled, the cat 0.88; bands up to 3-4 px are closed nine times
+  frames keep nearly all such bands open (IC-BIN 0.98 pooled, the cat 0.93; bands up to 3-4 px are closed nine times
   in ten): a simulation that closes them draws the far surface, or the near one, where the device shows nothing.
 
 A ``region`` (bool (H, W)) restricts every statistic to the pixels that count (e.g. the

@@ -22,7 +22,10 @@ shifted by -b_r along x, cx - s) and each output pixel takes the IR depth at rou
 surface point is what the IR camera sees there (same depth within half a pixel's slope), else no
 depth. Depth is gathered, not interpolated: the device's quantised levels survive, and the output
 is differentiable in the IR-frame depth. The real device forward-maps its measured depth; mapping
-back with the ray-cast depth differs by the noise's effect on the shift (f b_r dZ / Z^2, 0.05 px at 1 m).
+back with the ray-cast depth differs by the noise's effect on the shift (f b_r dZ / Z^2, 0.05 px at 1 m)
+and, where the matcher carried a near surface past its edge, by where that carry shows: one band further
+on, beside the far surface, instead of beside the near one (:func:`forward_registration_index`, opt-in
+with ``registration_forward_gap_px``, maps forward; docs/realism.md, session 34).
 """
 
 from __future__ import annotations
