@@ -278,18 +278,13 @@ def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None, min_b
     depth = np.asarray(depth_m, np.float64)
     region = _region(depth.shape, region)
     height, width = depth.shape
-    inverse = np.where(depth > 0, 1.0 / np.where(depth > 0, depth, 1.0), 0.0)
-    rows, lefts, rights, bands = [], [], [], []
-    for y in range(height):
-        cols = np.flatnonzero(inverse[y] > 0)
-        a, b = cols[:-1], cols[1:]  # consecutive valid pixels, with b - a - 1 invalid ones between
-        band = focal_registration_px_m * (inverse[y, a] - inverse[y, b])  # > 0: the near surface is on the left
-        keep = ((b - a - 1) <= JUMP_MAX_GAP_PX) & (np.abs(band) >= 1.0)
-        rows.append(np.full(int(keep.sum()), y))
-        lefts.append(a[keep])
-        rights.append(b[keep])
-        bands.append(band[keep])
-    rows, lefts, rights, bands = (np.concatenate(x) for x in (rows, lefts, rights, bands))
+    inverse = np.where(depth > 0, 1.0 / np.where(depth > 0, depth, 1.0), 0.0).reshape(-1)
+    valid = np.flatnonzero(inverse > 0)  # row-major: consecutive entries of one row are left to right
+    a, b = valid[:-1], valid[1:]  # consecutive valid pixels, with b - a - 1 invalid ones between
+    band = focal_registration_px_m * (inverse[a] - inverse[b])  # > 0: the near surface is on the left
+    keep = (a // width == b // width) & ((b - a - 1) <= JUMP_MAX_GAP_PX) & (np.abs(band) >= 1.0)
+    a, b, bands = a[keep], b[keep], band[keep]
+    rows, lefts, rights = a // width, a % width, b % width
     centres = (lefts + rights) // 2
     # Jumps of each sign, widened by BAND_EDGE_COLUMNS along the row: the same edge two rows up and down.
     kernel = np.ones((1, 2 * BAND_EDGE_COLUMNS + 1), np.uint8)
