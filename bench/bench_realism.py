@@ -32,12 +32,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data"
 
-from ddsgen.depth_statistics import realism_statistics, wide_band_holes  # noqa: E402
+from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics, wide_band_holes  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
         "isolated_dropout_share": "", "depth_step_at_1m_mm": "mm", "jump_holes_left": "",
         "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "", "isolated_one_surface_share": "",
-        "wide_band_hole_share": ""}  # fmt: skip
+        "wide_band_hole_share": "", "isolated_vertical_share": ""}  # fmt: skip
 
 
 def _print(name: str, stats: dict) -> None:
@@ -102,10 +102,12 @@ def cat_frame(preset_name: str, pictures: Path | None) -> None:
                      ("real Kinect V1 (LineMOD cat)", f"ddsgen {preset_name}, GT pose"))  # fmt: skip
 
 
-def _print_wide_bands(name: str, depths: list[np.ndarray]) -> None:
-    """Pooled over frames: per frame the wide-band jumps are few, or none."""
+def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
+    """Pooled over frames (per frame the wide-band jumps and elongated dropouts are few, or none)."""
     kept, jumps = np.sum([wide_band_holes(d) for d in depths], axis=0)
     print(f"bench: {name}_wide_bands_kept_open {kept} of {jumps}", flush=True)
+    vertical, horizontal = np.sum([isolated_dropout_orientation(d > 0) for d in depths], axis=0)
+    print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
 
 
 def _read_mm(path: Path) -> np.ndarray:
@@ -124,7 +126,7 @@ def real_icbin() -> None:
         return
     depths = [_read_mm(p) for p in paths]
     _print_range("real_icbin", [realism_statistics(d) for d in depths])
-    _print_wide_bands("real_icbin", depths)
+    _print_pooled("real_icbin", depths)
 
 
 TUM_DEPTH = DATA / "tum_rgbd_frame_open3d" / "TUM_depth.png"
@@ -147,7 +149,7 @@ def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
         depths = [_read_mm(p) for p in sorted(Path(tmp, "depth").glob("*.png"))]
     stats = [realism_statistics(d) for d in depths]
     _print_range("sim_render", stats)
-    _print_wide_bands("sim_render", depths)
+    _print_pooled("sim_render", depths)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid
     # pixels (with --frames 16, seed 0: the frames docs/realism.md reports).
     counts = [10 <= s["isolated_dropouts"] <= 120 for s in stats]
