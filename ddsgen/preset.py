@@ -89,6 +89,7 @@ FIELDS: dict[str, Field] = {
     "registration_dense": Field(bool, "depth registered to an RGB camera: the device writes each depth to a 2x2 block (OpenNI's dense registration), so pixels without depth of their own take a lower or right neighbour's: 1-px holes and cracks close", default=False),
     "registration_fill_band_holes": Field(bool, "depth registered to an RGB camera: a small hole (fewer than cleanup_hole_px pixels) inside one surface (rim within cleanup_max_diff_px), most of whose pixels the IR camera does not see, takes its nearest valid pixel's depth. The device maps its measured depth forward, so the matcher's near surface, carried past a depth edge, covers such a band; the simulation maps back by the ray-cast geometry and would leave it open", default=False),
     "registration_forward_gap_px": Field(int, "depth registered to an RGB camera: 0 = map each output pixel back to the IR pixel that sees its ray-cast surface point; N >= 1 = map each valid IR depth forward by its measured depth, as the device does (z-buffer: the nearest wins), and close a run of at most N empty pixels between two written pixels whose IR sources are neighbours (a rasteriser's gap fill): the band right of a near surface stays open when wider than N, and the near surface the matcher carried past its edge lands next to it", 0, 64, default=0),
+    "registration_forward_fill_rows": Field(int, "with registration_forward_gap_px: close a run of at most N empty pixels in a column, between two written pixels, where the IR camera saw a valid surface (its depth was carried elsewhere) or saw nothing; the nearer source wins. A forward map by rows leaves a dashed line along a near-horizontal depth edge where consecutive rows' bands overlap; real frames show no such dashes (their isolated dropouts are as often horizontal as vertical)", 0, 16, default=0),
     "output_top_border_px": Field(int, "the device outputs no depth in this many top rows (px; 0 = none)", 0, 16384, default=0),
     "output_bottom_border_px": Field(int, "the device outputs no depth in this many bottom rows (px; 0 = none)", 0, 16384, default=0),
     "band_rows": Field(int, "rows per matching band (bounds matcher memory)", 1, 16384, default=64),
@@ -167,6 +168,7 @@ class SensorPreset:
     registration_dense: bool
     registration_fill_band_holes: bool
     registration_forward_gap_px: int
+    registration_forward_fill_rows: int
     output_top_border_px: int
     output_bottom_border_px: int
     band_rows: int

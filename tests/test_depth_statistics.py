@@ -236,7 +236,8 @@ def default_frames(tmp_path_factory) -> list[np.ndarray]:
 def test_rendered_frames_have_few_isolated_dropouts_inside_one_surface(default_frames):
     """Like the real frames (18 % of their isolated dropouts, 71 of 386, per frame 0.05-0.33), most of the
     renders' isolated dropouts sit at depth edges: the registration no longer draws its band inside the near
-    surface (measured on these four frames: 17 of 156 with the band fill, 159 of 301 without)."""
+    surface (measured on these four frames: 24 of 132 mapped forward, kinect_v1 since session 35; mapped back by the
+    geometry 17 of 156 with session 33's band fill, 159 of 301 without)."""
     inside, at_edge = np.sum([isolated_dropouts_by_rim(depth) for depth in default_frames], axis=0)
     assert at_edge >= 40
     assert inside / (inside + at_edge) <= 0.35
@@ -244,29 +245,27 @@ def test_rendered_frames_have_few_isolated_dropouts_inside_one_surface(default_f
 
 def test_rendered_frames_have_as_few_isolated_dropouts_per_edge_as_real_ones(default_frames):
     """Per 1000 px of depth edge, the renders' isolated dropouts stay near the real frames' 5.3-11.0 (10 real
-    frames; TUM 8.5). Measured on these four frames: 11.6, 4.6, 11.1, 6.9 (without the registration's band fill
-    24.2, 6.0, 26.0, 8.3); over 16 frames 2.1-12.2, median 7.0. Failed (strict xfail) until session 34 moved the
-    built-in list to tabletop range: with sparse far scenes frame 2 had 13.4, its edge holes on little edge."""
+    frames; TUM 8.5). Measured on these four frames: 10.0, 5.3, 10.3, 5.0; over 16 frames 1.3-15.3, median 7.3
+    (session 35, forward registration; before, mapped back by the geometry: 11.6, 4.6, 11.1, 6.9, and without the
+    band fill 24.2, 6.0, 26.0, 8.3). Failed (strict xfail) until session 34 moved the built-in list to tabletop
+    range: with sparse far scenes frame 2 had 13.4, its edge holes on little edge."""
     for frame, depth in enumerate(default_frames):
         assert realism_statistics(depth)["isolated_dropouts_per_1000_edge_px"] <= 12, frame
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12: kinect_v1 closes the registration's wide bands (8 of 460 kept open "
-                   "on these frames, real 0.98): its registration maps back by the ray-cast geometry, so the "
-                   "matcher's carried near surface shows one band further on, beside the far surface; a forward map by "
-                   "the measured depth keeps them open but draws a dashed line along near-horizontal edges "
-                   "(docs/realism.md, session 34); passes once the sensor keeps them open")
 def test_rendered_frames_keep_wide_registration_bands_open_like_real_ones(default_frames):
+    """Real registered frames keep bands of 6 px and more open (IC-BIN 694 of 708). Measured on these four frames:
+    525 of 526, mapped forward by the measured depth (kinect_v1 since session 35); mapped back by the ray-cast
+    geometry 8 of 460 (a strict xfail until then: the matcher's carry showed one band further on and closed it)."""
     kept, jumps = np.sum([wide_band_holes(depth) for depth in default_frames], axis=0)
     assert jumps >= 100
     assert kept >= 0.85 * jumps
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12: kinect_v1's isolated dropouts are mostly thin vertical slivers (46 "
-                   "vertical of 51 elongated on these frames, real 0.58 pooled), pieces of the bands its backward "
-                   "registration leaves beside near surfaces; the opt-in forward map makes horizontal dashes instead "
-                   "(14 of 51); passes once the registration breaks bands as the device does (docs/realism.md, session 35)")
 def test_rendered_frames_have_vertical_and_horizontal_isolated_dropouts_like_real_ones(default_frames):
+    """Real frames: 0.58 of the elongated isolated dropouts vertical (pooled). Measured on these four frames: 36 of 53
+    (0.68; 16 frames 0.63). Mapped back by the geometry: 46 of 51 (slivers beside near surfaces); forward without
+    the fill across rows: 14 of 51 (dashes along near-horizontal edges)."""
     vertical, horizontal = np.sum([isolated_dropout_orientation(depth > 0) for depth in default_frames], axis=0)
     assert vertical + horizontal >= 20
     assert 0.4 <= vertical / (vertical + horizontal) <= 0.75

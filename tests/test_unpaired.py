@@ -361,7 +361,9 @@ def test_a_registered_device_window_is_measured_in_its_ir_frame(registered_devic
 def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_depths():
     """On a table above a floor, a nearer surface's depth on a farther pixel maps a few pixels into the IR
     frame's bands (2-3.5 % of a band column against 88 % inside): they must not end the band (they read the
-    right band 9 as 5 under the 1 % rule alone)."""
+    right band 9 as 5 under the 1 % rule alone). Rendered with the registration mapped back by the ray-cast
+    geometry, which shows the matcher's carry one band further on and so makes such pixels (the forward map, the
+    device's and kinect_v1's since session 35, makes few: 0.09 %); real frames may have them for other reasons."""
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
     from ddsgen.preset import load_preset
     from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
@@ -370,7 +372,7 @@ def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_de
 
     torch = pytest.importorskip("torch")
     torch.set_num_threads(1)
-    stock = camera_for(load_preset("kinect_v1"), 320, 240)
+    stock = camera_for(load_preset("kinect_v1").replace(registration_forward_gap_px=0), 320, 240)
     device = stock.replace(output_left_border_px=12, output_right_border_px=9, output_top_border_px=6,
                            output_bottom_border_px=3)  # fmt: skip
     data = default_scene_list_dict()  # the built-in table scenes, not _endless_ground's

@@ -441,7 +441,8 @@ class DepthSensor(nn.Module):
             index = geometry.registration
             if p.registration_forward_gap_px:  # mapped forward by the measured depth, as the device does
                 index = forward_registration_index(valid, depth, p.registration_shift_px,
-                                                   intr.fx * p.registration_ir_offset_m, p.registration_forward_gap_px)
+                                                   intr.fx * p.registration_ir_offset_m, p.registration_forward_gap_px,
+                                                   p.registration_forward_fill_rows, geometry.registration)  # fmt: skip
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
                 fill = splat_fill_index(register(valid, index))
                 index = torch.where(fill >= 0, gather_flat(index, fill.clamp(min=0)), -1)
