@@ -24,8 +24,11 @@ depth. Depth is gathered, not interpolated: the device's quantised levels surviv
 is differentiable in the IR-frame depth. The real device forward-maps its measured depth; mapping
 back with the ray-cast depth differs by the noise's effect on the shift (f b_r dZ / Z^2, 0.05 px at 1 m)
 and, where the matcher carried a near surface past its edge, by where that carry shows: one band further
-on, beside the far surface, instead of beside the near one (:func:`forward_registration_index`, opt-in
-with ``registration_forward_gap_px``, maps forward; docs/realism.md, session 34).
+on, beside the far surface, instead of beside the near one. :func:`forward_registration_index`
+(``registration_forward_gap_px`` > 0; kinect_v1 since session 35) maps forward as the device does, and the
+real LineMOD cat fits it better (docs/realism.md, sessions 34-35); the map back remains the default of a preset
+without the key, and the ray-cast index still tells the forward map's fill across rows which pixels the IR camera
+saw.
 """
 
 from __future__ import annotations
