@@ -114,14 +114,11 @@ def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
         valid: (H, W) bool, True where the sensor output depth.
         region: (H, W) bool or None (whole image).
     """
-    invalid, labels, stats, isolated = _isolated_components(valid, region, max_pixels)
+    invalid, labels, _, isolated = _isolated_components(valid, region, max_pixels)
     region = _region(invalid.shape, region)
-    count = int(isolated.sum())
     invalid_in_region = int((invalid & region).sum())
-    small = np.zeros(len(stats), bool)
-    small[1:] = stats[1:, cv2.CC_STAT_AREA] < max_pixels
-    isolated_pixels = int((small[labels] & region & invalid).sum())
-    return count, (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
+    isolated_pixels = int((isolated[labels] & region & invalid).sum())  # a pixel in the region: its component touches it
+    return int(isolated.sum()), (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
 
 
 def _isolated_components(valid: np.ndarray, region: np.ndarray | None,

@@ -274,6 +274,28 @@ def test_the_forward_map_closes_resampling_cracks_of_a_receding_surface():
     assert (closed[written.min(): written.max() + 1] >= 0).all()
 
 
+def test_the_fill_across_rows_closes_short_runs_only_where_the_ir_camera_saw_a_valid_surface():
+    """Column 0 of an 8 x 8 forward map with no shift: IR rows 0 (0.8 m), 3 (1.6 m) and 7 valid, the rest empty.
+    Rows 1-2 are a 2-row run: with fill_rows 2 they take the nearer source (row 0) where the IR camera saw the point
+    validly elsewhere (row 1: its depth went to another column) or not at all (row 2), but not where the IR pixel
+    that sees the point is itself a hole (the matcher's). Rows 4-6, a 3-row run, stay open."""
+    depth = torch.ones(8, 8)
+    depth[0, 0], depth[3, 0] = 0.8, 1.6
+    valid = torch.ones(8, 8, dtype=torch.bool)
+    valid[[1, 2, 4, 5, 6], 0] = False
+    seen = torch.arange(64).reshape(8, 8)  # the IR pixel that sees each output pixel's point: itself ...
+    seen[1, 0] = 1 * 8 + 5  # ... but row 1's point is seen by a valid IR pixel whose depth went to column 5
+    seen[2, 0] = -1  # ... and row 2's by none
+    column = forward_registration_index(valid, depth, 0.0, 0.0, gap_px=0)[:, 0].tolist()
+    assert column == [0, -1, -1, 24, -1, -1, -1, 56]
+    filled = forward_registration_index(valid, depth, 0.0, 0.0, gap_px=0, fill_rows=2, seen=seen)
+    assert filled[:, 0].tolist() == [0, 0, 0, 24, -1, -1, -1, 56]
+    assert torch.equal(filled[:, 1:], torch.arange(64).reshape(8, 8)[:, 1:])  # written pixels keep their sources
+    seen[2, 0] = 2 * 8  # row 2's point seen by its own IR pixel, a hole: it stays one
+    filled = forward_registration_index(valid, depth, 0.0, 0.0, gap_px=0, fill_rows=2, seen=seen)
+    assert filled[:, 0].tolist() == [0, 0, -1, 24, -1, -1, -1, 56]
+
+
 def test_a_forward_registered_device_keeps_the_band_between_a_near_box_and_the_wall():
     """The box at 0.8 m before the wall at 1.5 m: the RGB view's band right of the box is 9 px. Mapped back by the
     ray-cast geometry (registration_forward_gap_px 0; kinect_v1 until session 35), the pixels the matcher carried past the box show box depth one band
