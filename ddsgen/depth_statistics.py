@@ -114,8 +114,12 @@ def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
         valid: (H, W) bool, True where the sensor output depth.
         region: (H, W) bool or None (whole image).
     """
-    invalid, labels, _, isolated = _isolated_components(valid, region, max_pixels)
-    region = _region(invalid.shape, region)
+    return _count_and_share(*_isolated_components(valid, region, max_pixels), _region(np.shape(valid), region))
+
+
+def _count_and_share(invalid: np.ndarray, labels: np.ndarray, stats: np.ndarray, isolated: np.ndarray,
+                     region: np.ndarray) -> tuple[int, float]:  # fmt: skip
+    """:func:`isolated_dropouts` from :func:`_isolated_components`' result."""
     invalid_in_region = int((invalid & region).sum())
     isolated_pixels = int((isolated[labels] & region & invalid).sum())  # a pixel in the region: its component touches it
     return int(isolated.sum()), (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
@@ -144,7 +148,11 @@ def isolated_dropout_orientation(valid: np.ndarray, region: np.ndarray | None = 
         valid: (H, W) bool, True where the sensor output depth.
         region: (H, W) bool or None (whole image).
     """
-    _, _, stats, isolated = _isolated_components(valid, region, ISOLATED_MAX_PX)
+    return _orientation(*_isolated_components(valid, region, ISOLATED_MAX_PX)[2:])
+
+
+def _orientation(stats: np.ndarray, isolated: np.ndarray) -> tuple[int, int]:
+    """:func:`isolated_dropout_orientation` from :func:`_isolated_components`' stats and isolated mask."""
     width, height = stats[isolated, cv2.CC_STAT_WIDTH], stats[isolated, cv2.CC_STAT_HEIGHT]
     return int((height >= 2 * width).sum()), int((width >= 2 * height).sum())
 
@@ -342,7 +350,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
     region = _region(depth.shape, region)
-    count, share = isolated_dropouts(valid, region)
+    components = _isolated_components(valid, region, ISOLATED_MAX_PX)  # found once, for count, share and orientation
+    count, share = _count_and_share(*components, region)
     corner, whole = corner_valid_share(valid, region)
     step = depth_step_at_1m(depth, valid, region, resolution_m)
     valid_depth = np.where(valid, depth, 0.0)
@@ -350,7 +359,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     edge_px = int((depth_edges(valid_depth) & region).sum())
     one_surface, at_edge = isolated_dropouts_by_rim(valid_depth, region)
     band_holes, band_jumps = wide_band_holes(valid_depth, region)
-    vertical, horizontal = isolated_dropout_orientation(valid, region)
+    vertical, horizontal = _orientation(*components[2:])
     return {
         "valid_share": whole,
         "corner_valid_share": corner,

@@ -256,37 +256,37 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
 def _fill_column_runs(index: np.ndarray, depth: np.ndarray, fill_rows: int, fillable: np.ndarray) -> np.ndarray:
     """(H, W) forward index with each column's runs of at most ``fill_rows`` empty pixels between two written ones
     given the nearer one's source, where ``fillable`` (H, W) bool."""
-    height = index.shape[0]
+    height, width = index.shape
     by_column = index.T.reshape(-1)  # a copy: columns end to end
-    written = np.flatnonzero(by_column >= 0)
-    a, b = written[:-1], written[1:]
-    gap = b - a - 1
-    take = ((a // height) == (b // height)) & (gap > 0) & (gap <= fill_rows)
-    a, b, gap = a[take], b[take], gap[take]
-    source_a, source_b = by_column[a], by_column[b]
-    chosen = np.where(depth[source_a] <= depth[source_b], source_a, source_b)
-    targets = np.repeat(a + 1, gap) + np.arange(int(gap.sum())) - np.repeat(np.cumsum(gap) - gap, gap)
-    filled = by_column.copy()
-    filled[targets] = np.repeat(chosen, gap)
-    filled = filled.reshape(index.shape[1], height).T
-    return np.where(fillable, filled, index)
+    _fill_short_runs(by_column, depth, height, fill_rows, sources_in_one_row=False)
+    return np.where(fillable, by_column.reshape(width, height).T, index)
 
 
 def _fill_gaps(index: np.ndarray, depth: np.ndarray, width: int, gap_px: int) -> None:
     """In place on a flat (H*W,) forward index: short runs between IR-row neighbours take the nearer source."""
-    written = np.flatnonzero(index >= 0)  # row-major: consecutive entries of one row are left to right
+    _fill_short_runs(index, depth, width, gap_px, sources_in_one_row=True)
+
+
+def _fill_short_runs(flat: np.ndarray, depth: np.ndarray, line_length: int, max_run: int,
+                     sources_in_one_row: bool) -> None:  # fmt: skip
+    """In place on lines of ``line_length`` laid end to end in ``flat`` (IR flat indices, -1 = empty): a run of at
+    most ``max_run`` empty entries between two written ones of one line takes the nearer one's source (``depth``:
+    flat IR depth). ``sources_in_one_row``: only where the two sources are neighbours in one IR row (of
+    ``line_length`` pixels)."""
+    written = np.flatnonzero(flat >= 0)  # consecutive entries of one line are in order along it
     a, b = written[:-1], written[1:]
     gap = b - a - 1
-    source_a, source_b = index[a], index[b]
-    take = ((a // width) == (b // width)) & (gap > 0) & (gap <= gap_px)
-    take &= (np.abs(source_b - source_a) == 1) & ((source_a // width) == (source_b // width))
+    source_a, source_b = flat[a], flat[b]
+    take = ((a // line_length) == (b // line_length)) & (gap > 0) & (gap <= max_run)
+    if sources_in_one_row:
+        take &= (np.abs(source_b - source_a) == 1) & ((source_a // line_length) == (source_b // line_length))
     if not take.any():
         return
-    a, gap = a[take], gap[take]
-    chosen = np.where(depth[source_a[take]] <= depth[source_b[take]], source_a[take], source_b[take])
+    a, gap, source_a, source_b = a[take], gap[take], source_a[take], source_b[take]
+    chosen = np.where(depth[source_a] <= depth[source_b], source_a, source_b)
     starts = np.repeat(a + 1, gap)
     offsets = np.arange(int(gap.sum())) - np.repeat(np.cumsum(gap) - gap, gap)
-    index[starts + offsets] = np.repeat(chosen, gap)
+    flat[starts + offsets] = np.repeat(chosen, gap)
 
 
 def ir_frame_validity(depth_m: np.ndarray, preset) -> np.ndarray:
