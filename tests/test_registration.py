@@ -274,6 +274,27 @@ def test_the_forward_map_closes_resampling_cracks_of_a_receding_surface():
     assert (closed[written.min(): written.max() + 1] >= 0).all()
 
 
+
+def test_the_forward_maps_z_buffer_keeps_the_nearest_source_and_the_first_of_equal_depths():
+    """Against a per-pixel loop on random depths, some equal (quantised to 5 mm) and some invalid: each output pixel
+    shows the nearest IR pixel landing on it; of equally near ones the first in row-major order."""
+    rng = np.random.default_rng(3)
+    height, width, fbr, shift = 6, 50, 15.45, 3.0
+    depth = torch.from_numpy(np.round(rng.uniform(0.5, 1.5, (height, width)) / 0.005) * 0.005).float()
+    valid = torch.from_numpy(rng.random((height, width)) > 0.2)
+    got = forward_registration_index(valid, depth, shift, fbr, gap_px=0).numpy()
+    expected = np.full((height, width), -1)
+    nearest = np.full((height, width), np.inf)
+    for v in range(height):
+        for u in range(width):
+            z = float(depth[v, u])
+            target = int(np.rint(u + shift - fbr / np.float64(np.float32(z))))
+            if valid[v, u] and 0 <= target < width and z < nearest[v, target]:
+                nearest[v, target], expected[v, target] = z, v * width + u
+    written = int((expected >= 0).sum())
+    assert 80 < written < int(valid.sum()) - 50 and len(np.unique(depth.numpy())) < 250  # collisions and ties
+    np.testing.assert_array_equal(got, expected)
+
 def test_the_fill_across_rows_closes_short_runs_only_where_the_ir_camera_saw_a_valid_surface():
     """Column 0 of an 8 x 8 forward map with no shift: IR rows 0 (0.8 m), 3 (1.6 m) and 7 valid, the rest empty.
     Rows 1-2 are a 2-row run: with fill_rows 2 they take the nearer source (row 0) where the IR camera saw the point
