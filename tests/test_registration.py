@@ -274,7 +274,6 @@ def test_the_forward_map_closes_resampling_cracks_of_a_receding_surface():
     assert (closed[written.min(): written.max() + 1] >= 0).all()
 
 
-
 def test_the_forward_maps_z_buffer_keeps_the_nearest_source_and_the_first_of_equal_depths():
     """Against a per-pixel loop on random depths, some equal (quantised to 5 mm) and some invalid: each output pixel
     shows the nearest IR pixel landing on it; of equally near ones the first in row-major order."""
@@ -294,6 +293,7 @@ def test_the_forward_maps_z_buffer_keeps_the_nearest_source_and_the_first_of_equ
     written = int((expected >= 0).sum())
     assert 80 < written < int(valid.sum()) - 50 and len(np.unique(depth.numpy())) < 250  # collisions and ties
     np.testing.assert_array_equal(got, expected)
+
 
 def test_the_fill_across_rows_closes_short_runs_only_where_the_ir_camera_saw_a_valid_surface():
     """Column 0 of an 8 x 8 forward map with no shift: IR rows 0 (0.8 m), 3 (1.6 m) and 7 valid, the rest empty.

@@ -236,7 +236,8 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
     inside = (target >= 0) & (target < width)
     source, z, key = source[inside], z[inside], rows[inside] * width + target[inside]
     # A z-buffer in one pass: per output pixel the minimum of (Z's float32 bits, source) packed into an int64
-    # (positive floats order as their bits; equal depths: the first source in row-major order wins).
+    # (positive floats order as their bits; depths compared in float32, the sensor's precision; of equal depths
+    # the first source in row-major order wins). 10 ms a frame where a stable sort of the keys took 20.
     packed = (z.astype(np.float32).view(np.int32).astype(np.int64) << 32) | source
     nearest = np.full(height * width, _EMPTY, dtype=np.int64)
     np.minimum.at(nearest, key, packed)
