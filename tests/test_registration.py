@@ -295,6 +295,31 @@ def test_the_forward_maps_z_buffer_keeps_the_nearest_source_and_the_first_of_equ
     np.testing.assert_array_equal(got, expected)
 
 
+def test_a_crop_of_the_forward_map_loses_sources_only_near_its_border():
+    """compare --crop simulates a window of the image: mapped forward, IR pixels outside it cannot land in it.
+    A crop's map equals the full map's inside it, except within the largest shift |s - f b_r / Z| plus the gap fill
+    of its left and right borders (and the column fill's reach of its top and bottom): the crop's margin (24 px
+    around the objects) keeps the objects' depth the full frame's."""
+    rng = np.random.default_rng(5)
+    height, width, fbr, shift, gap, rows = 40, 200, 15.6, 17.4, 4, 2
+    u = np.arange(width)[None, :]
+    depth = np.broadcast_to(0.7 + 0.6 * u / width, (height, width)).copy()  # a receding wall, 0.7-1.3 m
+    depth[10:30, 60:90] = 0.6  # a box before it: bands and carried pixels
+    depth = torch.from_numpy(depth).float()
+    valid = torch.from_numpy(rng.random((height, width)) > 0.03)  # a few matcher holes
+    seen = torch.arange(height * width).reshape(height, width)
+    full = forward_registration_index(valid, depth, shift, fbr, gap, rows, seen).numpy()
+    x0, y0, w, h = 40, 5, 120, 30
+    window = (slice(y0, y0 + h), slice(x0, x0 + w))
+    crop = forward_registration_index(valid[window], depth[window], shift, fbr, gap, rows,
+                                      cropped_index(seen, width, x0, y0, w, h)).numpy()  # fmt: skip
+    as_full = np.where(crop >= 0, (crop // w + y0) * width + crop % w + x0, -1)
+    reach = int(np.ceil(max(abs(shift - fbr / 0.6), abs(shift - fbr / 1.3)))) + gap  # 9 + 4 px
+    inner = (slice(rows, h - rows), slice(reach, w - reach))
+    np.testing.assert_array_equal(as_full[inner], full[window][inner])
+    assert (full[window][inner] >= 0).mean() > 0.9 and (as_full != full[window]).any()  # the border does lose
+
+
 def test_the_fill_across_rows_closes_short_runs_only_where_the_ir_camera_saw_a_valid_surface():
     """Column 0 of an 8 x 8 forward map with no shift: IR rows 0 (0.8 m), 3 (1.6 m) and 7 valid, the rest empty.
     Rows 1-2 are a 2-row run: with fill_rows 2 they take the nearer source (row 0) where the IR camera saw the point
