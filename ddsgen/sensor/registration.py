@@ -226,6 +226,8 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
             dropouts are as often horizontal as vertical (IC-BIN 0.58 vertical), the map by rows alone 0.19.
         seen: (H, W) int64, the ray-cast :func:`registration_index` (needed when ``fill_rows`` > 0).
     """
+    if fill_rows > 0 and seen is None:
+        raise ValueError("forward_registration_index: fill_rows > 0 needs the ray-cast index `seen`")
     height, width = valid.shape
     z_all = depth.detach().cpu().numpy().reshape(-1)
     valid_flat = valid.cpu().numpy().reshape(-1)
@@ -271,9 +273,8 @@ def _fill_short_runs(flat: np.ndarray, depth: np.ndarray, line_length: int, max_
     starts = np.flatnonzero(run_start)
     first, last = empty[starts], empty[np.append(starts[1:] - 1, len(empty) - 1)]
     a, b, gap = first - 1, last + 1, last - first + 1  # the written entries around each run, its length
-    take = (a >= 0) & (b < len(flat)) & (gap <= max_run)
-    a, b, gap = a[take], b[take], gap[take]
-    take = (a // line_length) == (b // line_length)
+    # One line on both sides (a run touching either end of ``flat`` has a = -1 or b = len: never one line).
+    take = (gap <= max_run) & ((a // line_length) == (b // line_length))
     a, gap, source_a, source_b = a[take], gap[take], flat[a[take]], flat[b[take]]
     if sources_in_one_row:
         take = (np.abs(source_b - source_a) == 1) & ((source_a // line_length) == (source_b // line_length))
