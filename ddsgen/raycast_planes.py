@@ -51,7 +51,10 @@ def as_polygon(vertices: np.ndarray, faces: np.ndarray) -> Polygon | None:
     if areas.sum() <= 0:
         return None
     normal = cross.sum(axis=0)
-    normal /= np.linalg.norm(normal)
+    length = float(np.linalg.norm(normal))
+    if length < areas.sum():  # coplanar faces' normals add up to twice the area; a closed mesh's to 0
+        return None
+    normal /= length
     offset = float(np.mean(v @ normal))
     scale = max(float(np.ptp(v, axis=0).max()), 1e-9)
     if np.max(np.abs(v @ normal - offset)) > 1e-6 * scale:

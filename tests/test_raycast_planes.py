@@ -90,3 +90,22 @@ def test_segments_blocked_only_where_they_cross_inside_the_polygon():
                       dtype=np.float32)  # fmt: skip
     # through the centre; beside it; not reaching it; just inside (crosses at x = 0.095); just outside (0.105)
     assert segments_blocked(polygon, starts, end).tolist() == [True, False, False, True, False]
+
+
+@pytest.mark.parametrize("make", ["box", "open_box_lid"])
+def test_a_small_closed_or_folded_mesh_is_not_taken_for_a_polygon(make):
+    """Background meshes of <= 64 faces are tried as polygons (distractor boxes are background since session 37):
+    a closed box's face normals sum to zero and a folded sheet's fall short of twice its area; neither is a
+    polygon, and neither warns (the zero normal was divided by its length)."""
+    import warnings
+
+    import trimesh
+
+    mesh = trimesh.creation.box(extents=(0.6, 0.4, 0.3))
+    vertices, faces = np.asarray(mesh.vertices) + [0.0, 0.0, 2.0], np.asarray(mesh.faces)
+    if make == "open_box_lid":  # two faces of the box: an L-shaped fold, not planar
+        normals = mesh.face_normals
+        faces = faces[(np.abs(normals[:, 2]) > 0.9) | (normals[:, 0] > 0.9)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert as_polygon(vertices, faces) is None
