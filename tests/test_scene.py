@@ -287,7 +287,7 @@ def test_a_scene_list_without_a_floor_keeps_its_layouts():
     # after everything else: adding the floor key leaves the objects and the camera where they were.
     plain = default_scene_list_dict()
     plain["scenes"][0]["ground"] = {"size": [5.0, 5.0], "albedo": [0.4, 0.7]}  # endless, as before the table
-    del plain["scenes"][0]["floor"]
+    del plain["scenes"][0]["floor"], plain["scenes"][0]["distractors"]  # (those stand on the floor)
     with_floor = copy.deepcopy(plain)
     with_floor["scenes"][0]["floor"] = {"depth": 0.75}
     a, b = scene_list_from_dict(plain), scene_list_from_dict(with_floor)

@@ -33,6 +33,7 @@ import math
 import numpy as np
 
 from ddsgen.scene import shapes
+from ddsgen.scene.distractors import DistractorSpec
 from ddsgen.scene.scenelist import ObjectSpec, SceneList, SceneSpec
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -115,6 +116,11 @@ class _RestPose:
         """(3,) subtract after rotation: xy centre of the footprint box, lowest z."""
         lo, hi = self._rotated.min(axis=0), self._rotated.max(axis=0)
         return np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
+
+    @functools.cached_property
+    def height(self) -> float:
+        """Height of the resting mesh (m)."""
+        return float(self._rotated[:, 2].max() - self._rotated[:, 2].min())
 
     @functools.cached_property
     def footprint(self) -> np.ndarray:
@@ -207,34 +213,21 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
         ground_half = np.asarray(scene.ground.size) / 2.0 - clutter.min_gap
     placed: list[tuple[PlacedObject, np.ndarray]] = []
     used: set[int] = set()
+
+    def fits(world_polygon: np.ndarray) -> bool:
+        return (world_polygon[:, 1].max() <= wall_y - clutter.min_gap and not np.any(np.abs(world_polygon) > ground_half)
+                and all(polygons_separated(world_polygon, other, clutter.min_gap) for _, other in placed))  # fmt: skip
+
     for _ in range(count):
         index = _pick(rng, scene.objects, clutter.unique, used)
         if index is None:
             break
         spec = scene.objects[index]
-        poses, probs = _rest_poses(spec.mesh_ref, spec.scale, spec.rest)
-        pose = poses[int(rng.choice(len(poses), p=probs))] if len(poses) > 1 else poses[0]
-        yaw = float(rng.uniform(0.0, 2.0 * math.pi))
-        c, s = math.cos(yaw), math.sin(yaw)
-        footprint = pose.footprint @ np.array([[c, s], [-s, c]])  # rotate rows by yaw
-        albedo = _uniform(rng, spec.albedo)
-        position = None
-        for _try in range(clutter.max_tries):
-            xy = rng.uniform(-half, half)
-            world_polygon = footprint + xy
-            if world_polygon[:, 1].max() > wall_y - clutter.min_gap:
-                continue
-            if np.any(np.abs(world_polygon) > ground_half):
-                continue
-            if all(polygons_separated(world_polygon, other, clutter.min_gap) for _, other in placed):
-                position = xy
-                break
-        if position is None:
+        dropped = _drop(rng, spec, np.zeros(2), half, clutter.max_tries, fits)
+        if dropped is None:
             continue  # no room: leave this one out
         used.add(index)
-        world_T_obj = (
-            _translation([position[0], position[1], 0.0]) @ _rot_z(yaw) @ _translation(-pose.offset) @ pose.rotation
-        )
+        world_T_obj, albedo, world_polygon = dropped
         obj = PlacedObject(
             id=len(placed) + 1,
             class_name=spec.class_name,
@@ -262,6 +255,10 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
         floor_T = _translation([0.0, 0.0, -scene.floor.depth])
         background.append(_plane_object("floor", scene.floor.size, floor_T, _uniform(rng, scene.floor.albedo)))
 
+    for group_index, group in enumerate(scene.distractors):
+        background.extend(_distractors(scene, group, np.random.default_rng([seed, block_start, 2, group_index]),
+                                       [polygon for _, polygon in placed]))  # fmt: skip
+
     objects = [obj for obj, _ in placed]
     if objects:
         corners = np.concatenate([_world_bounds(o) for o in objects])
@@ -270,6 +267,65 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     else:
         target = np.zeros(3)
     return tuple(objects), tuple(background), target
+
+
+def _drop(rng: np.random.Generator, spec: ObjectSpec, centre: np.ndarray, half: np.ndarray, max_tries: int, fits,
+          base_z: float = 0.0, max_height: float = math.inf):  # fmt: skip
+    """Drop one object of ``spec``: a resting pose, a yaw and an albedo, then positions uniform in ``centre`` +-
+    ``half`` (x, y; m) until ``fits(footprint)`` ((K, 2) world polygon). Returns ``(world_T_obj, albedo,
+    footprint)`` with the object's lowest point at ``base_z``, or None (no room in ``max_tries``, or the drawn
+    pose is taller than ``max_height``)."""
+    poses, probs = _rest_poses(spec.mesh_ref, spec.scale, spec.rest)
+    pose = poses[int(rng.choice(len(poses), p=probs))] if len(poses) > 1 else poses[0]
+    yaw = float(rng.uniform(0.0, 2.0 * math.pi))
+    c, s = math.cos(yaw), math.sin(yaw)
+    footprint = pose.footprint @ np.array([[c, s], [-s, c]])  # rotate rows by yaw
+    albedo = _uniform(rng, spec.albedo)
+    if pose.height > max_height:
+        return None
+    for _try in range(max_tries):
+        xy = centre + rng.uniform(-half, half)
+        world_polygon = footprint + xy
+        if fits(world_polygon):
+            world_T_obj = _translation([xy[0], xy[1], base_z]) @ _rot_z(yaw) @ _translation(-pose.offset) @ pose.rotation
+            return world_T_obj, albedo, world_polygon
+    return None
+
+
+def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generator,
+                 clutter: list[np.ndarray]) -> list[PlacedObject]:  # fmt: skip
+    """One distractor group's objects (background, id 0): footprints apart from each other and from the clutter's
+    (``clutter``: (K, 2) world polygons), inside the surface they stand on and in front of the wall. On the floor
+    they stay off the table's footprint and below its top (taller poses are left out), so they never hide the
+    table top from a camera above it."""
+    wall_y = scene.wall.distance if scene.wall is not None else math.inf
+    gap = group.min_gap
+    taken = list(clutter)
+    if group.surface == "floor":
+        base_z, max_height = -scene.floor.depth, scene.floor.depth - gap
+        bounds = np.asarray(scene.floor.size) / 2.0 - gap
+        if scene.ground is not None:
+            gx, gy = np.asarray(scene.ground.size) / 2.0
+            taken.append(np.array([[-gx, -gy], [gx, -gy], [gx, gy], [-gx, gy]]))  # the table's footprint
+    else:
+        base_z, max_height = 0.0, math.inf
+        bounds = np.asarray(scene.ground.size) / 2.0 - gap
+
+    def fits(world_polygon: np.ndarray) -> bool:
+        return (world_polygon[:, 1].max() <= wall_y - gap and not np.any(np.abs(world_polygon) > bounds)
+                and all(polygons_separated(world_polygon, other, gap) for other in taken))  # fmt: skip
+
+    placed = []
+    for _ in range(int(rng.integers(group.count[0], group.count[1] + 1))):
+        spec = group.objects[_pick(rng, group.objects, False, set())]
+        dropped = _drop(rng, spec, np.asarray(group.centre), np.asarray(group.area) / 2.0, group.max_tries, fits,
+                        base_z, max_height)  # fmt: skip
+        if dropped is None:
+            continue
+        world_T_obj, albedo, world_polygon = dropped
+        taken.append(world_polygon)
+        placed.append(PlacedObject(0, spec.class_name, spec.mesh_ref, spec.mesh(), world_T_obj, albedo, spec.scale))
+    return placed
 
 
 def _plane_object(name: str, size, world_T_obj: np.ndarray, albedo: float) -> PlacedObject:

@@ -36,6 +36,11 @@ number means a fixed value)::
         floor: {depth: 0.75, size: [6, 6], albedo: [0.2, 0.6]}   # optional: a floor `depth` m below the
                                            # ground, which is then a table top (objects stay on it)
         wall: {distance: 0.6, width: 4, height: 2, albedo: 0.6}   # optional back wall at y = +distance
+        distractors:                       # optional: unlabelled objects (instance id 0, no pose), see
+          - surface: floor                 # ddsgen/scene/distractors.py: floor (around the table) | ground
+            count: [4, 8]
+            area: [5, 5]                   # the region they stand in, centred on `centre: [x, y]`
+            objects: [{shape: box, size: [0.6, 0.4, 0.3], albedo: [0.05, 0.8]}]
         camera:
           distance: [0.8, 1.8]             # camera to look-at point (m)
           elevation_deg: [25, 70]          # above the ground plane, 0..89
@@ -59,6 +64,7 @@ import numpy as np
 
 from ddsgen.errors import InputError, where
 from ddsgen.scene import shapes
+from ddsgen.scene.distractors import DistractorSpec, parse_distractors
 from ddsgen.scene.fields import (
     check_keys,
     describe,
@@ -149,6 +155,7 @@ class SceneSpec:
     wall: WallSpec | None
     camera: CameraSpec
     floor: FloorSpec | None = None
+    distractors: tuple[DistractorSpec, ...] = ()  # unlabelled objects (background, id 0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -340,7 +347,7 @@ def _camera(source, key: str, data: Any, has_wall: bool) -> CameraSpec:
     return camera
 
 
-SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "floor", "wall", "camera")
+SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "floor", "wall", "camera", "distractors")
 
 
 def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> SceneSpec:
@@ -355,6 +362,10 @@ def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> Sc
     objects = tuple(_object(source, f"{key}.objects[{i}]", entry, base_dir) for i, entry in enumerate(pool))
     wall = _wall(source, f"{key}.wall", data.get("wall"))
     ground = _plane(source, f"{key}.ground", data.get("ground", {}))
+    floor = _floor(source, f"{key}.floor", data.get("floor"), ground)
+    distractors = parse_distractors(source, f"{key}.distractors", data.get("distractors"),
+                                    lambda sub, entry: _object(source, sub, entry, base_dir),
+                                    has_floor=floor is not None, has_ground=ground is not None)  # fmt: skip
     return SceneSpec(
         name=name,
         frames=frames,
@@ -363,7 +374,8 @@ def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> Sc
         ground=ground,
         wall=wall,
         camera=_camera(source, f"{key}.camera", data.get("camera"), wall is not None),
-        floor=_floor(source, f"{key}.floor", data.get("floor"), ground),
+        floor=floor,
+        distractors=distractors,
     )
 
 
@@ -401,6 +413,24 @@ def default_scene_list_dict() -> dict:
         {"shape": "l_bracket", "length": 0.14, "width": 0.06, "height": 0.1, "thickness": 0.015,
          "class": "bracket", "albedo": [0.2, 0.7]},
     ]
+    # Unlabelled surroundings (ddsgen/scene/distractors.py), dark to light: room clutter on the floor, and a
+    # back row of binders, books and a screen along the wall.
+    floor_clutter = [
+        {"shape": "box", "size": [0.6, 0.4, 0.3], "class": "crate", "albedo": [0.05, 0.8]},
+        {"shape": "box", "size": [0.45, 0.35, 0.5], "class": "carton", "albedo": [0.05, 0.8]},
+        {"shape": "box", "size": [0.9, 0.45, 0.4], "class": "cabinet", "albedo": [0.05, 0.8]},
+        {"shape": "cylinder", "radius": 0.18, "height": 0.45, "class": "bin", "albedo": [0.05, 0.8]},
+        {"shape": "cylinder", "radius": 0.25, "height": 0.6, "class": "drum", "albedo": [0.05, 0.8]},
+    ]
+    wall_row = [
+        {"shape": "box", "size": [0.3, 0.22, 0.1], "class": "books", "albedo": [0.05, 0.8]},
+        {"shape": "box", "size": [0.08, 0.28, 0.32], "class": "binder", "albedo": [0.05, 0.8], "rest": "upright"},
+        {"shape": "box", "size": [0.55, 0.06, 0.35], "class": "screen", "albedo": [0.05, 0.8], "rest": "upright"},
+        {"shape": "box", "size": [0.35, 0.25, 0.3], "class": "carton", "albedo": [0.05, 0.8]},
+        {"shape": "box", "size": [0.4, 0.2, 0.2], "class": "file_box", "albedo": [0.05, 0.8]},
+        {"shape": "cylinder", "radius": 0.04, "height": 0.22, "class": "bottle", "albedo": [0.05, 0.8],
+         "rest": "upright"},
+    ]
     return {
         "description": "built-in default: procedural shapes dropped on a table 0.75 m above the floor, camera at"
                        " tabletop range (0.7-1.6 m)",
@@ -414,6 +444,7 @@ def default_scene_list_dict() -> dict:
                 "floor": {"depth": 0.75, "size": [6.0, 6.0], "albedo": [0.2, 0.6]},
                 "camera": {"distance": [0.7, 1.4], "elevation_deg": [30, 70], "azimuth_deg": [-180, 180],
                            "look_at_jitter": 0.05},
+                "distractors": [{"surface": "floor", "count": [4, 8], "area": [5.0, 5.0], "objects": floor_clutter}],
             },
             {
                 "name": "against_wall",
@@ -425,6 +456,8 @@ def default_scene_list_dict() -> dict:
                 "wall": {"distance": 0.45, "width": 4.0, "height": 2.0, "albedo": [0.5, 0.8]},
                 "camera": {"distance": [0.8, 1.6], "elevation_deg": [15, 45], "azimuth_deg": [-50, 50],
                            "look_at_jitter": 0.05},
+                "distractors": [{"surface": "ground", "count": [4, 7], "area": [1.3, 0.3], "centre": [0.0, 0.3],
+                                 "objects": wall_row}],
             },
         ],
     }
