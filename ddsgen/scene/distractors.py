@@ -1,8 +1,8 @@
 """Distractors: unlabelled objects a scene adds around its clutter (the scene-list key ``distractors:``).
 
 Real captures of a table top see more than the labelled objects: boxes, bins and furniture on the floor
-around the table, binders and screens along the wall behind it. Those surfaces make most of a real frame's
-far depth edges, projector shadows and dark, far holes, and a network trained without them sees an
+around the table, binders and screens along the wall behind it. Their depth edges, projector shadows and
+far holes are missing from a bare table before a bare wall, and a network trained without them sees an
 emptier world than the sensor does. Distractors are drawn like the clutter (a random stable pose of the
 convex hull, a random yaw, footprints kept apart) but belong to the background: instance id 0 in the mask,
 no pose in the manifest or the BOP ground truth.
