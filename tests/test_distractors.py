@@ -5,6 +5,7 @@ own random stream, and seen by the ray cast as background."""
 from __future__ import annotations
 
 import copy
+import re
 
 import numpy as np
 import pytest
@@ -137,7 +138,7 @@ def test_the_ray_cast_sees_distractors_as_background_with_depth():
 def test_a_bad_distractor_group_names_its_key(group, problem):
     data = default_scene_list_dict()
     data["scenes"][0]["distractors"] = [group]
-    with pytest.raises(InputError, match=r"^scenes.yaml: " + __import__("re").escape(problem)):
+    with pytest.raises(InputError, match=r"^scenes\.yaml: " + re.escape(problem)):
         scene_list_from_dict(data, source="scenes.yaml")
 
 

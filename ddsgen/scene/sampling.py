@@ -215,8 +215,7 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     used: set[int] = set()
 
     def fits(world_polygon: np.ndarray) -> bool:
-        return (world_polygon[:, 1].max() <= wall_y - clutter.min_gap and not np.any(np.abs(world_polygon) > ground_half)
-                and all(polygons_separated(world_polygon, other, clutter.min_gap) for _, other in placed))  # fmt: skip
+        return _footprint_fits(world_polygon, wall_y, ground_half, [other for _, other in placed], clutter.min_gap)
 
     for _ in range(count):
         index = _pick(rng, scene.objects, clutter.unique, used)
@@ -269,6 +268,13 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     return tuple(objects), tuple(background), target
 
 
+def _footprint_fits(world_polygon: np.ndarray, wall_y: float, half_extent: np.ndarray, others, gap: float) -> bool:
+    """True where a (K, 2) world footprint keeps ``gap`` from the wall at y = ``wall_y``, lies within
+    +-``half_extent`` (x, y; the surface's half size less the gap) and keeps ``gap`` from every polygon of ``others``."""
+    return (world_polygon[:, 1].max() <= wall_y - gap and not np.any(np.abs(world_polygon) > half_extent)
+            and all(polygons_separated(world_polygon, other, gap) for other in others))  # fmt: skip
+
+
 def _drop(rng: np.random.Generator, spec: ObjectSpec, centre: np.ndarray, half: np.ndarray, max_tries: int, fits,
           base_z: float = 0.0, max_height: float = math.inf):  # fmt: skip
     """Drop one object of ``spec``: a resting pose, a yaw and an albedo, then positions uniform in ``centre`` +-
@@ -312,8 +318,7 @@ def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generat
         bounds = np.asarray(scene.ground.size) / 2.0 - gap
 
     def fits(world_polygon: np.ndarray) -> bool:
-        return (world_polygon[:, 1].max() <= wall_y - gap and not np.any(np.abs(world_polygon) > bounds)
-                and all(polygons_separated(world_polygon, other, gap) for other in taken))  # fmt: skip
+        return _footprint_fits(world_polygon, wall_y, bounds, taken, gap)
 
     placed = []
     for _ in range(int(rng.integers(group.count[0], group.count[1] + 1))):
