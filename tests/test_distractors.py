@@ -7,10 +7,8 @@ from __future__ import annotations
 import copy
 import re
 
-import cv2
 import numpy as np
 import pytest
-import torch
 from scipy.spatial import ConvexHull
 
 from ddsgen.errors import InputError
@@ -72,7 +70,6 @@ def test_floor_distractors_stand_on_the_floor_off_the_table_and_below_its_top(ar
     scene_list = scene_list_from_dict(data)
     spec = scene_list.scenes[TABLETOP]
     group = spec.distractors[0]
-    albedo_range = {o.class_name: o.albedo for g in spec.distractors for o in g.objects}
     half_table = np.asarray(spec.ground.size) / 2.0
     table = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half_table
     seen = 0
@@ -84,8 +81,7 @@ def test_floor_distractors_stand_on_the_floor_off_the_table_and_below_its_top(ar
             footprint = _footprint(d)
             assert polygons_separated(footprint, table, group.min_gap - 1e-9)
             assert np.all(np.abs(footprint) <= np.asarray(spec.floor.size) / 2.0)
-            low, high = albedo_range[d.class_name]
-            assert low <= d.albedo <= high
+            assert 0.05 <= d.albedo <= 0.8
             seen += 1
     assert seen >= 6 * 2
 
@@ -125,46 +121,6 @@ def test_the_ray_cast_sees_distractors_as_background_with_depth():
         assert np.all(hits.depth[on_distractor] > 0)
         covered += int(on_distractor.sum())
     assert covered > 0.01 * 4 * intrinsics.width * intrinsics.height
-
-
-def _interior(mask: np.ndarray) -> np.ndarray:
-    """The mask eroded by 3 px: a surface's inside, away from its edges (which have holes of their own)."""
-    return cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-
-
-def test_ir_black_distractors_of_the_builtin_list_are_holes_and_the_light_ones_are_not():
-    """The built-in list's chairs, computer cases and monitors (IR albedo 0.1-3 %) give no depth at the range they
-    stand at, as real black furniture does (IC-BIN's office chair); the light distractors beside them keep theirs."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-    from ddsgen.sensor.sensor_cast import cast_for_sensor
-
-    scene_list = scene_list_from_dict(default_scene_list_dict())
-    ir_black = {o.class_name for s in scene_list.scenes for g in s.distractors for o in g.objects if o.albedo[1] <= 0.03}
-    assert ir_black == {"chair", "pc_case", "monitor"}
-    preset = load_preset("kinect_v1")
-    sensor = DepthSensor(preset).eval()
-    dark_shares, light_shares = [], []
-    for frame_index in range(16):
-        frame = sample_frame(scene_list, frame_index, seed=0)
-        parts = list(frame.objects) + list(frame.background)
-        hits = cast(frame, preset.intrinsics, preset.baseline_m, preset.shadow_bias_m, shadows=False)
-        distractors = [k for k, p in enumerate(parts) if p.id == 0 and not p.mesh_ref.startswith("plane:")]
-        inside = {k: m for k in distractors if (m := _interior(hits.owner == k)).sum() >= 1000}
-        if not any(parts[k].class_name in ir_black for k in inside):
-            continue
-        _, geometry = cast_for_sensor(frame, preset.intrinsics, preset, output_shadows=False)
-        with torch.no_grad():
-            valid = sensor(geometry, seed=[0, frame_index, 1]).depth.numpy() > 0
-        for k, m in inside.items():
-            if parts[k].class_name in ir_black:
-                dark_shares.append(valid[m].mean())
-            elif parts[k].albedo >= 0.3 and np.median(hits.depth[m]) < 2.5:
-                light_shares.append(valid[m].mean())
-        if len(dark_shares) >= 2:
-            break
-    assert len(dark_shares) >= 2 and light_shares, "the first 16 frames show no IR-black distractor beside a light one"
-    assert max(dark_shares) < 0.1, dark_shares  # measured (seed 0, frames 3 and 12): 0.01, 0.00
-    assert min(light_shares) > 0.9, light_shares  # 0.99-1.00
 
 
 @pytest.mark.parametrize(

@@ -431,16 +431,6 @@ def default_scene_list_dict() -> dict:
         {"shape": "cylinder", "radius": 0.04, "height": 0.22, "class": "bottle", "albedo": [0.05, 0.8],
          "rest": "upright"},
     ]
-    # IR-black surfaces (diffuse IR albedo of a few per mille to 3 %: carbon-black fabric and plastic, a glossy
-    # screen whose reflection goes to the mirror direction): real rooms have them, and they are most of the far
-    # holes of real frames (IC-BIN: a black office chair at 1.3-2.5 m). Their own groups, drawn after the others,
-    # so a layout without them is the layout it was.
-    ir_black_furniture = [
-        {"shape": "box", "size": [0.55, 0.55, 0.7], "class": "chair", "albedo": [0.005, 0.03]},
-        {"shape": "box", "size": [0.2, 0.45, 0.45], "class": "pc_case", "albedo": [0.005, 0.03], "rest": "upright"},
-    ]
-    monitor = [{"shape": "box", "size": [0.55, 0.05, 0.35], "class": "monitor", "albedo": [0.001, 0.004],
-                "rest": "upright"}]
     return {
         "description": "built-in default: procedural shapes dropped on a table 0.75 m above the floor, camera at"
                        " tabletop range (0.7-1.6 m)",
@@ -454,9 +444,7 @@ def default_scene_list_dict() -> dict:
                 "floor": {"depth": 0.75, "size": [6.0, 6.0], "albedo": [0.2, 0.6]},
                 "camera": {"distance": [0.7, 1.4], "elevation_deg": [30, 70], "azimuth_deg": [-180, 180],
                            "look_at_jitter": 0.05},
-                "distractors": [{"surface": "floor", "count": [4, 8], "area": [5.0, 5.0], "objects": floor_clutter},
-                                {"surface": "floor", "count": [1, 2], "area": [4.0, 4.0],
-                                 "objects": ir_black_furniture}],
+                "distractors": [{"surface": "floor", "count": [4, 8], "area": [5.0, 5.0], "objects": floor_clutter}],
             },
             {
                 "name": "against_wall",
@@ -469,9 +457,7 @@ def default_scene_list_dict() -> dict:
                 "camera": {"distance": [0.8, 1.6], "elevation_deg": [15, 45], "azimuth_deg": [-50, 50],
                            "look_at_jitter": 0.05},
                 "distractors": [{"surface": "ground", "count": [4, 7], "area": [1.3, 0.3], "centre": [0.0, 0.3],
-                                 "objects": wall_row},
-                                {"surface": "ground", "count": [0, 1], "area": [1.3, 0.2], "centre": [0.0, 0.35],
-                                 "objects": monitor}],
+                                 "objects": wall_row}],
             },
         ],
     }
