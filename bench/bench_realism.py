@@ -35,9 +35,9 @@ DATA = ROOT.parent / "shared" / "data"
 from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics, wide_band_holes  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
-        "isolated_dropout_share": "", "depth_step_at_1m_mm": "mm", "jump_holes_left": "",
-        "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "", "isolated_one_surface_share": "",
-        "wide_band_hole_share": "", "isolated_vertical_share": ""}  # fmt: skip
+        "isolated_dropout_share": "", "isolated_dropout_mean_px": "px", "depth_step_at_1m_mm": "mm",
+        "jump_holes_left": "", "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "",
+        "isolated_one_surface_share": "", "wide_band_hole_share": "", "isolated_vertical_share": ""}  # fmt: skip
 
 
 def _print(name: str, stats: dict) -> None:

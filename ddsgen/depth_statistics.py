@@ -72,6 +72,7 @@ STATISTIC_LABELS = {
     "corner_valid_share": "corner valid share",
     "isolated_dropouts": "isolated dropouts / frame",
     "isolated_dropout_share": "  their share of invalid",
+    "isolated_dropout_mean_px": "  their mean size (px)",
     "depth_step_at_1m_mm": "depth step at 1 m (mm)",
     "jump_holes_left": "depth jumps, hole left of near",
     "jump_holes_right": "depth jumps, hole right of near",
@@ -123,6 +124,11 @@ def _count_and_share(invalid: np.ndarray, labels: np.ndarray, stats: np.ndarray,
     invalid_in_region = int((invalid & region).sum())
     isolated_pixels = int((isolated[labels] & region & invalid).sum())  # a pixel in the region: its component touches it
     return int(isolated.sum()), (isolated_pixels / invalid_in_region if invalid_in_region else 0.0)
+
+
+def _mean_size(stats: np.ndarray, isolated: np.ndarray) -> float | None:
+    """Mean area (px, whole components) of the isolated dropouts; None without any."""
+    return float(stats[isolated, cv2.CC_STAT_AREA].mean()) if isolated.any() else None
 
 
 def _isolated_components(valid: np.ndarray, region: np.ndarray | None,
@@ -341,7 +347,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     """The hole, validity and quantisation statistics of one frame, as a JSON-ready dict.
 
     Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),
-    ``isolated_dropout_share`` (of the invalid pixels), ``depth_step_at_1m_mm``, ``jump_holes_left``,
+    ``isolated_dropout_share`` (of the invalid pixels), ``isolated_dropout_mean_px`` (their mean size; None
+    without any), ``depth_step_at_1m_mm``, ``jump_holes_left``,
     ``jump_holes_right`` (:func:`holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
     (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
     None without isolated dropouts), ``wide_band_hole_share`` (:func:`wide_band_holes`; None without such jumps),
@@ -365,6 +372,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "corner_valid_share": corner,
         "isolated_dropouts": count,
         "isolated_dropout_share": share,
+        "isolated_dropout_mean_px": _mean_size(*components[2:]),
         "depth_step_at_1m_mm": None if step is None else step * 1000.0,
         "jump_holes_left": left,
         "jump_holes_right": right,
