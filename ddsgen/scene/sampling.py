@@ -320,11 +320,11 @@ def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generat
     def fits(world_polygon: np.ndarray) -> bool:
         return _footprint_fits(world_polygon, wall_y, bounds, taken, gap)
 
+    centre, half = np.asarray(group.centre), np.asarray(group.area) / 2.0
     placed = []
     for _ in range(int(rng.integers(group.count[0], group.count[1] + 1))):
         spec = group.objects[_pick(rng, group.objects, False, set())]
-        dropped = _drop(rng, spec, np.asarray(group.centre), np.asarray(group.area) / 2.0, group.max_tries, fits,
-                        base_z, max_height)  # fmt: skip
+        dropped = _drop(rng, spec, centre, half, group.max_tries, fits, base_z, max_height)
         if dropped is None:
             continue
         world_T_obj, albedo, world_polygon = dropped
