@@ -8,74 +8,31 @@ cached in ddsgen's cache folder, loaded with ctypes; thin wrappers that call the
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import logging
-import os
-import platform
-import subprocess
-import tempfile
 import threading
-from importlib.resources import files
-from pathlib import Path
 
 import torch
 
+from ddsgen.ckernel import c_source, load_c_library
 from ddsgen.sensor.matcher.reference import RefineGeometry, _Reference
-
-log = logging.getLogger(__name__)
 
 _KERNEL = None
 _KERNEL_TRIED = False
 _KERNEL_LOCK = threading.Lock()
 
 
-def _c_source() -> bytes:
-    """The kernels' C source, shipped as package data (csrc/zncc.c)."""
-    return files(__package__).joinpath("csrc", "zncc.c").read_bytes()
-
-
-def _cpu_tag() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as handle:
-            for line in handle:
-                if line.startswith("flags"):
-                    return line
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _load_kernel():
-    """Compile csrc/zncc.c (once per source, compiler, flags and CPU: cached in ddsgen's cache
-    folder) and load it; memoised per process. Returns None when there is no C compiler or
-    OpenMP (``$CC``, default ``cc``), or with ``DDSGEN_NO_C_KERNEL`` set: then the torch path
-    does the work."""
+    """Compile csrc/zncc.c (:func:`ddsgen.ckernel.load_c_library`: once per source, compiler, flags and
+    CPU, cached in ddsgen's cache folder) and load it; memoised per process. Returns None when there is
+    no C compiler or OpenMP (``$CC``, default ``cc``), or with ``DDSGEN_NO_C_KERNEL`` set: then the torch
+    path does the work."""
     global _KERNEL, _KERNEL_TRIED
     with _KERNEL_LOCK:
         if _KERNEL_TRIED:
             return _KERNEL
         _KERNEL_TRIED = True
-        if os.environ.get("DDSGEN_NO_C_KERNEL"):
-            return None
-        from ddsgen.cache import cache_dir
-
-        compiler = os.environ.get("CC", "cc")
         flags = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=gnu11"]
-        try:
-            source = _c_source()
-            digest = hashlib.sha256(source + "\n".join(["", compiler, *flags, _cpu_tag()]).encode()).hexdigest()[:16]
-            folder = cache_dir() / "kernels"
-            lib_path = folder / f"zncc_{digest}.so"
-            if not lib_path.exists():
-                folder.mkdir(parents=True, exist_ok=True)
-                with tempfile.TemporaryDirectory(dir=folder) as tmp:
-                    src = Path(tmp) / "zncc.c"
-                    src.write_bytes(source)
-                    out = Path(tmp) / "zncc.so"
-                    subprocess.run([compiler, *flags, str(src), "-o", str(out), "-lm"],
-                                   check=True, capture_output=True, timeout=120)  # fmt: skip
-                    os.replace(out, lib_path)  # atomic: concurrent workers never see half a file
-            lib = ctypes.CDLL(str(lib_path))
+        lib = load_c_library(c_source(__package__, "csrc", "zncc.c"), "zncc", flags, "matcher", "torch path")
+        if lib is not None:
             p, i = ctypes.c_void_p, ctypes.c_int
             lib.ddsgen_zncc_search.argtypes = [p, i, p, i, p, p, p, p, p, i, i, i, i, i, i, p, p, p, p, ctypes.c_float, ctypes.c_float, i]
             f = ctypes.c_float
@@ -88,10 +45,7 @@ def _load_kernel():
             for fn in (lib.ddsgen_zncc_search, lib.ddsgen_refine, lib.ddsgen_window_cross_grad, lib.ddsgen_observed_stats,
                        lib.ddsgen_confirm_by_unique_neighbour):
                 fn.restype = None
-            _KERNEL = lib
-        except (OSError, subprocess.SubprocessError) as error:
-            log.warning("ddsgen matcher: C kernel unavailable (%s); using the torch path", error)
-            _KERNEL = None
+        _KERNEL = lib
         return _KERNEL
 
 
