@@ -1,32 +1,30 @@
-"""Ray casting with Embree (embreex): clean depth, hit points, normals, instance ids, projector shadow.
+"""Ray casting: clean depth, hit points, normals, instance ids, projector shadow.
 
 Primary rays use the *unnormalised* directions ``K^-1 [u, v, 1]`` (z = 1), so the hit
 parameter ``t`` is the depth z itself. Pixel centres are at integer ``(u, v)`` (OpenCV).
 
 * Planar convex background pieces (ground, table top, walls, floor) are intersected analytically
   (ddsgen/raycast_planes.py); a BVH holding the huge ground triangles slows every ray.
-* Every other mesh has one Embree BVH in its own object frame, built once per process
-  and cached; rays are rotated into the object frame (t is unchanged).
-* Exact image-space culls: a mesh can only be hit by rays inside its projected box, and
-  a shadow segment S -> projector (+b, 0, 0) projects onto image row v_S for u >= u_S, so it
-  can only meet a mesh whose box spans that row to the right of u_S.
+* Every other mesh: the C raster (ddsgen/raster.py) ray-casts the pixel centres inside each triangle's
+  projection, several times faster than embreex's per-ray calls; without a C compiler, Embree
+  (ddsgen/raycast_embree.py: one BVH per mesh, exact culls). Both give the same hits (tests/test_raster.py).
 
 Projector shadow: from each hit point P (camera frame), offset by the shadow bias ``xi``
-along the camera-facing normal, one occlusion ray towards the projector centre, capped
-just before it. ``shadow`` is True where that ray is blocked or where the surface faces
-away from the projector (n . (t_p - P) <= 0). No per-pixel Python loops.
-(embreex's ``run`` does not release the GIL in this build: threads do not help.)
+along the camera-facing normal, one segment towards the projector centre, capped just before
+it. ``shadow`` is True where that segment is blocked or where the surface faces away from the
+projector (n . (t_p - P) <= 0). No per-pixel Python loops.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import weakref
 
 import numpy as np
 
 from ddsgen.preset import Intrinsics
+from ddsgen.raster import NEAR_CLIP_M, raster_available, raster_hits, raster_shadow
+from ddsgen.raycast_embree import MeshBVH, image_box, mesh_bvh, primary_hits_embree, rays_in_box, shadow_blocked_embree
 from ddsgen.raycast_planes import Polygon, as_polygon, primary_depth, segments_blocked
 
 
@@ -79,47 +77,6 @@ def _camera_vertices(placed, cam_T_world: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces)
 
 
-@dataclasses.dataclass
-class _MeshBVH:
-    mesh_ref: "weakref.ref"
-    fingerprint: tuple
-    embree: object  # EmbreeScene with the mesh in its own object frame
-    hull: np.ndarray  # (K, 3) float64 convex-hull vertices (for image boxes)
-    centre: np.ndarray  # (3,) float64 centre of the hull's bounding box (object frame) ...
-    radius: float  # ... and the radius of the sphere about it that holds every vertex (m)
-
-
-_BVH_CACHE: dict[int, _MeshBVH] = {}
-
-
-def _mesh_bvh(mesh) -> _MeshBVH:
-    """Embree BVH of a mesh in its object frame, built once per process per mesh object."""
-    from embreex import rtcore_scene
-    from embreex.mesh_construction import TriangleMesh
-
-    vertices = np.asarray(mesh.vertices)
-    faces = np.asarray(mesh.faces)
-    fingerprint = (vertices.shape, faces.shape, float(vertices[::97].sum()), int(faces[::97].sum()))
-    entry = _BVH_CACHE.get(id(mesh))
-    if entry is not None and entry.mesh_ref() is mesh and entry.fingerprint == fingerprint:
-        return entry
-    if len(_BVH_CACHE) > 256:
-        for key in [k for k, e in _BVH_CACHE.items() if e.mesh_ref() is None]:
-            del _BVH_CACHE[key]
-    embree = rtcore_scene.EmbreeScene()
-    TriangleMesh(embree, np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.int32))
-    try:
-        with np.errstate(invalid="ignore", divide="ignore"):  # a flat mesh's hull: trimesh divides by its 0 volume
-            hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
-    except Exception:  # degenerate (flat) meshes: all vertices do
-        hull = np.asarray(vertices, dtype=np.float64)
-    centre = (hull.min(axis=0) + hull.max(axis=0)) / 2.0
-    radius = float(np.sqrt(((np.asarray(vertices, dtype=np.float64) - centre) ** 2).sum(axis=1).max()))
-    entry = _MeshBVH(weakref.ref(mesh), fingerprint, embree, hull, centre, radius)
-    _BVH_CACHE[id(mesh)] = entry
-    return entry
-
-
 def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float, shadows: bool = True) -> RayHits:
     """Ray-cast a :class:`~ddsgen.scene.sampling.FrameScene` for a pinhole camera.
 
@@ -144,7 +101,7 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     n_rays = directions.shape[0]
 
     polygons: list[tuple[int, Polygon]] = []  # (index into placed, polygon in the camera frame)
-    meshes: list[tuple[int, np.ndarray, _MeshBVH, tuple | None]] = []  # (index, cam_T_obj, BVH, image box)
+    meshes: list[tuple[int, np.ndarray, MeshBVH, tuple | None]] = []  # (index, cam_T_obj, BVH, image box)
     for k, p in enumerate(placed):
         cam_T_obj = cam_T_world @ np.asarray(p.world_T_obj, dtype=np.float64)
         if p.id == 0 and len(p.mesh.faces) <= 64:
@@ -152,9 +109,9 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
             if polygon is not None:
                 polygons.append((k, polygon))
                 continue
-        bvh = _mesh_bvh(p.mesh)
+        bvh = mesh_bvh(p.mesh)
         hull = bvh.hull @ cam_T_obj[:3, :3].T + cam_T_obj[:3, 3]
-        meshes.append((k, cam_T_obj, bvh, _image_box(hull, intrinsics)))
+        meshes.append((k, cam_T_obj, bvh, image_box(hull, intrinsics)))
 
     # --- primary rays: nearest of the analytic polygons and the meshes
     best_t = np.full((height, width), np.inf, dtype=np.float32)
@@ -172,32 +129,16 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     mesh_normals = np.zeros((n_rays, 3), dtype=np.float32) if meshes else None
     triangle = np.full(n_rays, -1, dtype=np.int32)
     barycentric = np.zeros((n_rays, 2), dtype=np.float32)
-    coverage: dict[int, int] = {}
-    for k, cam_T_obj, bvh, box in meshes:
-        # Rays go into the object frame (rotation only: t stays the depth); only rays in its image box can hit it.
+    for k, _, _, _ in meshes:
         is_mesh[k] = True
-        rays = _rays_in_box(box, width, height)
-        if rays is None or not len(rays):
-            coverage[placed[k].id] = 0
-            continue
-        R = cam_T_obj[:3, :3].astype(np.float32)
-        origin = (-(cam_T_obj[:3, :3].T @ cam_T_obj[:3, 3])).astype(np.float32)
-        d = directions[rays]
-        result = bvh.embree.run(np.broadcast_to(origin, d.shape).copy(), d @ R, output=1)
-        geom = result["geomID"]
-        if placed[k].id > 0:
-            coverage[placed[k].id] = int(np.count_nonzero(geom >= 0))
-        closer = np.flatnonzero((geom >= 0) & (result["tfar"] < best_t[rays]))
-        index = rays[closer]
-        best_t[index] = result["tfar"][closer]
-        owner[index] = k
-        n = result["Ng"][closer] @ R.T
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(1e-30))
-        n[np.einsum("ij,ij->i", n, d[closer]) > 0] *= -1.0
-        mesh_normals[index] = n
-        triangle[index] = result["primID"][closer]
-        barycentric[index, 0] = result["u"][closer]
-        barycentric[index, 1] = result["v"][closer]
+    camera_meshes = None  # (index, camera-frame vertices, faces) per mesh when the C raster casts them
+    if meshes and raster_available():
+        camera_meshes = [(k, *_camera_vertices(placed[k], cam_T_world)) for k, _, _, _ in meshes]
+        alone = raster_hits(camera_meshes, intrinsics, best_t, owner, triangle, barycentric, mesh_normals)
+        coverage = {placed[k].id: n for k, n in alone.items() if placed[k].id > 0}
+    else:  # no C compiler: Embree
+        coverage = primary_hits_embree(meshes, placed, directions, width, height, best_t, owner, triangle, barycentric,
+                                       mesh_normals)  # fmt: skip
     # np.take, not table[owner]: several times faster for these small tables (owner -1 takes the last row)
     normals = np.take(table, owner, axis=0)
     if meshes:
@@ -218,7 +159,8 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
 
     shadow = None
     if shadows:
-        shadow = _shadow_rays(points, normals, hit, polygons, meshes, intrinsics, baseline_m, shadow_bias_m)
+        shadow = _shadow_rays(points, normals, hit, polygons, meshes, camera_meshes, intrinsics, baseline_m,
+                              shadow_bias_m)
 
     shape2, shape3 = (height, width), (height, width, 3)
     return RayHits(
@@ -236,11 +178,12 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     )
 
 
-def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics, baseline_m: float,
+def _shadow_rays(points, normals, hit, polygons, meshes, camera_meshes, intrinsics: Intrinsics, baseline_m: float,
                  shadow_bias_m: float) -> np.ndarray:  # fmt: skip
     """(H*W,) bool: hit points the projector at (+b, 0, 0) does not see (facing away, or a segment from the
     biased point S towards the projector, capped before it, crosses a polygon or mesh). ``points``, ``normals``:
-    (H*W, 3) float32 in the camera frame; ``hit`` (H*W,) bool."""
+    (H*W, 3) float32 in the camera frame; ``hit`` (H*W,) bool. ``camera_meshes``: the meshes in the camera
+    frame for the C raster (:func:`ddsgen.raster.raster_shadow`), or None: Embree tests every segment."""
     # Computed on all pixels (no gathers) and masked with `hit` at the end.
     projector = np.array([baseline_m, 0.0, 0.0], dtype=np.float64)
     start = points + np.float32(shadow_bias_m) * normals
@@ -249,90 +192,26 @@ def _shadow_rays(points, normals, hit, polygons, meshes, intrinsics: Intrinsics,
     blocked = normals[:, 0] * np.float32(baseline_m) - n_dot_p <= 0.0
     for _, polygon in polygons:
         blocked |= segments_blocked(polygon, start, projector)
-    if meshes:
-        # The segment S -> projector projects onto image row v_S, columns u >= u_S (a half-line), so it can only
-        # meet a mesh whose projected box spans that row to the right of u_S (exact, conservative cull).
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv_z = np.float32(1.0) / start[:, 2]
-            u_s = start[:, 0] * inv_z * np.float32(intrinsics.fx) + np.float32(intrinsics.cx)
-            v_s = start[:, 1] * inv_z * np.float32(intrinsics.fy) + np.float32(intrinsics.cy)
-        open_rays = hit & ~blocked
-        start_xyz = [np.ascontiguousarray(start[:, axis]) for axis in range(3)]  # 1-D gathers for the sphere cull
-        no_cull = open_rays & ~(start[:, 2] > 0)  # start at/behind the camera plane (or nan): no cull
-        for k, cam_T_obj, bvh, box in meshes:
-            if box is None:
-                todo = np.flatnonzero(open_rays)
-            else:
-                u0, v0, u1, v1 = box
-                todo = np.flatnonzero(
-                    (open_rays & (v_s >= v0 - 1.0) & (v_s <= v1 + 1.0) & (u_s <= u1 + 1.0)) | no_cull
-                )
-            if not len(todo):
-                continue
-            todo = todo[_segments_near_sphere(*(axis[todo] for axis in start_xyz), np.float32(baseline_m),
-                                              cam_T_obj[:3, :3] @ bvh.centre + cam_T_obj[:3, 3], bvh.radius)]  # fmt: skip
-            if not len(todo):
-                continue
-            R = cam_T_obj[:3, :3].astype(np.float32)
-            s = start[todo]
-            occluded = bvh.embree.run(
-                np.ascontiguousarray((s - cam_T_obj[:3, 3].astype(np.float32)) @ R),
-                np.ascontiguousarray((projector.astype(np.float32)[None, :] - s) @ R),
-                dists=np.full(len(todo), 1.0 - 1e-6, dtype=np.float32),
-                query="OCCLUDED",
-            )
-            blocked[todo] |= occluded >= 0
-            open_rays[todo] &= ~(occluded >= 0)
+    if not meshes:
+        return blocked & hit
+    open_rays = hit & ~blocked
+    if camera_meshes is not None:
+        # The raster takes the segments that start in front of the camera plane; Embree any others (or nan).
+        near = open_rays & ~(start[:, 2] >= np.float32(NEAR_CLIP_M))
+        ahead = np.flatnonzero(open_rays & ~near)
+        blocked[ahead] |= raster_shadow(camera_meshes, start[ahead], baseline_m, intrinsics)
+        open_rays = near
+    if open_rays.any():
+        blocked |= shadow_blocked_embree(start, open_rays, meshes, intrinsics, projector)
     return blocked & hit
-
-
-def _segments_near_sphere(x: np.ndarray, y: np.ndarray, z: np.ndarray, projector_x: np.float32, centre: np.ndarray,
-                          radius: float) -> np.ndarray:  # fmt: skip
-    """(M,) bool: the segments from the points (x, y, z) (float32 (M,) each, camera frame) to the projector at
-    (projector_x, 0, 0) that come within ``radius`` (plus a margin far above float32 rounding) of ``centre``: the
-    only ones that can meet a mesh inside that sphere (an exact cull: Embree is asked about the others for nothing).
-    Written per coordinate: numpy's sums over a length-3 axis are several times slower."""
-    ax, ay, az = projector_x - x, -y, -z  # along the segment
-    cx, cy, cz = (np.float32(c) for c in centre)
-    tx, ty, tz = cx - x, cy - y, cz - z  # to the centre
-    length_sq = np.maximum(ax * ax + ay * ay + az * az, np.float32(1e-30))
-    fraction = np.clip((tx * ax + ty * ay + tz * az) / length_sq, np.float32(0.0), np.float32(1.0))
-    gx, gy, gz = tx - fraction * ax, ty - fraction * ay, tz - fraction * az
-    reach = np.float32(radius * (1.0 + 1e-3) + 1e-4)
-    return gx * gx + gy * gy + gz * gz <= reach * reach
-
-
-def _image_box(vertices_cam: np.ndarray, intrinsics: Intrinsics):
-    """Continuous pixel box (u0, v0, u1, v1) of the projection of a mesh entirely in front of the camera;
-    None if some vertex is at or behind the camera plane (then no image-space cull is valid)."""
-    z = vertices_cam[:, 2].astype(np.float64)
-    if not np.all(z > 1e-6):
-        return None
-    u = intrinsics.fx * vertices_cam[:, 0] / z + intrinsics.cx
-    v = intrinsics.fy * vertices_cam[:, 1] / z + intrinsics.cy
-    return float(u.min()) - 0.5, float(v.min()) - 0.5, float(u.max()) + 0.5, float(v.max()) + 0.5
-
-
-def _rays_in_box(box, width: int, height: int) -> np.ndarray | None:
-    """Flat indices of the pixels whose centres lie in a continuous box (all pixels for None)."""
-    if box is None:
-        return np.arange(width * height)
-    u0, v0, u1, v1 = box
-    iu0, iv0 = max(int(np.ceil(u0)), 0), max(int(np.ceil(v0)), 0)
-    iu1, iv1 = min(int(np.floor(u1)), width - 1), min(int(np.floor(v1)), height - 1)
-    if iu0 > iu1 or iv0 > iv1:
-        return np.empty(0, dtype=np.int64)
-    cols = np.arange(iu0, iu1 + 1)
-    rows = np.arange(iv0, iv1 + 1)
-    return (rows[:, None] * width + cols[None, :]).reshape(-1)
 
 
 def _alone_pixel_count(placed, cam_T_world: np.ndarray, intrinsics: Intrinsics) -> int:
     """Pixels the object covers when ray-cast alone (only rays inside its projected box are cast)."""
     cam_T_obj = cam_T_world @ np.asarray(placed.world_T_obj, dtype=np.float64)
-    bvh = _mesh_bvh(placed.mesh)
-    box = _image_box(bvh.hull @ cam_T_obj[:3, :3].T + cam_T_obj[:3, 3], intrinsics)
-    rays = _rays_in_box(box, int(intrinsics.width), int(intrinsics.height))
+    bvh = mesh_bvh(placed.mesh)
+    box = image_box(bvh.hull @ cam_T_obj[:3, :3].T + cam_T_obj[:3, 3], intrinsics)
+    rays = rays_in_box(box, int(intrinsics.width), int(intrinsics.height))
     if not len(rays):
         return 0
     R = cam_T_obj[:3, :3].astype(np.float32)

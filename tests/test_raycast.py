@@ -1,4 +1,5 @@
-"""Physics of the ray caster: z-depth, normals, projector shadows, instance masks and labels."""
+"""Physics of the ray caster: z-depth, normals, projector shadows, instance masks and labels; every test runs
+with the C raster (when a compiler is there) and with Embree alone (a machine without one)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,18 @@ from ddsgen.raycast import cast, object_labels, ray_directions
 from ddsgen.scene.sampling import FrameScene, PlacedObject, invert_pose, sample_frame
 from ddsgen.scene.scenelist import load_scene_list
 from ddsgen.scene.shapes import make_shape, plane_mesh
+
+@pytest.fixture(autouse=True, params=["raster", "embree"])
+def caster(request, monkeypatch):
+    """Which path casts the meshes: the C raster (ddsgen/raster.py) or Embree (ddsgen/raycast_embree.py)."""
+    import ddsgen.raster as raster
+
+    if request.param == "raster" and not raster.raster_available():
+        pytest.skip("no C compiler: the raster is not built")
+    if request.param == "embree":
+        monkeypatch.setattr(raster, "_library", lambda: None)
+    return request.param
+
 
 K_SMALL = Intrinsics(width=64, height=48, fx=50.0, fy=52.0, cx=31.5, cy=23.5)
 K_MID = Intrinsics(width=320, height=240, fx=300.0, fy=300.0, cx=159.5, cy=119.5)
