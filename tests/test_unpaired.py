@@ -277,7 +277,7 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     hidden = {"projector_falloff_exponent": 12.0, "cleanup_hole_px": 0}
     device = stock.replace(**hidden)
     scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
-    depths = render_depths(device, cast_scenes(device, scenes_a, 8, seed=11), seed=11)
+    depths = render_depths(device, cast_scenes(device, scenes_a, 24, seed=11), seed=11)
     real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
     tabletop = _scene_list(("ball", "ring", "cone", "bracket", "box"), [0.8, 1.5], wall=False)
     result = fit_unpaired(stock, real, cast_scenes(stock, tabletop, 6, seed=3), seed=0, bootstrap=40,
@@ -286,7 +286,10 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     falloff, sigma = result.after["projector_falloff_exponent"], result.uncertainty["projector_falloff_exponent"]
     # The value moves from the stock's 4 to within 3 of the hidden 12, and the reported spread covers the rest. (At
     # 160x120 over 8 real frames the radius term varies by 2e-4 over the whole range, so a resample of the frames
-    # moves its minimum by several units: measured sigma 5.5, from the bootstrap over the whole range.)
+    # moves its minimum by several units: measured sigma 5.5, from the bootstrap over the whole range.) 24 real
+    # frames, not 8: with 8, two of five (real, fit) seed pairs recovered it (11/3, 11/4; the stock's 4.0 in two,
+    # 8.5 in one; session 39), and a redraw of the speckle (seeded by a hash of the cast geometry) turned this test's
+    # pair from 10.6 to 4.0. With 24: four of five (10.8-13.2, sigma 1.6-2.9; 13/5 stays at 4.0).
     assert abs(falloff - 12.0) < 3.0 and abs(falloff - 12.0) <= 2 * sigma
     assert not result.bootstrap["projector_falloff_exponent"]["scene_content"]["kept_input_value"]
     assert result.distance_after["radius"] < 0.5 * result.distance_before["radius"]
