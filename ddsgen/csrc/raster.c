@@ -26,6 +26,45 @@
  * ddsgen/raycast_planes.py). */
 #define NEAR_CLIP_M 1e-4
 
+/* One face's corners (double) and its edges from p0. */
+typedef struct {
+    double p0[3], p1[3], p2[3], e1[3], e2[3];
+} Triangle;
+
+static inline Triangle load_triangle(const float *vertices, const int32_t *faces, int64_t f)
+{
+    Triangle tri;
+    for (int k = 0; k < 3; k++) {
+        tri.p0[k] = vertices[3 * (int64_t)faces[3 * f] + k];
+        tri.p1[k] = vertices[3 * (int64_t)faces[3 * f + 1] + k];
+        tri.p2[k] = vertices[3 * (int64_t)faces[3 * f + 2] + k];
+    }
+    for (int k = 0; k < 3; k++) tri.e1[k] = tri.p1[k] - tri.p0[k], tri.e2[k] = tri.p2[k] - tri.p0[k];
+    return tri;
+}
+
+/* Moller-Trumbore: whether the ray o + t d (d not normalised) meets the triangle at t > 0; then its t and
+ * barycentrics (b0, b1) with P = (1 - b0 - b1) p0 + b0 p1 + b1 p2 (Embree's u, v). Inlined: called per pixel
+ * (a call through pointers cost the raster ~15 %). */
+static inline __attribute__((always_inline)) int ray_hits_triangle(const Triangle *tri, const double *o,
+                                                                    const double *d, double *t, double *b0,
+                                                                    double *b1)
+{
+    const double *e1 = tri->e1, *e2 = tri->e2;
+    double pvec[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0]};
+    double det = e1[0] * pvec[0] + e1[1] * pvec[1] + e1[2] * pvec[2];
+    if (det == 0.0) return 0; /* the ray lies in the triangle's plane */
+    double inv = 1.0 / det;
+    double s[3] = {o[0] - tri->p0[0], o[1] - tri->p0[1], o[2] - tri->p0[2]};
+    *b0 = (s[0] * pvec[0] + s[1] * pvec[1] + s[2] * pvec[2]) * inv;
+    if (*b0 < 0.0 || *b0 > 1.0) return 0;
+    double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2], s[0] * e1[1] - s[1] * e1[0]};
+    *b1 = (d[0] * q[0] + d[1] * q[1] + d[2] * q[2]) * inv;
+    if (*b1 < 0.0 || *b0 + *b1 > 1.0) return 0;
+    *t = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * inv;
+    return *t > 0.0;
+}
+
 /* The projection of triangle (p0, p1, p2)'s part at z >= NEAR_CLIP_M (clipped against that plane) into
  * a camera at (eye_x, 0, 0) with the camera's orientation and intrinsics: a convex polygon of 0, 3 or 4
  * points (pu, pv) in order. Returns the number of points. */
@@ -96,15 +135,12 @@ void ddsgen_raster_hits(const float *vertices, const int32_t *faces, const int64
      * depth (H*W,) in/out (inf = nothing yet), owner / triangle (H*W,) int32 in/out, barycentric (H*W, 2),
      * normal (H*W, 3) out where this kernel wins; coverage (n_meshes,) out; stamp (H*W,) int32 scratch set
      * to -1 by the caller. */
+    const double origin[3] = {0.0, 0.0, 0.0};
     for (int m = 0; m < n_meshes; m++) {
         int64_t covered = 0;
         for (int64_t f = face_start[m]; f < face_start[m + 1]; f++) {
-            const float *a = vertices + 3 * (int64_t)faces[3 * f];
-            const float *b = vertices + 3 * (int64_t)faces[3 * f + 1];
-            const float *c = vertices + 3 * (int64_t)faces[3 * f + 2];
-            double p0[3] = {a[0], a[1], a[2]}, p1[3] = {b[0], b[1], b[2]}, p2[3] = {c[0], c[1], c[2]};
-            double e1[3] = {p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]};
-            double e2[3] = {p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]};
+            Triangle tri = load_triangle(vertices, faces, f);
+            const double *p0 = tri.p0, *e1 = tri.e1, *e2 = tri.e2;
             double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
                            e1[0] * e2[1] - e1[1] * e2[0]};
             double n_len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
@@ -117,7 +153,7 @@ void ddsgen_raster_hits(const float *vertices, const int32_t *faces, const int64
              * nearer than NEAR_CLIP_M outside it are lost: 0.1 mm from the camera, far below any sensor's
              * range. */
             double pu[4], pv[4], v_lo, v_hi;
-            int n_points = clipped_projection(p0, p1, p2, 0.0, fx, fy, cx, cy, pu, pv);
+            int n_points = clipped_projection(tri.p0, tri.p1, tri.p2, 0.0, fx, fy, cx, cy, pu, pv);
             if (n_points < 3) continue; /* wholly behind the plane */
             polygon_v_range(pv, n_points, &v_lo, &v_hi);
             /* Margins far above rounding: the exact test below decides, the spans only limit the work. */
@@ -128,22 +164,8 @@ void ddsgen_raster_hits(const float *vertices, const int32_t *faces, const int64
                 int col0 = (int)fmax(ceil(u_lo - 1e-6), 0.0), col1 = (int)fmin(floor(u_hi + 1e-6), width - 1.0);
                 double dy = (row - cy) / fy;
                 for (int col = col0; col <= col1; col++) {
-                    double d[3] = {(col - cx) / fx, dy, 1.0};
-                    /* Moller-Trumbore: origin 0, so s = -P0. */
-                    double pvec[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2],
-                                      d[0] * e2[1] - d[1] * e2[0]};
-                    double det = e1[0] * pvec[0] + e1[1] * pvec[1] + e1[2] * pvec[2];
-                    if (det == 0.0) continue; /* the ray lies in the triangle's plane */
-                    double inv = 1.0 / det;
-                    double s[3] = {-p0[0], -p0[1], -p0[2]};
-                    double b0 = (s[0] * pvec[0] + s[1] * pvec[1] + s[2] * pvec[2]) * inv;
-                    if (b0 < 0.0 || b0 > 1.0) continue;
-                    double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
-                                   s[0] * e1[1] - s[1] * e1[0]};
-                    double b1 = (d[0] * q[0] + d[1] * q[1] + d[2] * q[2]) * inv;
-                    if (b1 < 0.0 || b0 + b1 > 1.0) continue;
-                    double t = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * inv;
-                    if (!(t > 0.0)) continue;
+                    double d[3] = {(col - cx) / fx, dy, 1.0}, t, b0, b1;
+                    if (!ray_hits_triangle(&tri, origin, d, &t, &b0, &b1)) continue;
                     int64_t pixel = (int64_t)row * width + col;
                     if (stamp[pixel] != m) {
                         stamp[pixel] = m;
@@ -166,24 +188,12 @@ void ddsgen_raster_hits(const float *vertices, const int32_t *faces, const int64
     }
 }
 
-/* Segment P -> S (P the projector at (projector_x, 0, 0)) crosses triangle (p0, e1, e2) strictly between
- * P and just before S (Moller-Trumbore, ray parameter in (0, 1 - 1e-6), as Embree's capped occlusion ray). */
-static int segment_crosses(const double *p0, const double *e1, const double *e2, double projector_x,
-                           const float *s)
+/* Whether the segment P -> S (P the projector at (projector_x, 0, 0)) crosses the triangle strictly between P
+ * and just before S (ray parameter in (0, 1 - 1e-6), as Embree's capped occlusion ray). */
+static int segment_crosses(const Triangle *tri, double projector_x, const float *s)
 {
-    double d[3] = {s[0] - projector_x, s[1], s[2]};
-    double pv[3] = {d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0]};
-    double det = e1[0] * pv[0] + e1[1] * pv[1] + e1[2] * pv[2];
-    if (det == 0.0) return 0;
-    double inv = 1.0 / det;
-    double o[3] = {projector_x - p0[0], -p0[1], -p0[2]};
-    double b0 = (o[0] * pv[0] + o[1] * pv[1] + o[2] * pv[2]) * inv;
-    if (b0 < 0.0 || b0 > 1.0) return 0;
-    double q[3] = {o[1] * e1[2] - o[2] * e1[1], o[2] * e1[0] - o[0] * e1[2], o[0] * e1[1] - o[1] * e1[0]};
-    double b1 = (d[0] * q[0] + d[1] * q[1] + d[2] * q[2]) * inv;
-    if (b1 < 0.0 || b0 + b1 > 1.0) return 0;
-    double t = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * inv;
-    return t > 0.0 && t < 1.0 - 1e-6;
+    double o[3] = {projector_x, 0.0, 0.0}, d[3] = {s[0] - projector_x, s[1], s[2]}, t, b0, b1;
+    return ray_hits_triangle(tri, o, d, &t, &b0, &b1) && t < 1.0 - 1e-6;
 }
 
 /* Largest grid of projector-image cells, per start point: bounds the memory when the points project far apart. */
@@ -233,14 +243,9 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
     for (int64_t c = n_cells; c > 0; c--) first[c] = first[c - 1];
     first[0] = 0;
     for (int64_t f = 0; f < n_faces; f++) {
-        const float *a = vertices + 3 * (int64_t)faces[3 * f];
-        const float *b = vertices + 3 * (int64_t)faces[3 * f + 1];
-        const float *c = vertices + 3 * (int64_t)faces[3 * f + 2];
-        double p0[3] = {a[0], a[1], a[2]}, p1[3] = {b[0], b[1], b[2]}, p2[3] = {c[0], c[1], c[2]};
-        double e1[3] = {p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]};
-        double e2[3] = {p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]};
+        Triangle tri = load_triangle(vertices, faces, f);
         double pu[4], pv[4], v_lo, v_hi;
-        int n_points = clipped_projection(p0, p1, p2, projector_x, fx, fy, cx, cy, pu, pv);
+        int n_points = clipped_projection(tri.p0, tri.p1, tri.p2, projector_x, fx, fy, cx, cy, pu, pv);
         if (n_points < 3) continue;
         polygon_v_range(pv, n_points, &v_lo, &v_hi);
         /* Cell rows, then per row the cells whose points can project into the polygon (margins far above
@@ -259,7 +264,7 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
                 int64_t cell_index = gv * grid_w + gu;
                 for (int64_t j = first[cell_index]; j < first[cell_index + 1]; j++) {
                     int64_t i = order[j];
-                    if (!blocked[i] && segment_crosses(p0, e1, e2, projector_x, starts + 3 * i)) blocked[i] = 1;
+                    if (!blocked[i] && segment_crosses(&tri, projector_x, starts + 3 * i)) blocked[i] = 1;
                 }
             }
         }
