@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddsgen.depth_statistics import (corner_valid_share, depth_edges, depth_step_at_1m, holes_at_depth_jumps,
+from ddsgen.depth_statistics import (blind_border_bands, corner_valid_share, depth_edges, depth_step_at_1m, holes_at_depth_jumps,
                                      isolated_dropout_orientation, isolated_dropouts, isolated_dropouts_by_rim,
                                      realism_statistics, wide_band_holes)
 
@@ -33,6 +33,21 @@ def test_isolated_dropouts_mean_size_is_over_whole_components():
     valid[70:90, 0:40] = False  # 800 px: clustered, not counted
     assert realism_statistics(np.where(valid, 1.0, 0.0))["isolated_dropout_mean_px"] == pytest.approx(5.0)
     assert realism_statistics(np.ones((50, 50)))["isolated_dropout_mean_px"] is None
+
+
+def test_the_share_off_the_blind_border_leaves_the_border_bands_out_of_the_invalid_pixels():
+    valid = np.ones((100, 120), bool)
+    valid[:, -10:] = False  # a registration border: 10 blind columns on the right ...
+    valid[:3, :] = False  # ... and 3 rows at the top
+    valid[40, 40] = valid[40, 41] = valid[41, 40] = valid[41, 41] = False  # a 4 px isolated dropout
+    valid[60:65, 20:26] = False  # a 30 px hole: not isolated
+    valid[50, :30] = False  # a line across from the left edge: not a band (other rows of those columns are valid)
+    bands = blind_border_bands(valid)
+    assert bands[:, -10:].all() and bands[:3].all() and bands.sum() == 100 * 10 + 3 * 110
+    s = realism_statistics(np.where(valid, 1.0, 0.0))
+    assert s["isolated_dropout_share"] == pytest.approx(4 / (1330 + 4 + 30 + 30))
+    assert s["isolated_dropout_share_off_border"] == pytest.approx(4 / (4 + 30 + 30))
+    assert blind_border_bands(np.zeros((5, 6), bool)).all() and not blind_border_bands(np.ones((5, 6), bool)).any()
 
 
 def test_corner_valid_share_sees_only_the_corners():
@@ -107,6 +122,11 @@ def test_real_primesense_frames_have_clustered_holes_and_eighth_pixel_steps():
         assert s["isolated_one_surface_share"] <= 0.35, path
         # And they are small: 1-2 px holes dominate (mean size measured 2.8-4.6 px per frame).
         assert 2.0 <= s["isolated_dropout_mean_px"] <= 5.5, path
+        # A registration border: 33-39 blind columns on the right, 10-11 rows at the top and bottom (~30,000 px).
+        # Off it the same isolated dropouts hold 0.27-3.97 % of the invalid pixels (median 1.18 %).
+        bands = blind_border_bands(depth > 0)
+        assert 33 <= bands[240, ::-1].argmin() <= 39 and 10 <= bands[:, 320].argmin() <= 11, path
+        assert s["isolated_dropout_share"] < s["isolated_dropout_share_off_border"] <= 0.045, path
 
 
 def test_wide_bands_are_counted_right_of_near_surfaces_on_vertical_edges_only():
