@@ -99,7 +99,7 @@ def primary_hits_embree(meshes, placed, directions: np.ndarray, width: int, heig
 
 
 def shadow_blocked_embree(start: np.ndarray, open_rays: np.ndarray, meshes, intrinsics: Intrinsics,
-                        projector: np.ndarray) -> np.ndarray:  # fmt: skip
+                          projector: np.ndarray) -> np.ndarray:  # fmt: skip
     """(H*W,) bool: which of the ``open_rays`` segments ``start`` (H*W, 3) -> ``projector`` (3,) Embree finds
     blocked by a mesh (one object-frame BVH per mesh, with exact culls)."""
     blocked = np.zeros(len(start), dtype=bool)
