@@ -10,35 +10,35 @@ ray. :mod:`ddsgen.raycast` uses it for its primary rays and keeps Embree for the
 from __future__ import annotations
 
 import ctypes
-import threading
+import dataclasses
+import functools
 
 import numpy as np
 
 from ddsgen.ckernel import c_source, load_c_library
 from ddsgen.preset import Intrinsics
 
-_LIB = None
-_TRIED = False
-_LOCK = threading.Lock()
 
-
+@functools.cache
 def _library():
-    global _LIB, _TRIED
-    with _LOCK:
-        if not _TRIED:
-            _TRIED = True
-            # No -march=native and no FMA contraction: the same hits on every x86-64 CPU.
-            flags = ["-O2", "-ffp-contract=off", "-fPIC", "-shared", "-std=gnu11"]
-            lib = load_c_library(c_source("ddsgen", "csrc", "raster.c"), "raster", flags, "ray caster", "Embree path")
-            if lib is not None:
-                p, i, d = ctypes.c_void_p, ctypes.c_int, ctypes.c_double
-                lib.ddsgen_raster_hits.argtypes = [p, p, p, p, i, i, i, d, d, d, d, p, p, p, p, p, p, p]
-                lib.ddsgen_raster_hits.restype = None
-                q = ctypes.c_int64
-                lib.ddsgen_raster_shadow.argtypes = [p, p, q, p, q, d, d, d, d, d, p, p]
-                lib.ddsgen_raster_shadow.restype = ctypes.c_int
-            _LIB = lib
-        return _LIB
+    """The compiled raster (once per process), or None without a C compiler or with ``DDSGEN_NO_C_KERNEL``."""
+    # No -march=native and no FMA contraction: the same hits on every x86-64 CPU.
+    flags = ["-O2", "-ffp-contract=off", "-fPIC", "-shared", "-std=gnu11"]
+    lib = load_c_library(c_source("ddsgen", "csrc", "raster.c"), "raster", flags, "ray caster", "Embree path")
+    if lib is not None:
+        p, i, d, q = ctypes.c_void_p, ctypes.c_int, ctypes.c_double, ctypes.c_int64
+        lib.ddsgen_raster_hits.argtypes = [p, p, p, p, i, i, i, d, d, d, d, p, p, p, p, p, p, p]
+        lib.ddsgen_raster_hits.restype = None
+        lib.ddsgen_raster_shadow.argtypes = [p, p, q, p, q, d, d, d, d, d, p, p]
+        lib.ddsgen_raster_shadow.restype = ctypes.c_int
+    return lib
+
+
+def _required_library():
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("the C ray caster is unavailable (no C compiler, or DDSGEN_NO_C_KERNEL is set)")
+    return lib
 
 
 def raster_available() -> bool:
@@ -52,22 +52,38 @@ NEAR_CLIP_M = 1e-4
 _CELLS_PER_POINT = 4
 
 
-def _concatenated(meshes: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """Every mesh's vertices (V, 3) float32 and faces (F, 3) int32 (rows of those vertices), in order."""
-    vertices = np.ascontiguousarray(np.concatenate([v for _, v, _ in meshes]), dtype=np.float32)
+@dataclasses.dataclass(frozen=True)
+class RasterMeshes:
+    """Meshes in one camera's frame, concatenated for the kernels (built once per cast: both kernels read it)."""
+
+    vertices: np.ndarray  # float32 (V, 3), camera frame (m)
+    faces: np.ndarray  # int32 (F, 3), rows of ``vertices``
+    face_start: np.ndarray  # int64 (M + 1,): mesh m owns faces face_start[m] .. face_start[m + 1] - 1
+    owners: np.ndarray  # int32 (M,): the owner index written for each mesh's hits
+
+
+def raster_meshes(meshes: list[tuple[int, np.ndarray, np.ndarray]]) -> RasterMeshes:
+    """``(owner index, vertices, faces)`` per mesh (float32 (V, 3) in the camera frame, int32 (F, 3)), drawn in this
+    order (a tie keeps the earlier hit), as one :class:`RasterMeshes`."""
+    if not meshes:
+        empty = np.zeros((0, 3))
+        return RasterMeshes(empty.astype(np.float32), empty.astype(np.int32), np.zeros(1, np.int64), np.zeros(0, np.int32))
     offsets = np.cumsum([0] + [len(v) for _, v, _ in meshes[:-1]])
-    faces = np.ascontiguousarray(np.concatenate([f + o for (_, _, f), o in zip(meshes, offsets)]), dtype=np.int32)
-    return vertices, faces
+    return RasterMeshes(
+        vertices=np.ascontiguousarray(np.concatenate([v for _, v, _ in meshes]), dtype=np.float32),
+        faces=np.ascontiguousarray(np.concatenate([f + o for (_, _, f), o in zip(meshes, offsets)]), dtype=np.int32),
+        face_start=np.cumsum([0] + [len(f) for _, _, f in meshes]).astype(np.int64),
+        owners=np.array([k for k, _, _ in meshes], dtype=np.int32),
+    )
 
 
-def raster_hits(meshes: list[tuple[int, np.ndarray, np.ndarray]], intrinsics: Intrinsics, depth: np.ndarray,
+def raster_hits(meshes: RasterMeshes, intrinsics: Intrinsics, depth: np.ndarray,
                 owner: np.ndarray, triangle: np.ndarray, barycentric: np.ndarray, normals: np.ndarray) -> dict[int, int]:
     """Cast the pixel-centre rays at ``meshes`` into the per-pixel buffers, in place; return the pixels each
     mesh covers alone.
 
     Args:
-        meshes: ``(owner index, vertices, faces)`` per mesh: float32 (V, 3) in the camera frame (m), int32
-            (F, 3). Meshes are drawn in this order; a tie keeps the earlier hit.
+        meshes: :func:`raster_meshes` in the camera frame.
         intrinsics: the camera (pixel centres at integer (u, v)).
         depth: float32 (H*W,) nearest depth so far (m, inf = none); replaced where a mesh is nearer.
         owner: int32 (H*W,) owner index of that nearest surface (-1 = none).
@@ -78,10 +94,8 @@ def raster_hits(meshes: list[tuple[int, np.ndarray, np.ndarray]], intrinsics: In
     Returns:
         {owner index: pixels whose ray hits that mesh when it is cast alone}.
     """
-    lib = _library()
-    if lib is None:
-        raise RuntimeError("the C ray caster is unavailable (no C compiler, or DDSGEN_NO_C_KERNEL is set)")
-    if not meshes:
+    lib = _required_library()
+    if not len(meshes.owners):
         return {}
     for name, array, dtype in (("depth", depth, np.float32), ("owner", owner, np.int32), ("triangle", triangle, np.int32),
                                ("barycentric", barycentric, np.float32), ("normals", normals, np.float32)):  # fmt: skip
@@ -89,20 +103,18 @@ def raster_hits(meshes: list[tuple[int, np.ndarray, np.ndarray]], intrinsics: In
             raise ValueError(f"raster_hits: {name} must be a C-contiguous {np.dtype(dtype).name} array")
     if depth.shape[0] != int(intrinsics.width) * int(intrinsics.height):
         raise ValueError(f"raster_hits: buffers hold {depth.shape[0]} pixels, the image {intrinsics.width}x{intrinsics.height}")
-    vertices, faces = _concatenated(meshes)
-    face_start = np.cumsum([0] + [len(f) for _, _, f in meshes]).astype(np.int64)
-    mesh_owner = np.array([k for k, _, _ in meshes], dtype=np.int32)
-    coverage = np.zeros(len(meshes), dtype=np.int64)
+    m = meshes
+    coverage = np.zeros(len(m.owners), dtype=np.int64)
     stamp = np.full(depth.shape[0], -1, dtype=np.int32)
     i = intrinsics
-    lib.ddsgen_raster_hits(vertices.ctypes.data, faces.ctypes.data, face_start.ctypes.data, mesh_owner.ctypes.data,
-                           len(meshes), int(i.width), int(i.height), float(i.fx), float(i.fy), float(i.cx),
+    lib.ddsgen_raster_hits(m.vertices.ctypes.data, m.faces.ctypes.data, m.face_start.ctypes.data, m.owners.ctypes.data,
+                           len(m.owners), int(i.width), int(i.height), float(i.fx), float(i.fy), float(i.cx),
                            float(i.cy), depth.ctypes.data, owner.ctypes.data, triangle.ctypes.data,
                            barycentric.ctypes.data, normals.ctypes.data, coverage.ctypes.data, stamp.ctypes.data)  # fmt: skip
-    return dict(zip(mesh_owner.tolist(), coverage.tolist()))
+    return dict(zip(m.owners.tolist(), coverage.tolist()))
 
 
-def raster_shadow(meshes: list[tuple[int, np.ndarray, np.ndarray]], starts: np.ndarray, projector_x_m: float,
+def raster_shadow(meshes: RasterMeshes, starts: np.ndarray, projector_x_m: float,
                   intrinsics: Intrinsics) -> np.ndarray:
     """(M,) bool: the segments from ``starts`` to the projector at (``projector_x_m``, 0, 0) that cross a mesh.
 
@@ -110,17 +122,15 @@ def raster_shadow(meshes: list[tuple[int, np.ndarray, np.ndarray]], starts: np.n
     Exact: the segments are bucketed by where they project in the projector's image (a camera at the projector
     with the camera's orientation and intrinsics) and each triangle tests the buckets its projection covers.
     """
-    lib = _library()
-    if lib is None:
-        raise RuntimeError("the C ray caster is unavailable (no C compiler, or DDSGEN_NO_C_KERNEL is set)")
+    lib = _required_library()
     starts = np.ascontiguousarray(starts, dtype=np.float32)
     blocked = np.zeros(len(starts), dtype=np.uint8)
-    if not meshes or not len(starts):
+    if not len(meshes.faces) or not len(starts):
         return blocked.astype(bool)
-    vertices, faces = _concatenated(meshes)
     scratch = np.empty((2 + _CELLS_PER_POINT) * len(starts) + 2, dtype=np.int64)
     i = intrinsics
-    status = lib.ddsgen_raster_shadow(vertices.ctypes.data, faces.ctypes.data, len(faces), starts.ctypes.data,
+    status = lib.ddsgen_raster_shadow(meshes.vertices.ctypes.data, meshes.faces.ctypes.data, len(meshes.faces),
+                                      starts.ctypes.data,
                                       len(starts), float(projector_x_m), float(i.fx), float(i.fy), float(i.cx),
                                       float(i.cy), blocked.ctypes.data, scratch.ctypes.data)  # fmt: skip
     if status != 0:

@@ -23,7 +23,7 @@ import functools
 import numpy as np
 
 from ddsgen.preset import Intrinsics
-from ddsgen.raster import NEAR_CLIP_M, raster_available, raster_hits, raster_shadow
+from ddsgen.raster import NEAR_CLIP_M, raster_available, raster_hits, raster_meshes, raster_shadow
 from ddsgen.raycast_embree import MeshBVH, image_box, mesh_bvh, primary_hits_embree, rays_in_box, shadow_blocked_embree
 from ddsgen.raycast_planes import Polygon, as_polygon, primary_depth, segments_blocked
 
@@ -131,9 +131,9 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     barycentric = np.zeros((n_rays, 2), dtype=np.float32)
     for k, _, _, _ in meshes:
         is_mesh[k] = True
-    camera_meshes = None  # (index, camera-frame vertices, faces) per mesh when the C raster casts them
+    camera_meshes = None  # the meshes in the camera frame (RasterMeshes) when the C raster casts them
     if meshes and raster_available():
-        camera_meshes = [(k, *_camera_vertices(placed[k], cam_T_world)) for k, _, _, _ in meshes]
+        camera_meshes = raster_meshes([(k, *_camera_vertices(placed[k], cam_T_world)) for k, _, _, _ in meshes])
         alone = raster_hits(camera_meshes, intrinsics, best_t, owner, triangle, barycentric, mesh_normals)
         coverage = {placed[k].id: n for k, n in alone.items() if placed[k].id > 0}
     else:  # no C compiler: Embree
@@ -183,7 +183,8 @@ def _shadow_rays(points, normals, hit, polygons, meshes, camera_meshes, intrinsi
     """(H*W,) bool: hit points the projector at (+b, 0, 0) does not see (facing away, or a segment from the
     biased point S towards the projector, capped before it, crosses a polygon or mesh). ``points``, ``normals``:
     (H*W, 3) float32 in the camera frame; ``hit`` (H*W,) bool. ``camera_meshes``: the meshes in the camera
-    frame for the C raster (:func:`ddsgen.raster.raster_shadow`), or None: Embree tests every segment."""
+    frame for the C raster (:class:`ddsgen.raster.RasterMeshes`, built once by :func:`cast`), or None: Embree tests
+    every segment."""
     # Computed on all pixels (no gathers) and masked with `hit` at the end.
     projector = np.array([baseline_m, 0.0, 0.0], dtype=np.float64)
     start = points + np.float32(shadow_bias_m) * normals

@@ -122,7 +122,7 @@ def test_shadow_segments_spread_far_apart_match_embree():
     far_apart = np.array([[40.0, 0.0, 1.0], [-40.0, 30.0, 1.0], [0.0, -50.0, 2.0]])  # way outside the image
     starts = np.concatenate([near_sphere, far_apart]).astype(np.float32)
     starts = starts[starts[:, 2] > 1e-3]
-    blocked = raster.raster_shadow([(0, vertices, faces)], starts, 0.075, K)
+    blocked = raster.raster_shadow(raster.raster_meshes([(0, vertices, faces)]), starts, 0.075, K)
     embree = rtcore_scene.EmbreeScene()
     TriangleMesh(embree, vertices, faces)
     projector = np.array([0.075, 0.0, 0.0], dtype=np.float32)
@@ -139,4 +139,4 @@ def test_without_a_compiler_the_embree_path_casts_everything(embree_only):
     hits = cast(FrameScene([board], [], np.eye(4), 0, 0), K, 0.075, 0.005)
     assert hits.hit.any() and np.allclose(hits.depth[hits.hit], 1.0, atol=1e-5)
     with pytest.raises(RuntimeError, match="unavailable"):
-        raster.raster_hits([], K, *(np.zeros(1),) * 5)
+        raster.raster_hits(raster.raster_meshes([]), K, *(np.zeros(1),) * 5)
