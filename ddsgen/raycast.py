@@ -25,7 +25,7 @@ import numpy as np
 from ddsgen.preset import Intrinsics
 from ddsgen.raster import NEAR_CLIP_M, raster_available, raster_hits, raster_meshes, raster_shadow
 from ddsgen.raycast_embree import MeshBVH, image_box, mesh_bvh, primary_hits_embree, rays_in_box, shadow_blocked_embree
-from ddsgen.raycast_planes import Polygon, as_polygon, primary_depth, segments_blocked
+from ddsgen.raycast_planes import Polygon, as_polygon, primary_depth_band, segments_blocked
 
 
 @dataclasses.dataclass
@@ -46,6 +46,17 @@ class RayHits:
     # float32 (H, W, 2): Embree's (u, v) on that face, P = (1 - u - v) V0 + u V1 + v V2; 0 where no hit.
     # Analytic planar polygons (ground, walls) report face 0 (their faces are coplanar) and (u, v) = (0, 0).
     barycentric: np.ndarray | None = None
+
+    def columns(self, start: int, stop: int) -> "RayHits":
+        """Image columns ``start:stop`` (contiguous copies). Rays are cast one per pixel, so this equals a cast of
+        those columns alone, pixel for pixel, except ``coverage`` (counted over the whole cast): left empty."""
+        part = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, np.ndarray):
+                value = np.ascontiguousarray(value[:, start:stop])
+            part[field.name] = value
+        return RayHits(**{**part, "coverage": {}})
 
 
 @functools.lru_cache(maxsize=8)
@@ -116,34 +127,30 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     # --- primary rays: nearest of the analytic polygons and the meshes
     best_t = np.full((height, width), np.inf, dtype=np.float32)
     owner = np.full((height, width), -1, dtype=np.int32)
-    for k, polygon in polygons:
-        t = primary_depth(polygon, intrinsics)
-        owner = np.where(t < best_t, np.int32(k), owner)
-        best_t = np.minimum(best_t, t)
+    for k, polygon in polygons:  # on the rows each spans (the others miss it)
+        v0, band = primary_depth_band(polygon, intrinsics)
+        rows = slice(v0, v0 + len(band))
+        nearer = band < best_t[rows]
+        owner[rows][nearer] = k
+        best_t[rows][nearer] = band[nearer]
     best_t, owner = best_t.reshape(-1), owner.reshape(-1)
     # Normals: a plane seen from the origin shows one side (n . x = c, t > 0 -> sign(n . d) = sign(c)).
     table = np.zeros((len(placed) + 1, 3), dtype=np.float32)  # last row: no hit (owner -1)
     for k, polygon in polygons:
         table[k] = -polygon.normal if polygon.offset > 0 else polygon.normal
-    is_mesh = np.zeros(len(placed) + 1, dtype=bool)
-    mesh_normals = np.zeros((n_rays, 3), dtype=np.float32) if meshes else None
+    # The polygons' normals (no hit: 0); a mesh writes its own where it is nearer.
+    # np.take, not table[owner]: several times faster for these small tables (owner -1 takes the last row)
+    normals = np.take(table, owner, axis=0)
     triangle = np.full(n_rays, -1, dtype=np.int32)
     barycentric = np.zeros((n_rays, 2), dtype=np.float32)
-    for k, _, _, _ in meshes:
-        is_mesh[k] = True
     camera_meshes = None  # the meshes in the camera frame (RasterMeshes) when the C raster casts them
     if meshes and raster_available():
         camera_meshes = raster_meshes([(k, *_camera_vertices(placed[k], cam_T_world)) for k, _, _, _ in meshes])
-        alone = raster_hits(camera_meshes, intrinsics, best_t, owner, triangle, barycentric, mesh_normals)
+        alone = raster_hits(camera_meshes, intrinsics, best_t, owner, triangle, barycentric, normals)
         coverage = {placed[k].id: n for k, n in alone.items() if placed[k].id > 0}
     else:  # no C compiler: Embree
         coverage = primary_hits_embree(meshes, placed, directions, width, height, best_t, owner, triangle, barycentric,
-                                       mesh_normals)  # fmt: skip
-    # np.take, not table[owner]: several times faster for these small tables (owner -1 takes the last row)
-    normals = np.take(table, owner, axis=0)
-    if meshes:
-        from_mesh = np.take(is_mesh, owner)
-        normals[from_mesh] = mesh_normals[from_mesh]
+                                       normals)  # fmt: skip
 
     hit = owner >= 0
     depth = np.where(hit, best_t, np.float32(0.0))

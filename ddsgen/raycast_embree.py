@@ -65,7 +65,7 @@ def mesh_bvh(mesh) -> MeshBVH:
 
 def primary_hits_embree(meshes, placed, directions: np.ndarray, width: int, height: int, best_t: np.ndarray,
                         owner: np.ndarray, triangle: np.ndarray, barycentric: np.ndarray,
-                        mesh_normals: np.ndarray) -> dict[int, int]:  # fmt: skip
+                        normals: np.ndarray) -> dict[int, int]:  # fmt: skip
     """Cast the primary rays at ``meshes`` (``(index into placed, cam_T_obj, BVH, image box)``) into the per-pixel
     buffers (flat, (H*W,) / (H*W, k); as :func:`ddsgen.raster.raster_hits`), in place; ``directions`` (H*W, 3).
     Returns {object id >= 1: pixels it covers when cast alone}."""
@@ -91,7 +91,7 @@ def primary_hits_embree(meshes, placed, directions: np.ndarray, width: int, heig
         n = result["Ng"][closer] @ R.T
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(1e-30))
         n[np.einsum("ij,ij->i", n, d[closer]) > 0] *= -1.0
-        mesh_normals[index] = n
+        normals[index] = n
         triangle[index] = result["primID"][closer]
         barycentric[index, 0] = result["u"][closer]
         barycentric[index, 1] = result["v"][closer]

@@ -124,15 +124,23 @@ def image_spans(polygon: Polygon, fx: float, fy: float, cx: float, cy: float, he
 def primary_depth(polygon: Polygon, intrinsics) -> np.ndarray:
     """(H, W) float32 ray parameter (= depth) of the rays from the origin through K^-1 [u, v, 1] (``intrinsics``:
     a :class:`~ddsgen.preset.Intrinsics`); inf where they miss the polygon."""
+    t = np.full((int(intrinsics.height), int(intrinsics.width)), np.float32(np.inf), dtype=np.float32)
+    v0, band = primary_depth_band(polygon, intrinsics)
+    t[v0 : v0 + len(band)] = band
+    return t
+
+
+def primary_depth_band(polygon: Polygon, intrinsics) -> tuple[int, np.ndarray]:
+    """``(v0, band)``: :func:`primary_depth` on the rows the polygon spans only, ``band`` (R, W) float32 being
+    rows v0..v0 + R - 1 (R = 0 when it spans none; every other row misses it)."""
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
     xs = (np.arange(int(intrinsics.width), dtype=np.float64) - cx) / fx  # directions' x and y (z = 1)
     ys = (np.arange(int(intrinsics.height), dtype=np.float64) - cy) / fy
     height, width = len(ys), len(xs)
-    t = np.full((height, width), np.float32(np.inf), dtype=np.float32)
     lo, hi = image_spans(polygon, fx, fy, cx, cy, height)
     rows = np.flatnonzero(lo <= hi)
     if not len(rows):
-        return t
+        return 0, np.empty((0, width), dtype=np.float32)
     v0, v1 = int(rows[0]), int(rows[-1]) + 1  # convex: the rows it spans are contiguous
     n = polygon.basis[0]
     nd = (n[1] * ys[v0:v1] + n[2]).astype(np.float32)[:, None] + (n[0] * xs).astype(np.float32)[None, :]
@@ -140,8 +148,7 @@ def primary_depth(polygon: Polygon, intrinsics) -> np.ndarray:
         band = np.float32(polygon.offset) / nd
     cols = np.arange(width, dtype=np.float64)[None, :]
     ok = (cols >= lo[v0:v1, None]) & (cols <= hi[v0:v1, None]) & (band > 0)  # band > 0: False for nan
-    t[v0:v1] = np.where(ok, band, np.float32(np.inf))
-    return t
+    return v0, np.where(ok, band, np.float32(np.inf))
 
 
 def _inside(polygon: Polygon, q1: np.ndarray, q2: np.ndarray) -> np.ndarray:

@@ -307,3 +307,20 @@ def test_a_flat_board_object_casts_without_numpy_warnings():
         hits = cast(frame(objects=[board]), K_SMALL, 0.075, 0.005)
     assert [str(w.message) for w in caught] == []
     assert hits.hit.any() and np.allclose(hits.depth[hits.hit], 1.0, atol=1e-5)
+
+
+def test_a_cast_widened_by_the_ir_margin_splits_into_the_image_and_the_strip_cast_alone():
+    """A registered device's IR view is cast once, widened by the margin strip, and split (cast_with_margin):
+    pixel for pixel what the image and the strip give when each is cast on its own."""
+    from ddsgen.sensor.ir_margin import cast_with_margin, margin_intrinsics
+
+    K = Intrinsics(width=160, height=120, fx=143.1, fy=143.1, cx=79.5, cy=59.5)
+    scene = sample_frame(load_scene_list(None), 2, seed=4)
+    image, strip = cast_with_margin(scene, K, 6, 0.075, 0.005)
+    alone = {"image": cast(scene, K, 0.075, 0.005), "strip": cast(scene, margin_intrinsics(K, 6), 0.075, 0.005)}
+    for name, part in (("image", image), ("strip", strip)):
+        for field in ("depth", "points", "normals", "instance", "hit", "shadow", "albedo", "owner", "triangle",
+                      "barycentric"):  # fmt: skip
+            np.testing.assert_array_equal(getattr(part, field), getattr(alone[name], field), err_msg=f"{name} {field}")
+    assert strip.hit.any() and strip.shadow.shape == (120, 6)
+    assert cast_with_margin(scene, K, 0, 0.075, 0.005)[1] is None

@@ -8,7 +8,7 @@ Every command that simulates scenes goes through here (render, the noise study a
 from __future__ import annotations
 
 from ddsgen.preset import Intrinsics
-from ddsgen.sensor.ir_margin import cast_margin
+from ddsgen.sensor.ir_margin import cast_margin, cast_with_margin
 
 
 def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool = True):
@@ -30,7 +30,6 @@ def sensor_geometry(scene, intrinsics: Intrinsics, preset, hits):
     """The :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` of ``scene`` given its output image's ``hits``:
     the IR image with the preset's margin strip; for a device registered to an RGB camera
     (:mod:`ddsgen.sensor.registration`) the IR camera's own view and the map back to the output image."""
-    from ddsgen.raycast import cast
     from ddsgen.sensor.depth_sensor import SensorGeometry
     from ddsgen.sensor.registration import ir_view, is_registered, registration_index
 
@@ -38,8 +37,8 @@ def sensor_geometry(scene, intrinsics: Intrinsics, preset, hits):
         margin = cast_margin(scene, intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
         return SensorGeometry.from_hits(hits, ir_margin=margin)
     ir_scene, ir_intrinsics = ir_view(scene, intrinsics, preset)
-    ir_hits = cast(ir_scene, ir_intrinsics, preset.baseline_m, preset.shadow_bias_m)
-    margin = cast_margin(ir_scene, ir_intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
+    ir_hits, margin = cast_with_margin(ir_scene, ir_intrinsics, preset.ir_margin_right_px, preset.baseline_m,
+                                       preset.shadow_bias_m)  # fmt: skip
     index = registration_index(hits, ir_hits, intrinsics, preset)
     return SensorGeometry.from_hits(ir_hits, ir_margin=margin, registration=index,
                                     registration_shift_px=preset.registration_shift_px,
