@@ -22,6 +22,7 @@ from torch.utils._pytree import tree_flatten
 
 from ddsgen.sensor import matcher as M
 from ddsgen.sensor.matcher import kernel, reference, torch_path
+from ddsgen.sensor.matcher.kernel import SEARCH_LANES
 from ddsgen.sensor.matcher import match, stereo_reference_phases
 
 SIGMA = 0.6
@@ -448,7 +449,7 @@ def test_band_rows_bound_the_cost_volume():
     reference._REF_CACHE.clear()
     # Reference tensors (and the torch path's per-candidate layout, built on its first use)
     # are per sensor, not per frame: build them before measuring.
-    reference._prepare_reference(phases, pad, 9, 2, 4 + 8).torch_candidates()
+    reference._prepare_reference(phases, pad, 9, 2, 4 + SEARCH_LANES).torch_candidates()
     peaks = {}
     for rows in (4, 16, height):
         with _PeakTensorMemory() as mode:

@@ -76,7 +76,7 @@ from dataclasses import dataclass, fields
 import torch
 
 from ddsgen.sensor.matcher.autograd import _ObservedStatsC, _RefineC
-from ddsgen.sensor.matcher.kernel import (_integer_search_c, _load_kernel, confirm_by_unique_neighbour_c,
+from ddsgen.sensor.matcher.kernel import (SEARCH_LANES, _integer_search_c, _load_kernel, confirm_by_unique_neighbour_c,
                                           integer_search_backend)
 from ddsgen.sensor.matcher.reference import RefineGeometry, _prepare_reference
 from ddsgen.sensor.matcher.stereo import stereo_reference_phases
@@ -280,7 +280,7 @@ def match(
     beta = beta.to(device=dev, dtype=dtype)
     n_disp = k_hi - k_lo + 1
 
-    extra = h + 8 + max(0, -k_lo)  # readable columns right of the image (see the C kernel)
+    extra = h + SEARCH_LANES + max(0, -k_lo)  # readable columns right of the image (see the C kernels)
     refine_level = min(int(n_sub), REFINE_LEVEL) if refine_level is None else int(refine_level)
     ref = _prepare_reference(reference_phases, pad, block, int(n_sub), extra, refine_level)
 

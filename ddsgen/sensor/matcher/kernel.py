@@ -15,6 +15,10 @@ import torch
 from ddsgen.ckernel import c_source, load_c_library
 from ddsgen.sensor.matcher.reference import RefineGeometry, _Reference
 
+#: Candidates per vector of the integer search (``SL`` in csrc/zncc.c): its reference arrays need this many
+#: readable columns beyond the last candidate.
+SEARCH_LANES = 16
+
 _KERNEL = None
 _KERNEL_TRIED = False
 _KERNEL_LOCK = threading.Lock()

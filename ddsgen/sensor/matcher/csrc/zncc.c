@@ -63,6 +63,42 @@ static inline int unique_match(float best, float second, float min_confidence) {
     return conf >= min_confidence && conf > 0.0f;
 }
 
+/* The integer search's vectors: SL candidates each. */
+#define SL 16
+typedef float vs __attribute__((vector_size(4 * SL)));
+typedef float vsu __attribute__((vector_size(4 * SL), aligned(4)));
+typedef int32_t vis __attribute__((vector_size(4 * SL)));
+#define LOADS(p) (*(const vsu *)(p))
+#define LANE_INDEX {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}
+
+static inline vs vselS(vis mask, vs a, vs b) { /* mask ? a : b, lane-wise */
+    return (vs)((mask & (vis)a) | (~mask & (vis)b));
+}
+
+static inline vis vselI(vis mask, vis a, vis b) { return (mask & a) | (~mask & b); }
+
+static inline vs vmaxS(vs a, vs b) { return vselS(a > b, a, b); }
+
+/* Horizontal max / min by halving (4 steps instead of a 16-long dependency chain). Exact for the finite scores
+ * here; of equal lanes of opposite zero sign either may come out (the outputs compare them as equal). */
+#define HALVES(x, op)                                                                                         \
+    x = op(x, __builtin_shuffle(x, (vis){8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7}));            \
+    x = op(x, __builtin_shuffle(x, (vis){4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11}));            \
+    x = op(x, __builtin_shuffle(x, (vis){2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13}));            \
+    x = op(x, __builtin_shuffle(x, (vis){1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14}))
+
+static inline vis vminI(vis a, vis b) { return vselI(a < b, a, b); }
+
+static inline float hmaxS(vs x) {
+    HALVES(x, vmaxS);
+    return x[0];
+}
+
+static inline int hminS(vis x) {
+    HALVES(x, vminI);
+    return x[0];
+}
+
 /* Stage 1, integer-disparity search (no gradient needed here).
  *
  * For every output pixel (v, u) and candidate c = 0..D-1 (integer disparity k = k_hi - c):
@@ -76,7 +112,9 @@ static inline int unique_match(float best, float second, float min_confidence) {
  * the second peak's candidate index where its score exceeds second_floor and the match fails the
  * uniqueness test (clipped best - second < min_confidence; -1 elsewhere: the confirmed-match rule
  * needs no other, and the search for it costs; ties in either go to the lowest index).
- * Arrays R, RS, invR, PEN must have 7 readable columns beyond candidate D - 1.
+ * Candidates go 16 to a vector (SL lanes: one AVX-512 register, two AVX2 ones; each lane's arithmetic is the
+ * same whatever the width, so the width changes the speed only). Arrays R, RS, invR, PEN must have SL - 1
+ * readable columns beyond candidate D - 1 (kernel.py: SEARCH_LANES).
  */
 void ddsgen_zncc_search(const float *restrict O, int Wo,
                         const float *restrict R, int Wr,
@@ -90,14 +128,14 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
 {
     const float inv_n = 1.0f / (float)(b * b);
     const int Wv = W + b - 1;
-    const int nb = (D + 7) / 8;
-    const int Dp = nb * 8;
+    const int nb = (D + SL - 1) / SL;
+    const int Dp = nb * SL;
 #pragma omp parallel num_threads(n_threads)
     {
-        v8 *V = (v8 *)aligned_alloc(32, sizeof(v8) * (size_t)Wv * nb);
-        v8 *S = (v8 *)aligned_alloc(32, sizeof(v8) * (size_t)nb);
-        v8 *SC = (v8 *)aligned_alloc(32, sizeof(v8) * (size_t)nb);
-        v8 *TAIL = (v8 *)aligned_alloc(32, sizeof(v8) * (size_t)nb);
+        vs *V = (vs *)aligned_alloc(sizeof(vs), sizeof(vs) * (size_t)Wv * nb);
+        vs *S = (vs *)aligned_alloc(sizeof(vs), sizeof(vs) * (size_t)nb);
+        vs *SC = (vs *)aligned_alloc(sizeof(vs), sizeof(vs) * (size_t)nb);
+        vs *TAIL = (vs *)aligned_alloc(sizeof(vs), sizeof(vs) * (size_t)nb);
         float *tail = (float *)TAIL;
         for (int c = 0; c < Dp; c++) tail[c] = c < D ? 0.0f : NEG_BIG;
         /* Rows are processed in fixed blocks of ROW_BLOCK: the vertical window sums are
@@ -108,27 +146,27 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
         for (int v = blk * ROW_BLOCK; v < H && v < (blk + 1) * ROW_BLOCK; v++) {
             if (v == blk * ROW_BLOCK) {
                 for (int x = 0; x < Wv; x++) {
-                    v8 *Vx = V + (size_t)x * nb;
-                    for (int q = 0; q < nb; q++) Vx[q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
+                    vs *Vx = V + (size_t)x * nb;
+                    for (int q = 0; q < nb; q++) Vx[q] = (vs){0};
                     for (int i = 0; i < b; i++) {
                         const float oi = O[(size_t)(v + i) * Wo + x];
                         const float *ri = R + (size_t)(v + i) * Wr + r0 + x;
-                        for (int q = 0; q < nb; q++) Vx[q] += oi * LOADU(ri + 8 * q);
+                        for (int q = 0; q < nb; q++) Vx[q] += oi * LOADS(ri + SL * q);
                     }
                 }
             } else {
                 const float *onew = O + (size_t)(v + b - 1) * Wo, *oold = O + (size_t)(v - 1) * Wo;
                 const float *rnew = R + (size_t)(v + b - 1) * Wr + r0, *rold = R + (size_t)(v - 1) * Wr + r0;
                 for (int x = 0; x < Wv; x++) {
-                    v8 *Vx = V + (size_t)x * nb;
+                    vs *Vx = V + (size_t)x * nb;
                     const float on = onew[x], oo = oold[x];
                     for (int q = 0; q < nb; q++)
-                        Vx[q] += on * LOADU(rnew + x + 8 * q) - oo * LOADU(rold + x + 8 * q);
+                        Vx[q] += on * LOADS(rnew + x + SL * q) - oo * LOADS(rold + x + SL * q);
                 }
             }
             /* horizontal running window sums */
             for (int q = 0; q < nb; q++) {
-                v8 acc = V[q];
+                vs acc = V[q];
                 for (int j = 1; j < b; j++) acc += V[(size_t)j * nb + q];
                 S[q] = acc;
             }
@@ -136,41 +174,41 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                 const float os = OS[(size_t)v * W + u] * inv_n;
                 const float io = invO[(size_t)v * W + u];
                 const size_t base = (size_t)v * Ws + u + r0;
-                v8 m = {NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG};
-                vi8 mi = {0, 0, 0, 0, 0, 0, 0, 0};
-                vi8 ci = {0, 1, 2, 3, 4, 5, 6, 7};
+                vs m = NEG_BIG - (vs){0};
+                vis mi = {0};
+                vis ci = LANE_INDEX;
                 for (int q = 0; q < nb; q++) {
-                    v8 sc = (S[q] - os * LOADU(RS + base + 8 * q)) * (io * LOADU(invR + base + 8 * q))
-                            + LOADU(PEN + base + 8 * q) + TAIL[q];
+                    vs sc = (S[q] - os * LOADS(RS + base + SL * q)) * (io * LOADS(invR + base + SL * q))
+                            + LOADS(PEN + base + SL * q) + TAIL[q];
                     SC[q] = sc;
-                    vi8 gt = sc > m;
-                    m = vsel8(gt, sc, m);
+                    vis gt = sc > m;
+                    m = vselS(gt, sc, m);
                     mi = (gt & ci) | (~gt & mi);
-                    ci += 8;
+                    ci += SL;
                 }
-                /* lowest index among the lanes holding the maximum */
-                float best = m[0];
-                int arg = mi[0];
-                for (int k = 1; k < 8; k++) {
-                    if (m[k] > best || (m[k] == best && mi[k] < arg)) { best = m[k]; arg = mi[k]; }
-                }
+                /* the maximum, and the lowest index among the lanes holding it */
+                const float best = hmaxS(m);
+                int arg = hminS(vselI(m == best, mi, INT32_MAX - (vis){0}));
                 if (!(best > 0.5f * NEG_BIG)) arg = -1;
                 float second = -2.0f;
                 int arg2 = -1;
                 if (arg >= 0) {
-                    float *scw = (float *)SC;  /* exclude the best peak itself (+-1 candidate) */
-                    for (int c = arg - 1; c <= arg + 1; c++) {
-                        if (c >= 0 && c < Dp) scw[c] = NEG_BIG;
+                    /* the best score at least 2 candidates from the best peak (its +-1 left out by a lane mask:
+                       no scalar stores into SC, whose vector reloads would then stall) */
+                    vs m2 = NEG_BIG - (vs){0};
+                    vis cq = LANE_INDEX;
+                    for (int q = 0; q < nb; q++, cq += SL) {
+                        const vis near_peak = (cq >= arg - 1) & (cq <= arg + 1);
+                        m2 = vmaxS(m2, vselS(near_peak, NEG_BIG - (vs){0}, SC[q]));
                     }
-                    v8 m2 = {NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG, NEG_BIG};
-                    for (int q = 0; q < nb; q++) m2 = vmax8(m2, SC[q]);
-                    float s2 = hmax8(m2);
+                    const float s2 = hmaxS(m2);
                     if (s2 > second) second = s2;
                     /* Its index only where the confirmed-match rule may ask for it: a peak above
                        second_floor at a match failing the uniqueness test (clipped scores, as in Python). */
                     if (s2 > second_floor && !unique_match(best, s2, min_confidence)) {  /* lowest index among ties */
+                        const float *scw = (const float *)SC;
                         for (int c = 0; c < Dp; c++) {
-                            if (scw[c] == s2) { arg2 = c; break; }
+                            if ((c < arg - 1 || c > arg + 1) && scw[c] == s2) { arg2 = c; break; }
                         }
                     }
                 }
@@ -179,8 +217,8 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                 arg_out[(size_t)v * W + u] = arg;
                 arg2_out[(size_t)v * W + u] = arg2;
                 if (u + 1 < W) {
-                    const v8 *add = V + (size_t)(u + b) * nb;
-                    const v8 *sub = V + (size_t)u * nb;
+                    const vs *add = V + (size_t)(u + b) * nb;
+                    const vs *sub = V + (size_t)u * nb;
                     for (int q = 0; q < nb; q++) S[q] += add[q] - sub[q];
                 }
             }
