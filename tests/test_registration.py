@@ -464,3 +464,46 @@ def test_the_registered_output_view_can_skip_its_shadow_rays_without_changing_th
     unregistered = preset.replace(registration_ir_offset_m=0.0, registration_shift_px=0.0)
     hits, _ = cast_for_sensor(scene, preset.intrinsics, unregistered, output_shadows=False)
     assert hits.shadow is not None and hits.shadow.any()
+
+
+def test_the_c_registration_maps_equal_the_numpy_definition(monkeypatch):
+    """csrc/registration.c gives registration.py's numpy maps bit for bit: the forward map (z-buffer with ties, the
+    fill along rows and the one across them) on random depths, and the ray-cast index on rendered frames."""
+    from ddsgen.raycast import cast
+    from ddsgen.scene.sampling import sample_frame
+    from ddsgen.scene.scenelist import load_scene_list
+    from ddsgen.sensor import registration_kernel
+    from ddsgen.sensor.registration import ir_view, registration_index
+
+    if registration_kernel._library() is None:
+        pytest.skip("no C compiler: the numpy definition is the only path")
+    rng = np.random.default_rng(8)
+    forward_cases = []
+    for _ in range(6):
+        height, width = 40, 64
+        depth = torch.from_numpy(np.round(rng.uniform(0.5, 1.5, (height, width)) / 0.005) * 0.005).float()
+        valid = torch.from_numpy(rng.random((height, width)) > rng.uniform(0.05, 0.5))
+        seen = torch.from_numpy(np.where(rng.random((height, width)) < 0.3, -1, rng.integers(0, height * width,
+                                                                                            (height, width))))
+        forward_cases.append((valid, depth, float(rng.uniform(-4, 4)), float(rng.uniform(5, 20)),
+                              int(rng.integers(0, 5)), int(rng.integers(0, 4)), seen))  # fmt: skip
+    preset = _strip(rows=60)
+    scenes = load_scene_list(None)
+    views = []
+    for frame in (0, 5, 9):
+        scene = sample_frame(scenes, frame, seed=2)
+        hits = cast(scene, preset.intrinsics, output_projector_x_m(preset), preset.shadow_bias_m, shadows=False)
+        ir_scene, ir_intrinsics = ir_view(scene, preset.intrinsics, preset)
+        views.append((hits, cast(ir_scene, ir_intrinsics, preset.baseline_m, preset.shadow_bias_m)))
+
+    def maps():
+        forward = [forward_registration_index(v, d, s, f, gap_px=g, fill_rows=r, seen=seen).numpy()
+                   for v, d, s, f, g, r, seen in forward_cases]  # fmt: skip
+        return forward, [registration_index(h, ir, preset.intrinsics, preset) for h, ir in views]
+
+    c_forward, c_index = maps()
+    monkeypatch.setattr(registration_kernel, "_library", lambda: None)
+    numpy_forward, numpy_index = maps()
+    for got, expected in zip(c_forward + c_index, numpy_forward + numpy_index):
+        np.testing.assert_array_equal(got, expected)
+    assert all((m >= 0).mean() > 0.5 for m in c_index) and any((m < 0).any() for m in c_index)

@@ -63,7 +63,7 @@ def test_wheel_ships_every_preset_pattern_and_the_kernel_source(wheel):
         assert shipped, folder
         missing = [name for name in shipped if f"{package}/{name}" not in names]
         assert not missing, f"not in the wheel: {missing}"
-    assert "ddsgen/sensor/matcher/csrc/zncc.c" in names and "ddsgen/csrc/raster.c" in names
+    assert {"ddsgen/sensor/matcher/csrc/zncc.c", "ddsgen/csrc/raster.c", "ddsgen/csrc/registration.c"} <= names
     assert not any(name.startswith(("presets/", "pattern_assets/", "tests/")) for name in names)
 
 
@@ -99,7 +99,7 @@ def test_wheel_install_renders_from_any_folder_like_the_editable_install(wheel, 
     assert "640x480" in lines["kinect_v1"] and "0.4-4 m" in lines["kinect_v1"]
     assert str(new_site) in listing.splitlines()[-1], "the listed presets are the wheel's"
 
-    for stem in ("zncc", "raster"):  # the matcher's kernels, the ray-cast raster
+    for stem in ("zncc", "raster", "registration"):  # the matcher's kernels, the ray-cast raster, the registration maps
         kernels = list((tmp_path / "user_cache" / "ddsgen").glob(f"*/kernels/{stem}_*.so"))
         assert len(kernels) == 1, f"the C kernel {stem} is compiled into the user's cache directory"
     assert _tree(new_site) == before, "nothing written into site-packages"

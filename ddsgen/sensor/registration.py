@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from ddsgen.preset import Intrinsics
+from ddsgen.sensor import registration_kernel
 from ddsgen.sensor.cleanup import fill_small_holes
 
 #: Depth agreement of an output pixel's point and the IR pixel it maps to, besides half a pixel's slope:
@@ -94,6 +95,11 @@ def registration_index(hits, ir_hits, intrinsics: Intrinsics, preset) -> np.ndar
     """
     height, width = hits.depth.shape
     b_r, shift, fx = float(preset.registration_ir_offset_m), float(preset.registration_shift_px), intrinsics.fx
+    fast = registration_kernel.registration_index_c(hits.points, hits.normals, hits.hit, ir_hits.depth, ir_hits.hit, b_r,
+                                                    fx, intrinsics.cx - shift, _SLOPE_CAP, _SAME_SURFACE_REL,
+                                                    _SAME_SURFACE_ABS)  # fmt: skip
+    if fast is not None:  # the same map, in one pass (csrc/registration.c)
+        return fast
     x, y = hits.points[..., 0] + np.float32(b_r), hits.points[..., 1]  # the point in the IR camera's frame
     z = np.where(hits.hit, hits.points[..., 2], np.float32(1.0))
     column = np.rint(np.float32(fx) * x / z + np.float32(intrinsics.cx - shift)).astype(np.int64)
@@ -231,6 +237,14 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
     height, width = valid.shape
     z_all = depth.detach().cpu().numpy().reshape(-1)
     valid_flat = valid.cpu().numpy().reshape(-1)
+    fillable = None
+    if fill_rows > 0:  # the IR camera saw the point validly or not at all
+        seen_np = seen.cpu().numpy()
+        fillable = (seen_np < 0) | valid_flat[np.clip(seen_np, 0, None)]
+    fast = registration_kernel.forward_index_c(valid_flat.reshape(height, width), z_all.reshape(height, width), shift_px,
+                                               focal_offset_px_m, gap_px, fill_rows, fillable)  # fmt: skip
+    if fast is not None:  # the same map, in one pass (csrc/registration.c)
+        return torch.from_numpy(fast).to(valid.device)
     source = np.flatnonzero(valid_flat & (z_all > 0))
     rows, cols = np.divmod(source, width)
     z = z_all[source]
@@ -247,9 +261,7 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
     if gap_px > 0:  # along rows, between IR-row neighbours
         _fill_short_runs(index, z_all, width, gap_px, sources_in_one_row=True)
     index = index.reshape(height, width)
-    if fill_rows > 0:  # along columns, where the IR camera saw the point validly or not at all
-        seen_np = seen.cpu().numpy()
-        fillable = (seen_np < 0) | valid_flat[np.clip(seen_np, 0, None)]
+    if fill_rows > 0:  # along columns, where fillable
         by_column = index.T.reshape(-1)  # a copy: columns end to end
         _fill_short_runs(by_column, z_all, height, fill_rows, sources_in_one_row=False)
         index = np.where(fillable, by_column.reshape(width, height).T, index)
