@@ -21,6 +21,7 @@
 
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 
 /* Parts of triangles nearer than this to the camera plane (m) are clipped off before projecting (as in
  * ddsgen/raycast_planes.py). */
@@ -213,13 +214,19 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
      * intrinsics) contains S's projection. The points are bucketed by projector-image cell (counting
      * sort); each triangle tests only the points in the cells its projected box covers. Exact: the box is
      * conservative, the test is the segment's own. Returns 0, or -1 when a start is nearer than
-     * NEAR_CLIP_M. */
+     * NEAR_CLIP_M, -2 when out of memory. */
     if (n_starts == 0) return 0;
+    double *uv = malloc(sizeof(double) * 2 * (size_t)n_starts); /* each start's projector-image point */
+    if (!uv) return -2;
     double u_min = INFINITY, u_max = -INFINITY, v_min = INFINITY, v_max = -INFINITY;
     for (int64_t i = 0; i < n_starts; i++) {
         const float *s = starts + 3 * i;
-        if (!(s[2] >= NEAR_CLIP_M)) return -1;
+        if (!(s[2] >= NEAR_CLIP_M)) {
+            free(uv);
+            return -1;
+        }
         double u = fx * (s[0] - projector_x) / s[2] + cx, v = fy * s[1] / s[2] + cy;
+        uv[2 * i] = u, uv[2 * i + 1] = v;
         u_min = fmin(u_min, u), u_max = fmax(u_max, u), v_min = fmin(v_min, v), v_max = fmax(v_max, v);
     }
     /* Cell size: 1 px, coarser when the points spread over more than CELLS_PER_POINT N cells. */
@@ -232,8 +239,7 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
     int64_t n_cells = grid_w * grid_h;
     for (int64_t c = 0; c <= n_cells; c++) first[c] = 0;
     for (int64_t i = 0; i < n_starts; i++) {
-        const float *s = starts + 3 * i;
-        double u = fx * (s[0] - projector_x) / s[2] + cx, v = fy * s[1] / s[2] + cy;
+        const double u = uv[2 * i], v = uv[2 * i + 1];
         int64_t gu = (int64_t)floor((u - u_min) / cell), gv = (int64_t)floor((v - v_min) / cell);
         cell_of[i] = gv * grid_w + gu;
         first[cell_of[i] + 1]++;
@@ -269,5 +275,6 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
             }
         }
     }
+    free(uv);
     return 0;
 }
