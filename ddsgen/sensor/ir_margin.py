@@ -43,11 +43,11 @@ def cast_with_margin(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: 
     """``(hits, strip)``: one cast of the image widened by the margin strip, split at column W. Every ray is
     cast on its own, so both parts equal separate casts pixel for pixel, for one cast's fixed cost (~10 ms of a
     640 x 480 frame); neither has a ``coverage``. For a view whose coverage nobody reads (a registered device's
-    IR camera). ``strip`` is None when ``margin_px`` is 0."""
+    IR camera). With ``margin_px`` 0: the plain cast and None."""
     from ddsgen.raycast import cast
 
     width = int(intrinsics.width)
     if margin_px <= 0:
-        return cast(scene, intrinsics, baseline_m, shadow_bias_m).columns(0, width), None
+        return cast(scene, intrinsics, baseline_m, shadow_bias_m), None
     wide = cast(scene, dataclasses.replace(intrinsics, width=width + int(margin_px)), baseline_m, shadow_bias_m)
     return wide.columns(0, width), wide.columns(width, width + int(margin_px))
