@@ -7,8 +7,8 @@
  */
 
 #include <math.h>
+#include <stddef.h>
 #include <stdint.h>
-#include <string.h>
 
 /* registration_index: for each output pixel, the flat IR index of the pixel whose depth it shows, -1 where the
  * IR camera does not see its surface point. points, normals (H*W, 3), hit (H*W), ir_depth, ir_hit (H*W) as in
@@ -18,8 +18,9 @@
  *   seen = hit, 0 <= column < W, ir_hit[row, column], |ir_depth[row, column] - z| <= tolerance. */
 void ddsgen_registration_index(const float *points, const float *normals, const uint8_t *hit, const float *ir_depth,
                                const uint8_t *ir_hit, int64_t height, int64_t width, float b_r, float fx, float c,
-                               float two_fx, float cap, float rel, float abs_m, int64_t *out)
+                               float cap, float rel, float abs_m, int64_t *out)
 {
+    const float two_fx = 2.0f * fx; /* exact, and equal to numpy's float32(2 fx) */
     for (int64_t row = 0; row < height; row++) {
         for (int64_t col = 0; col < width; col++) {
             const int64_t p = row * width + col;

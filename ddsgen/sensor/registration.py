@@ -241,7 +241,7 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
     if fill_rows > 0:  # the IR camera saw the point validly or not at all
         seen_np = seen.cpu().numpy()
         fillable = (seen_np < 0) | valid_flat[np.clip(seen_np, 0, None)]
-    fast = registration_kernel.forward_index_c(valid_flat.reshape(height, width), z_all.reshape(height, width), shift_px,
+    fast = registration_kernel.forward_index_c(valid.cpu().numpy(), depth.detach().cpu().numpy(), shift_px,
                                                focal_offset_px_m, gap_px, fill_rows, fillable)  # fmt: skip
     if fast is not None:  # the same map, in one pass (csrc/registration.c)
         return torch.from_numpy(fast).to(valid.device)

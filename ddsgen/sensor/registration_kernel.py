@@ -24,7 +24,7 @@ def _library():
                          "numpy path")  # fmt: skip
     if lib is not None:
         p, q, f, d = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_double
-        lib.ddsgen_registration_index.argtypes = [p, p, p, p, p, q, q, f, f, f, f, f, f, f, p]
+        lib.ddsgen_registration_index.argtypes = [p, p, p, p, p, q, q, f, f, f, f, f, f, p]
         lib.ddsgen_registration_index.restype = None
         lib.ddsgen_forward_registration_index.argtypes = [p, p, q, q, d, f, q, q, p, p]
         lib.ddsgen_forward_registration_index.restype = None
@@ -52,8 +52,8 @@ def registration_index_c(points: np.ndarray, normals: np.ndarray, hit: np.ndarra
     arrays = (_contiguous(points, np.float32), _contiguous(normals, np.float32), _contiguous(hit, np.uint8),
               _contiguous(ir_depth, np.float32), _contiguous(ir_hit, np.uint8))  # fmt: skip
     out = np.empty((height, width), dtype=np.int64)
-    lib.ddsgen_registration_index(*(a.ctypes.data for a in arrays), height, width, b_r, fx, column_offset, 2.0 * fx,
-                                  slope_cap, same_surface_rel, same_surface_abs, out.ctypes.data)  # fmt: skip
+    lib.ddsgen_registration_index(*(a.ctypes.data for a in arrays), height, width, b_r, fx, column_offset, slope_cap,
+                                  same_surface_rel, same_surface_abs, out.ctypes.data)  # fmt: skip
     return out
 
 
@@ -70,6 +70,6 @@ def forward_index_c(valid: np.ndarray, depth: np.ndarray, shift_px: float, focal
     fill = None if fillable is None else _contiguous(fillable, np.uint8)
     out = np.empty((height, width), dtype=np.int64)
     lib.ddsgen_forward_registration_index(valid_u8.ctypes.data, depth_f.ctypes.data, height, width, float(shift_px),
-                                          float(focal_offset_px_m), int(gap_px), int(fill_rows) if fill is not None else 0,
+                                          float(focal_offset_px_m), int(gap_px), int(fill_rows),
                                           None if fill is None else fill.ctypes.data, out.ctypes.data)  # fmt: skip
     return out
