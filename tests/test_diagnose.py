@@ -518,7 +518,7 @@ def test_diagnose_command_writes_the_report_and_the_extended_preset(tmp_path, sc
                  "--candidates", "disparity_offset,depth_scale,edge_dropout"])  # fmt: skip
     assert code == 0
     doc = json.loads((report / "diagnosis.json").read_text())
-    assert set(doc) == {"baseline_gap", "steps", "final_gap", "unexplained"}
+    assert set(doc) == {"baseline_gap", "steps", "final_gap", "unexplained", "local_patches"}
     assert [set(s) for s in doc["steps"]] == [{"effect", "params", "gap_before", "gap_after"}] * len(doc["steps"])
     assert all(set(u) == {"axis", "strength"} for u in doc["unexplained"])
     assert doc["steps"][0]["effect"] == "disparity_offset"

@@ -56,10 +56,13 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     3. fit every library effect not yet in the model and measure the held-out gap it removes;
     4. accept the best only if it removes at least 5 % of the held-out gap beyond the change of
        the noise floor and a bootstrap over held-out frames confirms it; add it, refit, repeat;
-    5. report residual structure that no effect explains, by axis.
+    5. report residual structure that no effect explains, by axis; when no axis has any but the gap
+       is still beyond its noise floor, locate it: the patches of the scene that carry it (outlined
+       on the residual map; on a partly modelled real scene, the geometry the model lacks).
 
     Writes REPORT/diagnosis.json ({baseline_gap, steps: [{effect, params, gap_before, gap_after}],
-    final_gap, unexplained: [{axis, strength}]}, gaps in mm on held-out frames) and
+    final_gap, unexplained: [{axis, strength}], local_patches: null or {patches, share, carried,
+    gap_beyond_floor_without, offsets_mm}}, gaps in mm on held-out frames) and
     REPORT/report.html (one sentence per step; residual profiles before/after each step and
     full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """

@@ -34,7 +34,9 @@ The loop (:func:`diagnose`):
    Otherwise the loop stops.
 5. **What remains**: axes whose residual structure is still beyond noise (and at least
    :data:`~ddsgen.diagnose.acceptance.UNEXPLAINED_MIN_MM`) are reported as unexplained, strongest first, rather than
-   naming a wrong effect.
+   naming a wrong effect. When no axis has any but the gap is still beyond its floor (by more than the floor
+   and that minimum), the gap is local: :mod:`~ddsgen.diagnose.local_patches` finds the patches that carry it
+   (the scene the model lacks, as on real frames of a partly modelled scene).
 
 **One frame** is enough: it is split spatially (:mod:`~ddsgen.diagnose.split`) into blocks dealt into
 pieces, some held out, the others fitted together; the report says so.
@@ -79,11 +81,18 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from ddsgen.diagnose.acceptance import MIN_RELATIVE_GAIN, bootstrap_fall, relative_fall, unexplained_axes
+from ddsgen.diagnose.acceptance import (
+    MIN_RELATIVE_GAIN,
+    UNEXPLAINED_MIN_MM,
+    bootstrap_fall,
+    relative_fall,
+    unexplained_axes,
+)
 from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axis_candidate, label, split_label
 from ddsgen.diagnose.candidates import changes_depth, copy_of, fit_any, spec
 from ddsgen.diagnose.device_candidates import device_candidates, is_device
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
+from ddsgen.diagnose.local_patches import local_reading
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
 from ddsgen.diagnose.plane import replaned
@@ -394,13 +403,18 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     if unexplained:
         echo("[5/5] unexplained structure: " + ", ".join(f"{u['axis']} {u['strength']:.1f} mm" for u in unexplained))
     else:
-        echo("[5/5] no residual structure beyond noise remains")
+        echo("[5/5] no residual structure beyond noise remains along any axis")
+    local = None
+    if not unexplained and current.excess >= max(UNEXPLAINED_MIN_MM, current.floor):
+        # A gap well beyond the floor that no axis explains: say where it is (local patches: scene, not sensor).
+        local = local_reading(sensor, frames, held_now, held_seed, current, floor_draws, HELD_REPLANE_STEPS)
+        echo("      " + local.sentence())
     # A split frame is mapped whole (fit and held-out blocks): its pieces alone would show a checkerboard.
     map_frames = frames[:1] if len(frames) == 1 else held[:MAP_FRAMES]
     maps_baseline = residual_maps(base_sensor, map_frames, held_seed)
     maps_final = residual_maps(sensor, map_frames, held_seed) if steps else maps_baseline
     return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
-                     rounds, maps_baseline, maps_final, notes, window)  # fmt: skip
+                     rounds, maps_baseline, maps_final, notes, window, local)  # fmt: skip
 
 
 def _fmt(values: dict) -> str:

@@ -102,15 +102,16 @@ def strengths_figure(before: dict, after: dict, path: Path) -> None:
 REAL_ONLY_RGB, SIM_ONLY_RGB, NOT_COMPARED_RGB = (0.0, 0.0, 0.0), (0.1, 0.75, 0.2), (0.82, 0.82, 0.82)
 
 
-def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title: str,
-                        zoom: int = 1) -> list[tuple[int, ...]]:  # fmt: skip
+def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title: str, zoom: int = 1,
+                        outline: np.ndarray | None = None) -> list[tuple[int, ...]]:  # fmt: skip
     """Residual maps side by side, each at the frame's full resolution (one figure pixel per image pixel) -> PNG.
 
     Colour: simulated minus real depth (mm) on a diverging scale shared by the panels (symmetric,
     the 99th percentile of |residual|); black: real depth but no simulated depth; green: simulated
     depth but no real depth; grey: not compared. Axes in the frame's pixels (a crop keeps its place: the
     axes start at its ``origin``), colour bar in millimetres. ``zoom``: each image pixel is drawn as a
-    square of that many figure pixels (for a crop: :func:`~ddsgen.diagnose.maps.crop_zoom`).
+    square of that many figure pixels (for a crop: :func:`~ddsgen.diagnose.maps.crop_zoom`). ``outline``: a
+    (H, W) bool mask of the whole frame (local patches) drawn as black contours on every panel.
     Returns each panel's pixel box (x0, y0, x1, y1) in the PNG (x right, y down).
     """
     from matplotlib import colormaps
@@ -139,6 +140,10 @@ def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title
         rgb = np.repeat(np.repeat(rgb, zoom, 0), zoom, 1)  # whole pixels: the PNG stays pixel-sharp
         (ox, oy) = m.origin
         ax.imshow(rgb, interpolation="nearest", extent=(ox, ox + cols, oy + rows, oy), aspect="auto")
+        if outline is not None and outline[oy : oy + rows, ox : ox + cols].any():
+            ax.contour(ox + 0.5 + np.arange(cols), oy + 0.5 + np.arange(rows),
+                       outline[oy : oy + rows, ox : ox + cols].astype(float), levels=[0.5], colors="k",
+                       linewidths=1.0)  # fmt: skip
         ax.set_title(label, fontsize=11)
         ax.set_xlabel("column (px)")
         if i == 0:
@@ -147,7 +152,8 @@ def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title
     fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=bar, extend="both").set_label("sim - real depth (mm)")
     fig.suptitle(title, fontsize=11)
     fig.text(0.5, 4 / fig_h, "black: real depth, no simulated depth; green: simulated depth, no real depth; "
-             "grey: not compared", ha="center", va="bottom", fontsize=9, color="0.3", wrap=True)  # fmt: skip
+             "grey: not compared" + ("; black lines: local patches" if outline is not None else ""),
+             ha="center", va="bottom", fontsize=9, color="0.3", wrap=True)  # fmt: skip
     _save(fig, path)
     return boxes
 
@@ -283,6 +289,10 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     unexplained_text = [axis_sentence(u["axis"], u["strength"]) for u in d.unexplained]
     if not unexplained_text:
         unexplained_text = ["No residual structure beyond noise remains along any axis."]
+    local = getattr(d, "local", None)
+    if local is not None:
+        unexplained_text.append(local.sentence())
+    outlines = {p.name: p.mask for p in local.patches if p.sizes_px} if local is not None else {}
     strengths_figure({a: s for a, (_, s) in d.analysis_baseline.items()},
                      {a: s for a, (_, s) in d.analysis_final.items()}, plots / "structure_per_axis.png")  # fmt: skip
     overview = [("Residual structure beyond noise per axis", f"{PLOTS}/structure_per_axis.png")]
@@ -301,7 +311,7 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
                  if box else "")  # fmt: skip
         name = f"residual_map_{i}.png"
         residual_map_figure(panels, plots / name, f"held-out frame {before.name}{where}",
-                            crop_zoom(box[2] - box[0]) if box else 1)  # fmt: skip
+                            crop_zoom(box[2] - box[0]) if box else 1, outlines.get(before.name))  # fmt: skip
         maps.append((f"Held-out frame {before.name}: simulated minus real depth{where}", f"{PLOTS}/{name}"))
     json_path, html_path = folder / "diagnosis.json", folder / "report.html"
     write_json(json_path, d.to_dict())

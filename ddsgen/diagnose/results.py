@@ -64,6 +64,7 @@ class Diagnosis:
     maps_final: list = dataclasses.field(default_factory=list)
     notes: list = dataclasses.field(default_factory=list)  # sentences for the report (e.g. a spatial split)
     output_window: object = None  # the OutputWindow measured on the real frames and used, when it differs from the preset's
+    local: object = None  # LocalReading (local_patches.py) when a gap beyond the floor remains along no axis
 
     @property
     def baseline_gap(self) -> float:
@@ -83,6 +84,7 @@ class Diagnosis:
                        "gap_before": _f(s.gap_before), "gap_after": _f(s.gap_after)} for s in self.steps],  # fmt: skip
             "final_gap": _f(self.final_gap),
             "unexplained": [{"axis": u["axis"], "strength": _f(u["strength"])} for u in self.unexplained],
+            "local_patches": self.local.to_dict() if self.local is not None else None,
         }
 
 
