@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import local_window
+from ddsgen.fit.losses import local_window, masked_local_mean
 from ddsgen.fit.simulate import simulate, simulate_twin
 
 #: The twin's local offsets exceed the patch threshold on this fraction of the pixels at most.
@@ -66,14 +66,9 @@ def local_offset(residual_mm: np.ndarray, window: int) -> np.ndarray:
     """(H, W) mean of the finite values of ``residual_mm`` (H, W; NaN = not compared) over each
     ``window`` x ``window`` box, NaN where less than :data:`MIN_SUPPORT` of the box is finite."""
     finite = np.isfinite(residual_mm)
-    values = np.where(finite, residual_mm, 0.0).astype(np.float64)
-    size = (window, window)
-    total = cv2.boxFilter(values, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = cv2.boxFilter(finite.astype(np.float64), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = total / count
-    mean[count < MIN_SUPPORT * window * window] = np.nan
-    return mean
+    values = torch.from_numpy(np.where(finite, residual_mm, 0.0).astype(np.float64))
+    mean, support = masked_local_mean(values, torch.from_numpy(finite), window)
+    return torch.where(support >= MIN_SUPPORT, mean, torch.full_like(mean, float("nan"))).numpy()
 
 
 def find_patches(name: str, residual_mm: np.ndarray, twin_residual_mm: np.ndarray, window: int) -> FramePatches:
