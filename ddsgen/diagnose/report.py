@@ -264,7 +264,8 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
                        f"{d.final.floor:.2f} mm)." + (f" That is {BELOW_FLOOR}." if d.final_gap < 0 else ""))  # fmt: skip
     else:
         summary.append("No effect was added: the base sensor explains the scans as well as any library effect or "
-                       "generic axis term would.")
+                       "generic axis term would." + (" What remains is local, in patches of the scene (below)."
+                                                     if getattr(d, "local", None) is not None and d.local.count else ""))  # fmt: skip
     steps = []
     for i, step in enumerate(d.steps, 1):
         before = step.analysis_before[step.axis][0]
