@@ -10,8 +10,8 @@ instead of "nothing remains".
 
 A patch is a connected set (one sign) of pixels whose *local offset* -- the mean of simulated minus real
 depth (mm) over the ``compare`` window (15 px at the Kinect's focal length), where both are valid -- is
-larger than another unit of the same simulated sensor ever shows: the threshold is the
-:data:`TWIN_QUANTILE` quantile of the same local offset between the simulation and its twin
+larger than another unit of the same simulated sensor shows on all but 0.1 % of its pixels: the threshold is
+the :data:`TWIN_QUANTILE` quantile of the same local offset between the simulation and its twin
 (:func:`~ddsgen.fit.simulate.simulate_twin`), at least :data:`MIN_OFFSET_MM`. Patches smaller than
 :data:`MIN_PATCH_WINDOWS` windows are dropped. Only depth offsets are read; holes in one map and not
 the other are not patches.
