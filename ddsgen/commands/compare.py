@@ -35,7 +35,8 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     least 4 units (one frame: 4 twins). Writes REPORT/comparison.json (gap, noise_floor and the floor
     against each unit, per-frame values, parts binned by depth, incidence
     angle and image radius, validity confusion, and the hole and quantisation statistics of real
-    and sim), full-resolution real | simulated | difference pictures per frame, PNG plots and
+    and sim, and local_patches: connected areas where the real depth lies off more than another unit's, with
+    the gap and excess without them), full-resolution real | simulated | difference pictures per frame, PNG plots and
     REPORT/index.html showing them all, and prints a short table. With --save-sim DIR the
     simulated frames are also written as a scan folder (readable by compare/fit/diagnose).
     """

@@ -1,109 +1,24 @@
-"""Local patches: a gap that no sensor axis explains because it sits in a few places of the scene.
+"""Where the gap is when no sensor axis explains it: the local patches that carry it (diagnose's step 5).
 
 A sensor effect is smooth along the image and with depth: the axes of :mod:`ddsgen.diagnose.residuals`
 see it. When no structure remains along them but the held-out gap is still well beyond its noise floor,
-the disagreement is *local*: patches where the real surface lies at another depth than the modelled one,
-several windows wide, with edges of their own. That is what a scene the model lacks produces (a support
-that is not one plane, objects that are not modelled, their fringes), not a sensor. This module finds
-those patches and measures how much of the gap they carry, so the report can say where the gap is
-instead of "nothing remains".
-
-A patch is a connected set (one sign) of pixels whose *local offset* -- the mean of simulated minus real
-depth (mm) over the ``compare`` window (15 px at the Kinect's focal length), where both are valid -- is
-larger than another unit of the same simulated sensor shows on all but 0.1 % of its pixels: the threshold is
-the :data:`TWIN_QUANTILE` quantile of the same local offset between the simulation and its twin
-(:func:`~ddsgen.fit.simulate.simulate_twin`), at least :data:`MIN_OFFSET_MM`. Patches smaller than
-:data:`MIN_PATCH_WINDOWS` windows are dropped. Only depth offsets are read; holes in one map and not
-the other are not patches.
+the disagreement is *local*: patches (:mod:`ddsgen.fit.local_patches`) where the real surface lies at another
+depth than the modelled one, several windows wide, with edges of their own. That is what a scene the model
+lacks produces (a support that is not one plane, objects that are not modelled, their fringes), not a
+sensor. This module finds them on the held-out data and measures how much of the gap they carry, so the
+report can say where the gap is instead of "nothing remains".
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-import cv2
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import local_window, masked_local_mean
+from ddsgen.fit.local_patches import FramePatches, find_patches, residual_mm
+from ddsgen.fit.losses import local_window
 from ddsgen.fit.simulate import simulate, simulate_twin
-
-#: The twin's local offsets exceed the patch threshold on this fraction of the pixels at most.
-TWIN_QUANTILE = 0.999
-#: Every residual is clipped to the twin's per-pixel quantile of this order first: a flying pixel at a depth edge
-#: (one unit puts it on the near surface, the other on the far one) would move a window's mean by centimetres.
-CLIP_QUANTILE = 0.99
-#: The threshold is at least this (mm): the precision the gaps are reported with.
-MIN_OFFSET_MM = 1.0
-#: A patch covers at least this many compare windows (2 x 15 x 15 px at 640 x 480).
-MIN_PATCH_WINDOWS = 2
-#: A window's local offset counts only where at least this fraction of it has both depths.
-MIN_SUPPORT = 0.5
-
-
-@dataclasses.dataclass
-class FramePatches:
-    """The patches of one whole frame.
-
-    labels: (H, W) int32, 0 outside any patch, k = 1 .. n inside patch k; offsets_mm: median simulated
-    minus real depth (mm) inside each patch; sizes_px: pixels of each patch; threshold_mm: the local offset
-    a patch exceeds; compared_px: pixels compared (both depths valid in the region).
-    """
-
-    name: str
-    labels: np.ndarray
-    offsets_mm: list[float]
-    sizes_px: list[int]
-    threshold_mm: float
-    compared_px: int
-
-    @property
-    def mask(self) -> np.ndarray:
-        return self.labels > 0
-
-
-def local_offset(residual_mm: np.ndarray, window: int) -> np.ndarray:
-    """(H, W) mean of the finite values of ``residual_mm`` (H, W; NaN = not compared) over each
-    ``window`` x ``window`` box, NaN where less than :data:`MIN_SUPPORT` of the box is finite."""
-    finite = np.isfinite(residual_mm)
-    values = torch.from_numpy(np.where(finite, residual_mm, 0.0).astype(np.float64))
-    mean, support = masked_local_mean(values, torch.from_numpy(finite), window)
-    return torch.where(support >= MIN_SUPPORT, mean, torch.full_like(mean, float("nan"))).numpy()
-
-
-def find_patches(name: str, residual_mm: np.ndarray, twin_residual_mm: np.ndarray, window: int) -> FramePatches:
-    """Patches of one frame from its residual (simulated minus real depth, mm, NaN where not compared) and
-    its twin's (simulated minus another unit's depth, same convention), both (H, W)."""
-    pixels = np.abs(twin_residual_mm[np.isfinite(twin_residual_mm)])
-    clip = float(np.quantile(pixels, CLIP_QUANTILE)) if pixels.size else MIN_OFFSET_MM
-    twin = np.abs(local_offset(np.clip(twin_residual_mm, -clip, clip), window))
-    twin = twin[np.isfinite(twin)]
-    threshold = max(float(np.quantile(twin, TWIN_QUANTILE)) if twin.size else 0.0, MIN_OFFSET_MM)
-    offset = local_offset(np.clip(residual_mm, -clip, clip), window)
-    labels = np.zeros(residual_mm.shape, np.int32)
-    offsets, sizes = [], []
-    min_px = MIN_PATCH_WINDOWS * window * window
-    with np.errstate(invalid="ignore"):
-        signs = (offset > threshold, offset < -threshold)
-    for above in signs:
-        n, comp, stats, _ = cv2.connectedComponentsWithStats(above.astype(np.uint8), connectivity=8)
-        for k in range(1, n):
-            if stats[k, cv2.CC_STAT_AREA] < min_px:
-                continue
-            inside = comp == k
-            labels[inside] = len(sizes) + 1
-            sizes.append(int(stats[k, cv2.CC_STAT_AREA]))
-            values = residual_mm[inside]
-            offsets.append(float(np.median(values[np.isfinite(values)])))
-    return FramePatches(name, labels, offsets, sizes, threshold, int(np.isfinite(residual_mm).sum()))
-
-
-def _residual(sim, frame, other) -> np.ndarray:
-    """Simulated minus ``other`` depth (mm) where both are valid in the frame's region, NaN elsewhere."""
-    depth, valid = other
-    both = (frame.region & sim.valid & valid).numpy()
-    diff = 1000.0 * (sim.depth.numpy().astype(np.float64) - depth.numpy().astype(np.float64))
-    return np.where(both, diff, np.nan)
 
 
 def frame_patches(sensor, frames, seed: int) -> list[FramePatches]:
@@ -115,8 +30,8 @@ def frame_patches(sensor, frames, seed: int) -> list[FramePatches]:
             sim = simulate(sensor, frame, seed)
             twin = simulate_twin(sensor, frame, seed, 0)
             window = local_window(frame.intrinsics.fx)
-            out.append(find_patches(frame.name, _residual(sim, frame, (frame.real_depth, frame.real_valid)),
-                                    _residual(sim, frame, (twin.depth, twin.valid)), window))  # fmt: skip
+            out.append(find_patches(frame.name, residual_mm(sim, frame.region, frame.real_depth, frame.real_valid),
+                                    residual_mm(sim, frame.region, twin.depth, twin.valid), window))  # fmt: skip
     return out
 
 

@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import LossWeights, frame_loss
+from ddsgen.fit.local_patches import patch_gap, patch_line, patch_summary
+from ddsgen.fit.losses import LossWeights, frame_loss, local_window
 from ddsgen.fit.simulate import FrameData, simulate, simulate_twin, twin_draws
 
 DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
@@ -76,6 +77,7 @@ class GapReport:
     maps: list[dict] = dataclasses.field(default_factory=list)
     realism: dict | None = None
     noise_floor_draws: list[float] = dataclasses.field(default_factory=list)
+    local: dict | None = None  # the local patches (ddsgen.fit.local_patches.patch_summary), with the floor
 
     @property
     def excess(self) -> float:
@@ -85,7 +87,8 @@ class GapReport:
         return {"gap": _r(self.gap), "noise_floor": _r(self.noise_floor), "excess": _r(self.excess),
                 "noise_floor_draws": [_r(v) for v in self.noise_floor_draws], "units": "mm", "region": self.region, "definition": DEFINITION, "region_rule": region_rule(self.region),
                 "frames": self.frames,
-                "parts": self.parts, **({"realism": self.realism} if self.realism else {})}  # fmt: skip
+                "parts": self.parts, **({"realism": self.realism} if self.realism else {}),
+                **({"local_patches": self.local} if self.local else {})}  # fmt: skip
 
 
 DEFINITION = (
@@ -217,7 +220,7 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
     """
     from tqdm import tqdm
 
-    per_frame, floors, maps = [], [], []
+    per_frame, floors, maps, patches = [], [], [], []
     draws = twin_draws(len(frames))
     rows = {k: [] for k in ("depth", "incidence", "radius", "sim", "real", "clean", "sim_valid", "real_valid")}
     totals = {"both_valid": 0, "real_only": 0, "sim_only": 0, "neither": 0}
@@ -230,10 +233,11 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
                 on_frame(frame, sim)
             if noise_floor:
                 floors.append([])
-                for draw in range(draws):
-                    other = simulate_twin(sensor, frame, seed, draw)
+                others = [simulate_twin(sensor, frame, seed, draw) for draw in range(draws)]
+                for other in others:
                     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
                     floors[-1].append(frame_gap(sim, twin, region)["gap"] or 0.0)
+                patches.append(patch_gap(sim, _with_region(frame, region), others, local_window(frame.intrinsics.fx)))
             mask = region_mask(frame, region)
             rows["depth"].append(frame.clean_depth[mask].numpy())
             rows["incidence"].append(frame.incidence_deg[mask].numpy())
@@ -271,7 +275,7 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
     floor_draws = [float(v) for v in np.mean(floors, axis=0)] if floors else []
     floor = float(np.mean(floor_draws)) if floors else float("nan")
     return GapReport(gap=headline, noise_floor=floor, frames=per_frame, parts=parts, region=region, maps=maps,
-                     noise_floor_draws=floor_draws)  # fmt: skip
+                     noise_floor_draws=floor_draws, local=patch_summary(patches, headline, floor) if patches else None)
 
 
 # ------------------------------------------------------------------------------------------ output
@@ -290,6 +294,8 @@ def table(report: GapReport, title: str = "") -> str:
     ]
     if report.excess < 0:
         lines.append("  " + BELOW_FLOOR)
+    if report.local:
+        lines.append(patch_line(report.local))
     lines += [
         f"  systematic depth D     {p['depth_mm']:8.2f} mm",
         f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
