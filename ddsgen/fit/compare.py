@@ -33,7 +33,9 @@ better model could remove.
 
 Parts reported besides: bias (median) and spread (1.4826 MAD) of sim - real, and of real -
 clean and sim - clean, binned by clean depth, incidence angle and image radius; validity
-confusion (both valid / real only / sim only / neither) as fractions of R.
+confusion (both valid / real only / sim only / neither) as fractions of R; and the local patches
+(:mod:`ddsgen.fit.local_patches`: where the real depth lies off by more than another unit's) with the gap, floor
+and excess without them.
 """
 
 from __future__ import annotations
