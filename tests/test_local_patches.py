@@ -81,7 +81,7 @@ def test_real_cat_the_gap_no_axis_explains_is_located_in_scene_patches(tmp_path,
     """The real LineMOD cat under kinect_v1, whole region (one frame, split): nothing is accepted and no axis has
     structure beyond noise, yet the held-out gap is ~10 mm beyond a ~0.3 mm floor. Measured (session 41): 21
     patches over 43 % of the compared pixels -- the fringes of the objects the scene lacks, the table around the
-    board, the board's top -- carry 35 % of the gap beyond the floor (9.87 -> 6.40 mm without them); the report
+    board, the board's top -- carry 49 % of the gap beyond the floor (9.87 -> 5.06 mm without them, planes fitted again); the report
     says so and outlines them on the residual map."""
     from ddsgen.cli import main
 
@@ -92,7 +92,7 @@ def test_real_cat_the_gap_no_axis_explains_is_located_in_scene_patches(tmp_path,
     assert doc["steps"] == [] and doc["unexplained"] == []
     local = doc["local_patches"]
     assert local["patches"] >= 5 and 0.2 <= local["share"] <= 0.7
-    assert local["carried"] >= 0.2 and local["gap_beyond_floor_without"] < 0.8 * doc["final_gap"]
+    assert local["carried"] >= 0.3 and local["gap_beyond_floor_without"] < 0.8 * doc["final_gap"]
     offsets = np.abs(local["offsets_mm"])
     assert offsets.min() >= 5.0 and offsets.max() >= 30.0  # centimetres: more than any sensor's error at ~1 m
     html = (report / "report.html").read_text()

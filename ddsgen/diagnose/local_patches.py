@@ -89,7 +89,8 @@ def local_reading(sensor, frames, held_frames, seed: int, before, floor_draws: i
 
     ``frames``: the diagnosis's prepared frames; one frame was split into pieces (``held_frames`` are pieces of
     it), so its patches are found on it whole (support plane re-estimated under ``sensor`` with
-    ``replane_steps``, as the pieces' were); several frames: on each held-out frame. ``before`` is the model's
+    ``replane_steps``, as the pieces' were); several frames: on each held-out frame. Without the patches the
+    held-out frames' support planes are re-estimated (``replane_steps``) before their gaps. ``before`` is the model's
     evaluation on ``held_frames`` (:class:`~ddsgen.diagnose.evaluation.Evaluation`) and ``floor_draws`` the units
     it averaged its floor over, so both evaluations report the same floor.
     """
@@ -102,4 +103,7 @@ def local_reading(sensor, frames, held_frames, seed: int, before, floor_draws: i
     masks = {p.name: torch.from_numpy(p.mask) for p in patches}
     outside = [dataclasses.replace(h, region=h.region & ~masks[frames[0].name if split else h.name])
                for h in held_frames]  # fmt: skip
+    # The support plane is a nuisance fitted to the compared pixels: fitted again without the patches, as it would
+    # have been had they never been compared (the cat: 35 % carried with the planes fitted through them, 49 % so).
+    outside = replaned(sensor, outside, seed, replane_steps)
     return LocalReading(patches, before, evaluate(sensor, outside, seed, floor_draws=floor_draws))
