@@ -117,3 +117,25 @@ def test_compare_reports_the_patches_of_the_real_cats_scene_and_none_on_the_obje
     assert whole["excess_without"] == pytest.approx(doc["excess"] * (1.0 - whole["carried"]), abs=0.01)
     assert cat["patches"] == 0 and cat["share"] == 0.0
     assert "local patches: none" in out and f"local patches: {whole['patches']} over" in out
+
+
+def test_compare_picture_outlines_the_patches_on_the_difference_only(tmp_path):
+    import cv2
+
+    from ddsgen.fit.compare_pictures import BAR_PX, GAP_PX, side_by_side
+
+    rng = np.random.default_rng(11)
+    real = (1.0 + 0.002 * rng.standard_normal((60, 80))).astype(np.float32)
+    sim = real + 0.02 * (np.arange(80) > 40)[None, :].astype(np.float32)  # the right half 20 mm farther
+    valid, region = np.ones((60, 80), bool), np.ones((60, 80), bool)
+    patches = np.zeros((60, 80), bool)
+    patches[10:50, 45:75] = True
+    pictures = {}
+    for name, mask in (("none", None), ("empty", np.zeros_like(patches)), ("outlined", patches)):
+        side_by_side(tmp_path / f"{name}.png", "t", real, sim, valid, region, mask)
+        pictures[name] = cv2.imread(str(tmp_path / f"{name}.png"))
+    assert np.array_equal(pictures["none"], pictures["empty"])  # nothing to outline: the same picture
+    changed = np.any(pictures["outlined"] != pictures["none"], axis=2)
+    panels = changed[: changed.shape[0] - BAR_PX]  # above the colour bars (whose label says what the lines are)
+    columns = np.flatnonzero(panels.any(axis=0))
+    assert columns.size and columns.min() >= GAP_PX + 2 * (80 + GAP_PX) + 44  # the difference panel, at the patch

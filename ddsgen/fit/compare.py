@@ -214,8 +214,9 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
             ``FLOOR_DRAWS`` unit draws in all (:func:`~ddsgen.fit.simulate.twin_draws` per frame).
         keep_maps: keep per-frame depth maps in ``GapReport.maps`` (for residual plots).
         progress: show a progress bar.
-        on_frame: called as ``on_frame(frame, sim)`` (FrameData, SensorOutput) after each frame's
-            simulation, to save or draw it without keeping every frame in memory.
+        on_frame: called as ``on_frame(frame, sim, patches)`` (FrameData, SensorOutput, (H, W) bool mask of the
+            local patches or None without the floor) after each frame's simulations, to save or draw it without
+            keeping every frame in memory.
 
     Returns:
         :class:`GapReport`.
@@ -231,8 +232,6 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         for frame in tqdm(frames, desc="compare", unit="frame", disable=not progress, leave=False):
             sim = simulate(sensor, frame, seed)
             per_frame.append(frame_gap(sim, frame, region))
-            if on_frame is not None:
-                on_frame(frame, sim)
             if noise_floor:
                 floors.append([])
                 others = [simulate_twin(sensor, frame, seed, draw) for draw in range(draws)]
@@ -240,6 +239,8 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
                     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
                     floors[-1].append(frame_gap(sim, twin, region)["gap"] or 0.0)
                 patches.append(patch_gap(sim, _with_region(frame, region), others, local_window(frame.intrinsics.fx)))
+            if on_frame is not None:
+                on_frame(frame, sim, patches[-1].patches.mask if noise_floor else None)
             mask = region_mask(frame, region)
             rows["depth"].append(frame.clean_depth[mask].numpy())
             rows["incidence"].append(frame.incidence_deg[mask].numpy())

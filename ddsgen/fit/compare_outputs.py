@@ -41,7 +41,7 @@ class FrameOutputs:
         self.statistics: list[dict] = []
         self.pictures: list[tuple[str, str]] = []
 
-    def __call__(self, frame, sim) -> None:
+    def __call__(self, frame, sim, patches=None) -> None:
         from ddsgen.fit.compare import region_mask
 
         scan = self.scans[frame.index]
@@ -55,7 +55,8 @@ class FrameOutputs:
         side_by_side(self.report_dir / relative, f"{frame.name}: real | simulated | difference", real,
                      realism.full_frame(sim.depth.detach().numpy(), frame, 0.0),
                      realism.full_frame(sim.valid.numpy(), frame, False),
-                     realism.full_frame(region, frame, False))  # fmt: skip
+                     realism.full_frame(region, frame, False),
+                     None if patches is None else realism.full_frame(patches, frame, False))  # fmt: skip
         self.pictures.append((frame.name, relative))
         if self.sim_writer is not None:
             self.sim_writer.add(frame, sim, scan)

@@ -44,12 +44,13 @@ def difference_limit(difference_mm: np.ndarray) -> float:
 
 
 def side_by_side(path: str | Path, title: str, real_m: np.ndarray, sim_m: np.ndarray, sim_valid: np.ndarray,
-                 region: np.ndarray) -> dict:  # fmt: skip
+                 region: np.ndarray, patches: np.ndarray | None = None) -> dict:  # fmt: skip
     """Write the real | simulated | difference picture of one frame (PNG, atomic).
 
     Args:
         real_m, sim_m: float32 (H, W) depth in metres, 0 = invalid (full frames).
         sim_valid: bool (H, W); region: bool (H, W) the compare region.
+        patches: bool (H, W) local patches (:mod:`ddsgen.fit.local_patches`), outlined on the difference, or None.
 
     Returns:
         ``{"path", "depth_range_m", "difference_limit_mm"}``.
@@ -89,6 +90,8 @@ def side_by_side(path: str | Path, title: str, real_m: np.ndarray, sim_m: np.nda
         left = GAP_PX + i * (width + GAP_PX)
         ax = fig.add_axes([left / fig_w, BAR_PX / fig_h, width / fig_w, height / fig_h])
         ax.imshow(image, interpolation="nearest")
+        if i == 2 and patches is not None and np.any(patches):
+            ax.contour(np.asarray(patches, float), levels=[0.5], colors="k", linewidths=0.8)
         ax.set_title(label, fontsize=9, pad=3)
         ax.set_xticks([])
         ax.set_yticks([])
@@ -99,7 +102,8 @@ def side_by_side(path: str | Path, title: str, real_m: np.ndarray, sim_m: np.nda
     bar.ax.tick_params(labelsize=7)
     cax = fig.add_axes([(GAP_PX + 2 * (width + GAP_PX)) / fig_w, bar_y, width / fig_w, bar_h])
     bar = fig.colorbar(plt.cm.ScalarMappable(norm=diff_norm, cmap=DIFF_CMAP), cax=cax, orientation="horizontal")
-    bar.set_label("sim - real (mm); black = depth in one only; grey = not compared", fontsize=8)
+    bar.set_label("sim - real (mm); black = depth in one only; grey = not compared"
+                  + ("; black lines: local patches" if patches is not None and np.any(patches) else ""), fontsize=8)
     bar.ax.tick_params(labelsize=7)
     path = Path(path)
     with atomic_path(path) as tmp:
