@@ -147,4 +147,5 @@ def patch_line(summary: dict) -> str:
     return (f"local patches: {summary['patches']} over {100 * summary['share']:.0f} % of the compared pixels, where "
             f"the real depth lies off more than another unit's does, carry {100 * summary['carried']:.0f} % of the "
             f"excess (without them: gap {summary['gap_without']:.2f} mm, excess {summary['excess_without']:.2f} mm); "
-            f"`ddsgen diagnose` outlines them and tells a scene the model lacks from a sensor effect")  # fmt: skip
+            f"outlined on the difference pictures; `ddsgen diagnose` tells a scene the model lacks from a sensor "
+            f"effect")  # fmt: skip
