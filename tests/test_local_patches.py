@@ -139,3 +139,27 @@ def test_compare_picture_outlines_the_patches_on_the_difference_only(tmp_path):
     panels = changed[: changed.shape[0] - BAR_PX]  # above the colour bars (whose label says what the lines are)
     columns = np.flatnonzero(panels.any(axis=0))
     assert columns.size and columns.min() >= GAP_PX + 2 * (80 + GAP_PX) + 44  # the difference panel, at the patch
+
+
+@pytest.mark.skipif(not (LINEMOD / "test" / "000006" / "scene_gt.json").is_file(), reason="real LineMOD data absent")
+def test_several_frames_each_get_their_own_patches_and_the_gap_without_them():
+    """With several frames (no spatial split) every held-out frame is read on its own: the real cat prepared once
+    and held out as three frames of different names gives each the cat's patches, and the gap without them falls as
+    on the one frame."""
+    import dataclasses
+
+    from ddsgen.diagnose.evaluation import evaluate
+    from ddsgen.diagnose.local_patches import local_reading
+    from ddsgen.fit.inputs import load_inputs
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    _, camera, _, (frame,) = load_inputs("kinect_v1", LINEMOD, support_plane=True, plausible_px=2.0, seed=0,
+                                         progress=False, echo=lambda *_: None, window_hint=False)  # fmt: skip
+    frames = [dataclasses.replace(frame, name=f"scene{i}") for i in range(3)]
+    sensor = DepthSensor(camera)
+    held = frames[1:]
+    before = evaluate(sensor, held, 1)
+    reading = local_reading(sensor, frames, held, 1, before, 1, 1)
+    assert [p.name for p in reading.patches] == ["scene1", "scene2"]
+    assert all(len(p.sizes_px) >= 5 for p in reading.patches)
+    assert reading.without.excess < 0.7 * before.excess and reading.carried > 0.3
