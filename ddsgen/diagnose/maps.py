@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.plane import replaned
+from ddsgen.fit.local_patches import residual_mm
 from ddsgen.fit.simulate import simulate
 
 #: Held-out frames whose residual maps go into the report.
@@ -81,8 +82,6 @@ def residual_maps(sensor, frames, seed: int) -> list[ResidualMap]:
             region = frame.region.numpy().astype(bool)
             real_valid = frame.real_valid.numpy().astype(bool) & region
             sim_valid = sim.valid.numpy().astype(bool) & region
-            both = real_valid & sim_valid
-            diff = 1000.0 * (sim.depth.numpy().astype(np.float64) - frame.real_depth.numpy().astype(np.float64))
-            residual = np.where(both, diff, np.nan).astype(np.float32)
+            residual = residual_mm(sim, frame.region, frame.real_depth, frame.real_valid).astype(np.float32)
             maps.append(ResidualMap(frame.name, residual, real_valid & ~sim_valid, sim_valid & ~real_valid, region))
     return maps

@@ -265,7 +265,7 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     else:
         summary.append("No effect was added: the base sensor explains the scans as well as any library effect or "
                        "generic axis term would." + (" What remains is local, in patches of the scene (below)."
-                                                     if getattr(d, "local", None) is not None and d.local.count else ""))  # fmt: skip
+                                                     if d.local is not None and d.local.count else ""))  # fmt: skip
     steps = []
     for i, step in enumerate(d.steps, 1):
         before = step.analysis_before[step.axis][0]
@@ -290,10 +290,9 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     unexplained_text = [axis_sentence(u["axis"], u["strength"]) for u in d.unexplained]
     if not unexplained_text:
         unexplained_text = ["No residual structure beyond noise remains along any axis."]
-    local = getattr(d, "local", None)
-    if local is not None:
-        unexplained_text.append(local.sentence())
-    outlines = {p.name: p.mask for p in local.patches if p.sizes_px} if local is not None else {}
+    if d.local is not None:
+        unexplained_text.append(d.local.sentence())
+    outlines = {p.name: p.mask for p in d.local.patches if p.sizes_px} if d.local is not None else {}
     strengths_figure({a: s for a, (_, s) in d.analysis_baseline.items()},
                      {a: s for a, (_, s) in d.analysis_final.items()}, plots / "structure_per_axis.png")  # fmt: skip
     overview = [("Residual structure beyond noise per axis", f"{PLOTS}/structure_per_axis.png")]
