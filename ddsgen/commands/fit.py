@@ -105,7 +105,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         return
     import dataclasses
 
-    from ddsgen.fit.compare import gap, plot_residuals, write_report
+    from ddsgen.fit.compare import gap, write_report
+    from ddsgen.fit.compare_plots import plot_residuals
     from ddsgen.fit.device_keys import device_key_values
     from ddsgen.fit.losses import FIT_WEIGHTS
     from ddsgen.fit.plane_depth import plane_depth_for
