@@ -12,6 +12,7 @@ Modules, in the order the loop uses them:
 * :mod:`~ddsgen.diagnose.acceptance` -- the credited fall and the rule that accepts a candidate;
 * :mod:`~ddsgen.diagnose.match_cache` -- the matcher's results reused while its input is unchanged;
 * :mod:`~ddsgen.diagnose.results` -- steps, candidates, ``diagnosis.json``;
+* :mod:`~ddsgen.diagnose.sentences` -- the sentences that name an accepted effect, and the log's summaries;
 * :mod:`~ddsgen.diagnose.maps` -- full-resolution residual maps of held-out frames, for the report;
 * :mod:`~ddsgen.diagnose.report` -- ``diagnosis.json``, ``report.html`` and its PNG figures written to a folder.
 """

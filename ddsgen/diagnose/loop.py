@@ -96,15 +96,15 @@ from ddsgen.diagnose.local_patches import local_reading
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
 from ddsgen.diagnose.plane import replaned
-from ddsgen.diagnose.residuals import AXIS_WORDS, analyse, pixel_residuals
+from ddsgen.diagnose.residuals import analyse, pixel_residuals
 from ddsgen.diagnose.split import split_note, split_single_frame
 from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
+from ddsgen.diagnose.sentences import format_values, step_sentence, structure_summary
 from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
 from ddsgen.fit.simulate import simulate, twin_draws
 from ddsgen.sensor.effects import REGISTRY, library_names
-from ddsgen.sensor.effects.axis_terms import PHYSICAL_CAUSES
 
 #: Base parameters fitted first. Not the baseline: fit_sensor estimates it from the disparity quantisation
 #: lattice of the real depth, which a depth scale error rescales just like a baseline error would, so a
@@ -168,7 +168,6 @@ def is_validity(label: str) -> bool:
     return spec(split_label(label)[0]).stage == "validity"
 
 
-
 def held_frames_for(name: str, cand_sensor, held: list, held_now: list, seed: int) -> list:
     """The held-out frames a candidate is judged on (see :data:`HELD_REPLANE_STEPS`): ``held_now`` (the current
     model's planes) for a validity candidate, else ``held`` re-planed under the candidate ``cand_sensor``."""
@@ -182,34 +181,6 @@ def analysis_of(sensor, frames, seed: int, edges: dict | None = None, stride: in
         sims = [simulate(sensor, f, seed) for f in frames]
     res = pixel_residuals(frames, sims, stride=stride)
     return analyse(res, seed=seed, edges=edges)
-
-
-def structure_summary(analysis: dict, top: int = 3) -> str:
-    items = sorted(analysis.items(), key=lambda kv: -kv[1][1].excess_mm)[:top]
-    return ", ".join(f"{axis} {s.excess_mm:.1f} mm (noise {s.noise_mm:.1f})" for axis, (_, s) in items)
-
-
-def step_sentence(label: str, params: dict, before: Evaluation, after: Evaluation) -> str:
-    name, options = split_label(label)
-    cls = spec(name)
-    pct = 100.0 * (1.0 - after.excess / before.excess) if before.excess > 0 else 0.0
-    if cls.generic:
-        axis = options["axis"]
-        what = "disparity bias" if name == DISPARITY_TERM else "dropout"
-        return (
-            f"Unnamed effect along {axis.replace('_', ' ')}: no library effect explains the disagreement, but a "
-            f"smooth {what} that varies {AXIS_WORDS.get(axis, axis)} (a degree-{len(params) - 1} Legendre profile, "
-            f"plotted below) lowers the held-out gap beyond the noise floor from {before.excess:.2f} mm to "
-            f"{after.excess:.2f} mm ({pct:.0f} % less; compare gap {before.gap:.2f} -> {after.gap:.2f} mm, noise "
-            f"floor {after.floor:.2f} mm). Physical effects that produce such a shape: {'; '.join(PHYSICAL_CAUSES[axis])}."
-        )  # fmt: skip
-    values = ", ".join(f"{k} = {v:.3g} {cls.params[k].unit}".rstrip() for k, v in params.items())
-    return (
-        f"Missing effect: {name}. {cls.description} With it ({values}) the held-out gap beyond the noise floor "
-        f"falls from {before.excess:.2f} mm to {after.excess:.2f} mm ({pct:.0f} % less; compare gap {before.gap:.2f} "
-        f"-> {after.gap:.2f} mm, noise floor {after.floor:.2f} mm); the disagreement it removes varied "
-        f"{AXIS_WORDS.get(cls.axis, cls.axis)} ({cls.signature})."
-    )
 
 
 #: The refit's SNR search stays within this factor of the value fitted before (the base fit searched the whole
@@ -335,7 +306,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 echo(f"      {name:20s} held-out gap {held_eval.gap:6.2f} mm (floor {held_eval.floor:5.2f}, beyond it "
                      f"{held_eval.excess:5.2f})  "
                      f"credited fall {100 * c.gain:+6.1f} % (bootstrap 5 %: {100 * c.gain_low:+6.1f} %)  "
-                     f"validity log-lik. {1000 * c.validity_ll_gain:+.1f} mnat/px  {_fmt(values)}"
+                     f"validity log-lik. {1000 * c.validity_ll_gain:+.1f} mnat/px  {format_values(values)}"
                      + (f"  ({screened})" if screened else ""))  # fmt: skip
                 return c
 
@@ -389,7 +360,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             steps.append(Step(best.effect, params, current, after, axis,
                               step_sentence(best.effect, params, current, after), analysis, after_analysis))  # fmt: skip
             echo(f"      {best.effect}: held-out gap beyond the noise floor {current.excess:.2f} -> {after.excess:.2f} mm "
-                 f"(compare gap {current.gap:.2f} -> {after.gap:.2f} mm; {_fmt(params)})")  # fmt: skip
+                 f"(compare gap {current.gap:.2f} -> {after.gap:.2f} mm; {format_values(params)})")  # fmt: skip
             sensor, current, analysis = new, after, after_analysis
             in_model.add(best.effect)
             if current.excess <= 0.0:
@@ -416,6 +387,3 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     return Diagnosis(baseline, steps, current, unexplained, sensor, fit_frames, held, analysis_baseline, analysis,
                      rounds, maps_baseline, maps_final, notes, window, local)  # fmt: skip
 
-
-def _fmt(values: dict) -> str:
-    return ", ".join(f"{k}={v:.4g}" for k, v in values.items())
