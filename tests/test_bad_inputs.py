@@ -113,3 +113,105 @@ def test_controls_load(control):
     path = CORPUS / control["path"]
     loader = {"preset": load_preset, "scenes": load_scene_list, "scan": lambda p: read_scan_folder(p, eager=True)}
     assert loader[control["kind"]](path)
+
+
+def _commands_with_seed(group, path=()):
+    """(command path, its first positional arguments) of every command that takes --seed."""
+    import click
+
+    for name, command in group.commands.items():
+        if isinstance(command, click.Group):
+            yield from _commands_with_seed(command, path + (name,))
+        elif any("--seed" in p.opts for p in command.params if isinstance(p, click.Option)):
+            yield path + (name,)
+
+
+SEED_COMMANDS = sorted(_commands_with_seed(cli))
+
+
+def test_every_seeded_command_is_checked():
+    assert {"render", "compare", "fit", "diagnose", "pattern"} <= {p[-1] for p in SEED_COMMANDS}, SEED_COMMANDS
+
+
+@pytest.mark.parametrize("command", SEED_COMMANDS, ids=" ".join)
+def test_negative_seed_is_one_line_exit_2(command, tmp_path, capsys):
+    """numpy's seeds are >= 0: a negative --seed is bad input named on one line, before anything is read or written
+    (it was a traceback after render had started its output folder)."""
+    out = tmp_path / "out"
+    leaf = cli
+    for name in command:
+        leaf = leaf.commands[name]
+    out_option = "--out" if any("--out" in p.opts for p in leaf.params) else "--report"
+    argv = [*command, "--seed", "-1", out_option, str(out)]
+    code = main(argv)
+    captured = capsys.readouterr()
+    assert code == 2, f"exit {code}; stderr: {captured.err}"
+    assert "Traceback" not in captured.err
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "--seed" in lines[0] and "-1" in lines[0], captured.err
+    assert not out.exists()
+
+
+def _float_options(group, path=()):
+    import click
+
+    for name, command in group.commands.items():
+        if isinstance(command, click.Group):
+            yield from _float_options(command, path + (name,))
+            continue
+        for p in command.params:
+            if isinstance(p, click.Option) and isinstance(p.type, click.types.FloatParamType):
+                yield path + (name,), p
+
+
+def test_ranged_float_options_reject_nan():
+    """click's FloatRange lets NaN through (every comparison with NaN is False): a ranged float option must be a
+    FiniteFloat, so that `--albedo nan` is bad input, not a run."""
+    from ddsgen.commands import FiniteFloat
+
+    import click
+
+    ranged = [(" ".join(path), p.opts[0], isinstance(p.type, FiniteFloat)) for path, p in _float_options(cli)
+              if isinstance(p.type, click.FloatRange)]  # fmt: skip
+    assert len(ranged) >= 4, ranged
+    assert all(finite for _, _, finite in ranged), [r for r in ranged if not r[2]]
+
+
+NAN_CASES = [
+    ("compare", "kinect_v1", "{dir}", "--plausible-px"),
+    ("diagnose", "kinect_v1", "{dir}", "--plausible-px"),
+    ("diagnose", "kinect_v1", "{dir}", "--holdout"),
+    ("fit", "kinect_v1", "{dir}", "--out", "{dir}/f.yaml", "--plausible-px"),
+    ("fit", "kinect_v1", "{dir}", "--out", "{dir}/f.yaml", "--depth-scale"),
+    ("fit", "kinect_v1", "{dir}", "--out", "{dir}/f.yaml", "--lr"),
+    ("fit", "kinect_v1", "{dir}", "--out", "{dir}/f.yaml", "--prior"),
+    ("fit", "kinect_v1", "{dir}", "--out", "{dir}/f.yaml", "--holdout"),
+    ("refine", "kinect_v1", "{dir}", "--out", "{dir}/out", "--band-mm"),
+    ("refine", "kinect_v1", "{dir}", "--out", "{dir}/out", "--edge-weight"),
+    ("stereo", "{dir}/l.png", "{dir}/r.png", "--max-disparity"),
+    ("stereo", "{dir}/l.png", "{dir}/r.png", "--min-disparity"),
+    ("stereo", "{dir}/l.png", "{dir}/r.png", "--beta"),
+    ("stereo", "{dir}/l.png", "{dir}/r.png", "--min-confidence"),
+    ("study", "noise", "kinect_v1", "--albedo"),
+    ("pattern", "kinect_v1", "--density"),
+]
+
+
+@pytest.mark.parametrize("case", NAN_CASES, ids=lambda c: f"{c[0]} {c[-1]}")
+def test_nan_float_option_is_one_line_exit_2(case, tmp_path, capsys):
+    """A NaN number on the command line is named on one line with exit 2, before anything is read or written
+    (`stereo --beta nan` and `fit --depth-scale nan` ran; `compare --plausible-px nan` failed later with a
+    message about the scene)."""
+    (tmp_path / "l.png").write_bytes(b"")
+    (tmp_path / "r.png").write_bytes(b"")
+    out = tmp_path / "out"
+    argv = [a.format(dir=tmp_path) for a in case] + ["nan"]
+    if case[0] in ("stereo", "pattern", "study"):
+        argv += ["--out", str(out)]
+    code = main(argv)
+    captured = capsys.readouterr()
+    assert code == 2, f"exit {code}; stderr: {captured.err}"
+    lines = captured.err.strip().splitlines()
+    assert "Traceback" not in captured.err and len(lines) == 1, captured.err
+    assert case[-1] in lines[0], lines[0]
+    assert not out.exists() and not (tmp_path / "f.yaml").exists()

@@ -3,7 +3,27 @@
 What several commands share (option helpers) lives here, so that no command module imports another.
 """
 
+import math
+
 import click
+
+#: Every --seed: numpy's SeedSequence takes any integer >= 0 (a negative one is bad input, not a traceback).
+SEED = click.IntRange(min=0)
+
+
+class FiniteFloat(click.FloatRange):
+    """A float option within a range that is also finite: click's FloatRange lets NaN through (every comparison
+    with NaN is False), and a NaN plausibility or albedo ran on to a misleading error or a meaningless result."""
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{number} is not a finite number.", param, ctx)
+        return number
+
+
+#: A finite float > 0 (thresholds, scales).
+POSITIVE = FiniteFloat(min=0.0, min_open=True)
 
 
 def split_names(values) -> list[str]:
@@ -16,11 +36,11 @@ def common_options(f):
     f = click.option("--no-plane", is_flag=True, help="Do not add a RANSAC support plane fitted to the real depth.")(f)
     f = click.option("--crop", is_flag=True, help="Simulate only a box around the objects (faster; exact: a "
                      "sub-window of a pinhole image is a pinhole image).")(f)  # fmt: skip
-    f = click.option("--plausible-px", type=float, default=2.0, show_default=True,
+    f = click.option("--plausible-px", type=POSITIVE, default=2.0, show_default=True,
                      help="Compare only where |real - clean| disparity is below this (px), or real is invalid.")(f)
     f = click.option("--region", type=click.Choice(["all", "objects"]), default="all", show_default=True,
                      help="Pixels that count: every modelled surface, or only the objects'.")(f)
-    f = click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation.")(f)
+    f = click.option("--seed", type=SEED, default=0, show_default=True, help="Noise seed of the simulation.")(f)
     f = click.option("--quiet", is_flag=True, help="No progress bars.")(f)
     return f
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import echo_stderr, split_names, threads_option, use_threads
+from ddsgen.commands import POSITIVE, SEED, echo_stderr, split_names, threads_option, use_threads
 from ddsgen.errors import InputError
 from ddsgen.fit import DEFAULT_TILE_PX
 
@@ -36,13 +36,13 @@ from ddsgen.fit import DEFAULT_TILE_PX
               help="Fit frames on which each candidate effect's parameters are searched (0: all of them).")
 @click.option("--max-effects", type=int, default=4, show_default=True, help="Stop after adding this many effects.")
 @click.option("--no-plane", is_flag=True, help="Do not add a RANSAC support plane fitted to the real depth.")
-@click.option("--plausible-px", type=float, default=2.0, show_default=True,
+@click.option("--plausible-px", type=POSITIVE, default=2.0, show_default=True,
               help="Compare only where |real - clean| disparity is below this (px), or real is invalid.")
 @click.option("--region", type=click.Choice(["all", "objects"]), default="all", show_default=True,
               help="Pixels every gap is measured on: 'all' (every modelled, plausible pixel: the objects and the "
                    "support plane) or 'objects' (the annotated objects only, where unmodelled clutter and a second "
                    "table level cannot enter).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation and frame split.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Noise seed of the simulation and frame split.")
 @threads_option(1, "Torch threads. The diagnosis runs many small simulations: on a shared machine one thread per "
                    "process is usually fastest.")
 @click.option("--quiet", is_flag=True, help="No progress output.")

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import (REPRODUCIBLE_THREADS_HELP, common_options, echo_stderr, split_names, threads_option,
-                             use_threads)
+from ddsgen.commands import (POSITIVE, REPRODUCIBLE_THREADS_HELP, common_options, echo_stderr, split_names,
+                             threads_option, use_threads)
 from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.inputs import load_inputs
 from ddsgen.errors import InputError
@@ -68,7 +68,7 @@ from ddsgen.errors import InputError
                    "For a preset registered to an RGB camera see --registration.")
 @click.option("--scenes", type=click.Path(dir_okay=False), default=None,
               help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
-@click.option("--depth-scale", type=float, default=0.001, show_default=True,
+@click.option("--depth-scale", type=POSITIVE, default=0.001, show_default=True,
               help="With --unpaired: metres per PNG unit of the real depth images.")
 @click.option("--registration", type=click.Choice(["auto", "registered", "unregistered"]), default="auto",
               show_default=True,

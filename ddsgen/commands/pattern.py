@@ -8,6 +8,7 @@ import click
 import cv2
 import numpy as np
 
+from ddsgen.commands import SEED, FiniteFloat
 from ddsgen.io.atomic import atomic_write_bytes
 from ddsgen.preset import load_preset
 from ddsgen.sensor.pattern import generate_pattern, load_pattern, pattern_requirements, pattern_statistics
@@ -24,8 +25,10 @@ def _print_statistics(label: str, stats: dict) -> None:
 
 @click.command("pattern")
 @click.argument("preset", default="kinect_v1")
-@click.option("--seed", default=0, show_default=True, help="Random seed: the same seed gives the same pattern.")
-@click.option("--density", default=0.11, show_default=True, help="Fraction of lit pixels (real Kinect V1: 0.111).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed: the same seed gives the same pattern.")
+@click.option("--density", type=FiniteFloat(0.0, 1.0, min_open=True, max_open=True), default=0.11,
+              show_default=True, help="Fraction of lit pixels (real Kinect V1: 0.111; dots that never touch, as on "
+                                      "the real pattern, fill at most about 0.19).")
 @click.option("--out", type=click.Path(dir_okay=False), default=None,
               help="Output PNG [default: the preset's pattern file name, in the current folder]. To use it, "
                    "put it beside your preset file (a preset's pattern is looked up there first).")
@@ -42,9 +45,11 @@ def pattern(preset, seed, density, out, compare_with):
     """
     sensor = load_preset(preset)
     need = pattern_requirements(sensor)
-    image = generate_pattern(
-        need["width"], need["height"], seed=seed, density=density, block=need["block"], max_shift=need["max_shift"]
-    )
+    try:
+        image = generate_pattern(need["width"], need["height"], seed=seed, density=density, block=need["block"],
+                                 max_shift=need["max_shift"])  # fmt: skip
+    except ValueError as error:  # a density the dots cannot reach: nothing is written
+        raise click.BadParameter(str(error), param_hint="--density") from None
     # Never into the package's own folder (site-packages in a wheel install): the current folder by default.
     target = Path(out) if out else Path(Path(sensor.pattern).name)
     ok, data = cv2.imencode(".png", image)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from ddsgen.commands import REPRODUCIBLE_THREADS_HELP, threads_option, use_threads
+from ddsgen.commands import REPRODUCIBLE_THREADS_HELP, SEED, threads_option, use_threads
 from ddsgen.errors import InputError
 
 
@@ -35,7 +35,7 @@ from ddsgen.errors import InputError
 @click.option("--static-views", type=int, default=8, show_default=True,
               help="With --static-scene: frames simulated per scene (evenly spaced); the correction they find "
                    "is applied to the scene's other frames too.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Noise seed of the simulation.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Noise seed of the simulation.")
 @threads_option(None, REPRODUCIBLE_THREADS_HELP)
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, static_scene,

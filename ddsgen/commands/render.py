@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ddsgen.commands import SEED
 from ddsgen.runner import render_dataset
 
 
@@ -19,7 +20,7 @@ from ddsgen.runner import render_dataset
               help="Output folder. Re-running into the same folder resumes: finished frames are skipped.")
 @click.option("--workers", type=int, default=1, show_default=True,
               help="Local worker processes. The output does not depend on it (same seed, same bytes).")
-@click.option("--seed", type=int, default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Dataset seed: frame i depends only on (seed, i).")
 @click.option("--scheduler", default=None, metavar="ADDR",
               help="Address of a Dask scheduler (tcp://HOST:PORT) to render on a cluster (needs ddsgen[dask] on the "

@@ -77,15 +77,15 @@ def stereo(left, right, max_disparity, min_disparity, block, n_sub, beta, min_co
         raise InputError(f"--block: must be odd and >= 3, got {block}")
     if not 0 <= n_sub <= 6:
         raise InputError(f"--subpixel: must be in 0..6, got {n_sub}")
-    if not (math.isfinite(min_disparity) and math.isfinite(max_disparity)) or min_disparity < 0:
+    if not (math.isfinite(min_disparity) and min_disparity >= 0):
         raise InputError(f"--min-disparity: must be >= 0, got {min_disparity}")
-    if max_disparity < min_disparity + 1:
+    if not (math.isfinite(max_disparity) and max_disparity >= min_disparity + 1):
         raise InputError(f"--max-disparity: must be >= --min-disparity + 1, got {max_disparity}")
     if not 0 <= min_confidence <= 1:
         raise InputError(f"--min-confidence: must be in [0, 1], got {min_confidence}")
     if band_rows < 1:
         raise InputError(f"--band-rows: must be >= 1, got {band_rows}")
-    if beta <= 0:
+    if not (math.isfinite(beta) and beta > 0):
         raise InputError(f"--beta: must be > 0, got {beta}")
     image_l, image_r = _read_grey(left), _read_grey(right)
     if image_l.shape != image_r.shape:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ddsgen.commands import SEED, FiniteFloat
 from ddsgen.study.noise import DEFAULT_ALBEDO, DEFAULT_ANGLES, DEFAULT_Z
 
 
@@ -24,10 +25,10 @@ def study():
               help="Frames per (z, angle), each with its own noise seed; the ray cast is done once per point.")
 @click.option("--out", type=click.Path(file_okay=False), default="noise_study", show_default=True,
               help="Output folder: noise.json, noise_study.png, noise_table.md, sensor.yaml.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Study seed (noise of every frame).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Study seed (noise of every frame).")
 @click.option("--rows", type=int, default=None,
               help="Render only a centred crop of this many image rows (faster; same physics). Default: all rows.")
-@click.option("--albedo", type=click.FloatRange(0.0, 1.0, min_open=True), default=DEFAULT_ALBEDO, show_default=True,
+@click.option("--albedo", type=FiniteFloat(0.0, 1.0, min_open=True), default=DEFAULT_ALBEDO, show_default=True,
               help="IR reflectance of the plane.")
 @click.option("--quiet", is_flag=True, help="No progress bar and no summary.")
 def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, quiet):
