@@ -83,3 +83,16 @@ def test_pattern_command_writes_into_the_current_folder_not_the_package(tmp_path
     assert main(["pattern", "kinect_v1"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kinect_like_640.png"]
     assert (tmp_path / "kinect_like_640.png").read_bytes() == shipped
+
+
+@pytest.mark.parametrize("density, says", [("0", "range"), ("1.5", "range"), ("0.3", "never touch")])
+def test_pattern_density_it_cannot_draw_is_one_line_exit_2(density, says, tmp_path, monkeypatch, capsys):
+    """Dots that never touch jam near 0.19 of the pixels: a density of 0, above 1 or beyond that limit was written
+    silently as another pattern (0 % or 18.7 % lit). Now it is bad input, and nothing is written."""
+    from ddsgen.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["pattern", "--density", density, "--out", "p.png"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--density" in err[0] and says in err[0], err
+    assert not (tmp_path / "p.png").exists()
