@@ -247,8 +247,8 @@ def render_dataset(
     Raises:
         InputError: bad preset, scene list, arguments or output folder -- before anything is written.
     """
-    if n < 0:
-        raise InputError(f"-n: must be >= 0, got {n}")
+    if n < 1:  # a dataset of no frames has no manifest to finish: say so before the folder is started
+        raise InputError(f"-n: must be >= 1, got {n}")
     if workers < 1:
         raise InputError(f"--workers: must be >= 1, got {workers}")
     preset = load_preset(preset_path)

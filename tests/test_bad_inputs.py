@@ -215,3 +215,12 @@ def test_nan_float_option_is_one_line_exit_2(case, tmp_path, capsys):
     assert "Traceback" not in captured.err and len(lines) == 1, captured.err
     assert case[-1] in lines[0], lines[0]
     assert not out.exists() and not (tmp_path / "f.yaml").exists()
+
+
+def test_zero_frames_is_one_line_exit_2_and_no_folder(tmp_path, capsys):
+    """-n 0 started the output folder (run.json, sensor.yaml) and then failed on the manifest no frame had written."""
+    out = tmp_path / "out"
+    assert main(["render", "kinect_v1", "-n", "0", "--out", str(out), "--quiet"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == ["ddsgen: error: -n: must be >= 1, got 0"], lines
+    assert not out.exists()
