@@ -1,7 +1,7 @@
 """The ``ddsgen`` command line: thin parsing and reporting around the library.
 
 Every command: ``--help``; exit 0 on success; bad input -> one line on stderr and
-exit 2 (no traceback, nothing half-written).
+exit 2 (no traceback, nothing half-written); so is a path the system refuses to read or write (OSError).
 """
 
 from __future__ import annotations
@@ -54,8 +54,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         click.echo("ddsgen: interrupted; re-run the same command to resume", err=True)
         return 130
+    except OSError as error:  # a path the system refuses (a file where a folder goes, no space, no permission)
+        click.echo(f"ddsgen: error: {_os_line(error)}", err=True)
+        return 2
     return 0
 
+
+def _os_line(error: OSError) -> str:
+    """'PATH: REASON' of an OSError that no command turned into an InputError of its own."""
+    reason = error.strerror or str(error) or type(error).__name__
+    name = error.filename if error.filename is not None else ""
+    return f"{name}: {reason.lower()}" if name else reason
 
 
 def entry_point() -> None:

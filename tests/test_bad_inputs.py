@@ -224,3 +224,27 @@ def test_zero_frames_is_one_line_exit_2_and_no_folder(tmp_path, capsys):
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines == ["ddsgen: error: -n: must be >= 1, got 0"], lines
     assert not out.exists()
+
+
+@pytest.mark.parametrize("unpaired", [False, True])
+def test_fit_output_under_a_file_is_one_line_exit_2_before_any_work(unpaired, tmp_path, capsys):
+    """A file where the fitted preset's folder should be was a traceback at the very end of a fit."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    real = tmp_path / "real"
+    real.mkdir()
+    argv = ["fit", "kinect_v1", str(real), "--out", str(blocker / "fitted.yaml")] + (["--unpaired"] if unpaired else [])
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "a_file is a file, not a folder" in lines[0], lines
+
+
+def test_an_os_error_no_command_expected_is_one_line_exit_2(monkeypatch, capsys):
+    """The last net: an OSError (no space, no permission, ...) is one line naming the path, never a traceback."""
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", "/somewhere/out.png")
+
+    monkeypatch.setattr(cli.commands["pattern"], "callback", refuse)
+    assert main(["pattern"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "ddsgen: error: /somewhere/out.png: permission denied", err

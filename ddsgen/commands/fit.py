@@ -12,6 +12,7 @@ from ddsgen.commands import (POSITIVE, REPRODUCIBLE_THREADS_HELP, common_options
 from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.inputs import load_inputs
 from ddsgen.errors import InputError
+from ddsgen.io.atomic import check_can_create_folder
 
 
 @click.command("fit")
@@ -95,6 +96,10 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     loss_curve.png, residuals.png, frames/).
     """
     use_threads(threads)
+    out_path = Path(out)
+    report = Path(report_dir) if report_dir else out_path.with_name(out_path.stem + "_report")
+    check_can_create_folder(out_path.parent, "the fitted preset")
+    check_can_create_folder(report, "the report")
     if unpaired:
         from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
 
@@ -140,10 +145,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     if static_views < 1:
         raise click.BadParameter("must be >= 1", param_hint="--static-views")
     names = split_names(params) or list(DEFAULT_PARAMS)
-    out_path = Path(out)
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
-    report = Path(report_dir) if report_dir else out_path.with_name(out_path.stem + "_report")
     resolve_params(DepthSensor(load_preset(preset)), names)  # validate names before any work
     original, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
                                                          plausible_px=plausible_px, seed=seed, progress=not quiet,

@@ -45,3 +45,19 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 
 def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def check_can_create_folder(folder: str | Path, what: str) -> None:
+    """Raise ``InputError`` naming ``folder`` when it cannot become a writable folder: it, or the first of its
+    ancestors that exists, is a file or is not writable. Writes nothing: commands call it before hours of work
+    whose results go there (a file where the folder should be was a traceback at the end of a fit)."""
+    from ddsgen.errors import InputError
+
+    folder = Path(folder)
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"{folder}: cannot write {what} there ({existing} is a file, not a folder)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{folder}: cannot write {what} there ({existing} is not writable)")
