@@ -25,7 +25,8 @@ def _print_statistics(label: str, stats: dict) -> None:
 
 @click.command("pattern")
 @click.argument("preset", default="kinect_v1")
-@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed: the same seed gives the same pattern.")
+@click.option("--seed", type=SEED, default=0, show_default=True,
+              help="Random seed: the same seed gives the same pattern.")
 @click.option("--density", type=FiniteFloat(0.0, 1.0, min_open=True, max_open=True), default=0.11,
               show_default=True, help="Fraction of lit pixels (real Kinect V1: 0.111; dots that never touch, as on "
                                       "the real pattern, fill at most about 0.19).")
