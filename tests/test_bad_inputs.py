@@ -115,18 +115,21 @@ def test_controls_load(control):
     assert loader[control["kind"]](path)
 
 
-def _commands_with_seed(group, path=()):
-    """(command path, its first positional arguments) of every command that takes --seed."""
-    import click
-
+def _leaf_commands(group=cli, path=()):
+    """(command path, click command) of every command below ``group``, subcommands included."""
     for name, command in group.commands.items():
-        if isinstance(command, click.Group):
-            yield from _commands_with_seed(command, path + (name,))
-        elif any("--seed" in p.opts for p in command.params if isinstance(p, click.Option)):
-            yield path + (name,)
+        if hasattr(command, "commands"):
+            yield from _leaf_commands(command, path + (name,))
+        else:
+            yield path + (name,), command
 
 
-SEED_COMMANDS = sorted(_commands_with_seed(cli))
+def _options(command) -> list:
+    return [p for p in command.params if p.param_type_name == "option"]
+
+
+LEAVES = dict(_leaf_commands())
+SEED_COMMANDS = sorted(path for path, command in LEAVES.items() if any("--seed" in p.opts for p in _options(command)))
 
 
 def test_every_seeded_command_is_checked():
@@ -138,10 +141,7 @@ def test_negative_seed_is_one_line_exit_2(command, tmp_path, capsys):
     """numpy's seeds are >= 0: a negative --seed is bad input named on one line, before anything is read or written
     (it was a traceback after render had started its output folder)."""
     out = tmp_path / "out"
-    leaf = cli
-    for name in command:
-        leaf = leaf.commands[name]
-    out_option = "--out" if any("--out" in p.opts for p in leaf.params) else "--report"
+    out_option = "--out" if any("--out" in p.opts for p in _options(LEAVES[command])) else "--report"
     argv = [*command, "--seed", "-1", out_option, str(out)]
     code = main(argv)
     captured = capsys.readouterr()
@@ -152,27 +152,15 @@ def test_negative_seed_is_one_line_exit_2(command, tmp_path, capsys):
     assert not out.exists()
 
 
-def _float_options(group, path=()):
-    import click
-
-    for name, command in group.commands.items():
-        if isinstance(command, click.Group):
-            yield from _float_options(command, path + (name,))
-            continue
-        for p in command.params:
-            if isinstance(p, click.Option) and isinstance(p.type, click.types.FloatParamType):
-                yield path + (name,), p
-
-
 def test_ranged_float_options_reject_nan():
     """click's FloatRange lets NaN through (every comparison with NaN is False): a ranged float option must be a
     FiniteFloat, so that `--albedo nan` is bad input, not a run."""
-    from ddsgen.commands import FiniteFloat
-
     import click
 
-    ranged = [(" ".join(path), p.opts[0], isinstance(p.type, FiniteFloat)) for path, p in _float_options(cli)
-              if isinstance(p.type, click.FloatRange)]  # fmt: skip
+    from ddsgen.commands import FiniteFloat
+
+    ranged = [(" ".join(path), p.opts[0], isinstance(p.type, FiniteFloat)) for path, command in LEAVES.items()
+              for p in _options(command) if isinstance(p.type, click.FloatRange)]  # fmt: skip
     assert len(ranged) >= 4, ranged
     assert all(finite for _, _, finite in ranged), [r for r in ranged if not r[2]]
 

@@ -16,22 +16,20 @@ import dataclasses
 import numpy as np
 import torch
 
-from ddsgen.fit.local_patches import FramePatches, find_patches, residual_mm
+from ddsgen.fit.local_patches import FramePatches, patch_count, patch_share, patches_against
 from ddsgen.fit.losses import local_window
 from ddsgen.fit.simulate import simulate, simulate_twin
 
 
 def frame_patches(sensor, frames, seed: int) -> list[FramePatches]:
-    """:func:`find_patches` of every frame in ``frames`` (prepared, whole frames) under ``sensor``, noise draw
-    ``seed``; the twin is unit 1 (:func:`~ddsgen.fit.simulate.simulate_twin` draw 0)."""
+    """The patches (:func:`~ddsgen.fit.local_patches.patches_against`) of every frame in ``frames`` (prepared, whole
+    frames) under ``sensor``, noise draw ``seed``; the twin is unit 1 (:func:`~ddsgen.fit.simulate.simulate_twin`
+    draw 0)."""
     out = []
     with torch.no_grad():
         for frame in frames:
-            sim = simulate(sensor, frame, seed)
-            twin = simulate_twin(sensor, frame, seed, 0)
-            window = local_window(frame.intrinsics.fx)
-            out.append(find_patches(frame.name, residual_mm(sim, frame.region, frame.real_depth, frame.real_valid),
-                                    residual_mm(sim, frame.region, twin.depth, twin.valid), window))  # fmt: skip
+            out.append(patches_against(simulate(sensor, frame, seed), frame, simulate_twin(sensor, frame, seed, 0),
+                                       local_window(frame.intrinsics.fx)))  # fmt: skip
     return out
 
 
@@ -46,13 +44,12 @@ class LocalReading:
 
     @property
     def count(self) -> int:
-        return sum(len(p.sizes_px) for p in self.patches)
+        return patch_count(self.patches)
 
     @property
     def share(self) -> float:
         """Fraction of the compared pixels inside a patch."""
-        compared = sum(p.compared_px for p in self.patches)
-        return sum(sum(p.sizes_px) for p in self.patches) / compared if compared else 0.0
+        return patch_share(self.patches)
 
     @property
     def carried(self) -> float:

@@ -103,6 +103,24 @@ def residual_mm(sim, region: torch.Tensor, depth: torch.Tensor, valid: torch.Ten
     return np.where(both, diff, np.nan)
 
 
+def patches_against(sim, frame, twin, window: int) -> FramePatches:
+    """:func:`find_patches` of ``frame`` (FrameData; ``frame.region``: the pixels compared) from its simulation
+    ``sim`` and one twin ``twin`` (SensorOutputs)."""
+    return find_patches(frame.name, residual_mm(sim, frame.region, frame.real_depth, frame.real_valid),
+                        residual_mm(sim, frame.region, twin.depth, twin.valid), window)  # fmt: skip
+
+
+def patch_count(patches: list[FramePatches]) -> int:
+    """Patches over all frames."""
+    return sum(len(p.sizes_px) for p in patches)
+
+
+def patch_share(patches: list[FramePatches]) -> float:
+    """Fraction of the compared pixels (all frames) inside a patch; 0 without compared pixels."""
+    compared = sum(p.compared_px for p in patches)
+    return sum(sum(p.sizes_px) for p in patches) / compared if compared else 0.0
+
+
 @dataclasses.dataclass
 class PatchGap:
     """One frame's patches, and its gap and noise floors (against each twin) with the patches left out (mm)."""
@@ -117,10 +135,8 @@ def patch_gap(sim, frame, twins: list, window: int) -> PatchGap:
     ``compare`` gap and floors without them. ``twins``: SensorOutputs of other units (at least one)."""
     from ddsgen.fit.compare import frame_gap_mm  # compare uses this module
 
-    region = frame.region
-    patches = find_patches(frame.name, residual_mm(sim, region, frame.real_depth, frame.real_valid),
-                           residual_mm(sim, region, twins[0].depth, twins[0].valid), window)  # fmt: skip
-    outside = dataclasses.replace(frame, region=region & ~torch.from_numpy(patches.mask))
+    patches = patches_against(sim, frame, twins[0], window)
+    outside = dataclasses.replace(frame, region=frame.region & ~torch.from_numpy(patches.mask))
     floors = [frame_gap_mm(sim, dataclasses.replace(outside, real_depth=t.depth, real_valid=t.valid)) for t in twins]
     return PatchGap(patches, frame_gap_mm(sim, outside), floors)
 
@@ -128,12 +144,11 @@ def patch_gap(sim, frame, twins: list, window: int) -> PatchGap:
 def patch_summary(rows: list[PatchGap], gap: float, floor: float) -> dict:
     """``comparison.json``'s ``local_patches``: count, share of the compared pixels, the gap, floor and excess
     without the patches (means over frames, mm) and the share of the excess ``gap - floor`` they carry."""
-    compared = sum(r.patches.compared_px for r in rows)
-    inside = sum(sum(r.patches.sizes_px) for r in rows)
+    found = [r.patches for r in rows]
     gap_without = float(np.mean([r.gap_without for r in rows]))
     floor_without = float(np.mean([np.mean(r.floors_without) for r in rows]))
     excess = gap - floor
-    return {"patches": sum(len(r.patches.sizes_px) for r in rows), "share": round(inside / max(compared, 1), 4),
+    return {"patches": patch_count(found), "share": round(patch_share(found), 4),
             "gap_without": round(gap_without, 4), "noise_floor_without": round(floor_without, 4),
             "excess_without": round(gap_without - floor_without, 4),
             "carried": round(1.0 - (gap_without - floor_without) / excess, 4) if excess > 0 else 0.0,
