@@ -156,8 +156,10 @@ def study_run(tmp_path_factory):
 
 def test_noise_json_schema_and_outputs(study_run):
     out, data, _ = study_run
-    assert list(data) == ["points"]
-    assert len(data["points"]) == len(Z_GRID) * len(ANGLES)
+    assert list(data) == ["points", "lateral"]
+    assert len(data["points"]) == len(data["lateral"]) == len(Z_GRID) * len(ANGLES)
+    for point in data["lateral"]:
+        assert tuple(point) == ("z", "angle_deg", "lateral_px", "left_px", "right_px", "nguyen_px")
     for point in data["points"]:
         assert tuple(point) == JSON_KEYS
         for key in JSON_KEYS:

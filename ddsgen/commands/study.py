@@ -30,14 +30,19 @@ def study():
               help="Render only a centred crop of this many image rows (faster; same physics). Default: all rows.")
 @click.option("--albedo", type=FiniteFloat(0.0, 1.0, min_open=True), default=DEFAULT_ALBEDO, show_default=True,
               help="IR reflectance of the plane.")
+@click.option("--lateral/--no-lateral", default=True, show_default=True,
+              help="Also measure the lateral noise (how far a board's vertical edges wander from a line, against "
+                   "Nguyen 2012): a second scene per (z, angle), so twice the frames.")
 @click.option("--quiet", is_flag=True, help="No progress bar and no summary.")
-def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, quiet):
+def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral, quiet):
     """The noise study of the paper (Fig. S4) for PRESET (a preset file or a shipped name such as kinect_v1).
 
     A flat surface at distance z, tilted by an angle about the vertical axis, is ray cast once per (z, angle)
     and simulated K times through the full sensor (IR image, block matching, depth) with different noise
     seeds. Per point: axial noise (std after removing the fitted plane), rms and bias against the true plane,
-    valid fraction and the quantisation step (spacing of the distinct depth values). Writes OUT/noise.json,
+    valid fraction and the quantisation step (spacing of the distinct depth values). With --lateral (the
+    default), also a board of finite width before a wall, its two vertical edges' distance from a fitted line
+    per row (the lateral noise, px). Writes OUT/noise.json,
     OUT/noise_study.png (with the Nguyen 2012 and Khoshelham 2012 Kinect V1 curves and the real Kinect's
     depth values from ../shared/data when present), OUT/noise_table.md and OUT/sensor.yaml.
     """
@@ -45,6 +50,7 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, quiet):
 
     from ddsgen.errors import InputError
     from ddsgen.preset import load_preset, save_preset
+    from ddsgen.study.lateral import lateral_table, run_lateral_study
     from ddsgen.study.noise import parse_grid, real_quantisation, run_noise_study, study_intrinsics
     from ddsgen.study.noise_report import noise_table, plot_noise_study, quantisation_table, write_noise_json
 
@@ -57,23 +63,29 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, quiet):
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    bar = tqdm(total=len(zs) * len(angles) * frames, unit="frame", desc="study noise", disable=quiet,
+    scenes = 2 if lateral else 1
+    bar = tqdm(total=scenes * len(zs) * len(angles) * frames, unit="frame", desc="study noise", disable=quiet,
                dynamic_ncols=True)  # fmt: skip
     try:
         points = run_noise_study(sensor, zs, angles, frames=frames, seed=seed, rows=rows, albedo=albedo,
                                  on_frame=lambda: bar.update(1))  # fmt: skip
+        edges = None
+        if lateral:
+            edges = run_lateral_study(sensor, zs, angles, frames=frames, seed=seed, rows=rows, albedo=albedo,
+                                      on_frame=lambda: bar.update(1))  # fmt: skip
     finally:
         bar.close()
     real = real_quantisation()
     save_preset(sensor, out_dir / "sensor.yaml", comment=f"sensor used by: ddsgen study noise {preset}")
-    write_noise_json(points, out_dir / "noise.json")
+    write_noise_json(points, out_dir / "noise.json", lateral=edges)
     table = noise_table(points)
     quant = quantisation_table(points, sensor, real)
     from ddsgen.io.atomic import atomic_write_text
 
     notes = "".join(f"- {m}\n" for m in real.messages)
-    atomic_write_text(out_dir / "noise_table.md",
-                      f"# Noise study: {sensor.name}\n\n{table}\n## Quantisation step\n\n{quant}\n{notes}")  # fmt: skip
+    lateral_section = "" if edges is None else f"\n## Lateral noise\n\n{lateral_table(edges, sensor.intrinsics.fx)}"
+    atomic_write_text(out_dir / "noise_table.md", f"# Noise study: {sensor.name}\n\n{table}\n## Quantisation step\n\n"
+                      f"{quant}\n{notes}{lateral_section}")  # fmt: skip
     plot_noise_study(points, sensor, real, out_dir / "noise_study.png")
     if not quiet:
         for message in real.messages:

@@ -11,11 +11,16 @@ from ddsgen.preset import SensorPreset
 from ddsgen.study.noise import NoisePoint, RealQuantisation, khoshelham_sigma, local_steps, nguyen_sigma, quantisation_step
 
 
-def write_noise_json(points: list[NoisePoint], path: Path | str) -> None:
-    """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...]}``, atomically."""
+def write_noise_json(points: list[NoisePoint], path: Path | str, lateral: list | None = None) -> None:
+    """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...]}``, atomically; with
+    ``lateral`` (:class:`~ddsgen.study.lateral.LateralPoint` list) also ``"lateral": [{z, angle_deg, lateral_px,
+    left_px, right_px, nguyen_px}, ...]``."""
     from ddsgen.io.atomic import atomic_write_text
 
-    atomic_write_text(path, json.dumps({"points": [p.as_json() for p in points]}, indent=1) + "\n")
+    data = {"points": [p.as_json() for p in points]}
+    if lateral is not None:
+        data["lateral"] = [p.as_json() for p in lateral]
+    atomic_write_text(path, json.dumps(data, indent=1) + "\n")
 
 
 def _mm(value: float | None, digits: int = 2) -> str:
