@@ -16,6 +16,7 @@ from ddsgen.study.lateral import (
     LateralAccumulator,
     board_edges,
     board_scene,
+    edge_columns,
     line_residuals,
     nguyen_lateral_px,
     plane_depth,
@@ -52,18 +53,19 @@ def test_line_residuals_of_known_edges():
     assert np.abs(np.delete(residual, 200)).max() < 0.6
 
 
-def test_board_edges_bridges_small_gaps_and_keeps_the_centre_run():
+def test_board_edges_are_the_outermost_board_pixels_near_the_true_edges():
     width, wall = 200, 3.0
     plane = np.full(width, 1.0)
     depth = np.full((4, width), wall)
     depth[:, 50:150] = 1.0
     valid = np.ones((4, width), bool)
-    valid[1, 60:63] = False  # a 3-px hole on the board: not an edge
-    valid[2, 20:30] = False
-    depth[2, 10:20] = 1.0  # a board-like patch left of a wide gap: not the centre's run
-    valid[3, 90:110] = False  # the centre column in a wide gap: no edge in that row
-    left, right = board_edges(depth, valid, plane, wall, centre_column=100)
-    assert list(left[:3]) == [50, 50, 50] and list(right[:3]) == [150, 150, 150]
+    valid[1, 51:60] = False  # holes on the board near its edges do not move them
+    valid[1, 140:149] = False
+    depth[2, 45] = 1.05  # a wall pixel misread near the board's depth, within reach: the edge as a user sees it
+    depth[2, 10] = 1.0  # ... and one far beyond reach: ignored
+    valid[3, 30:170] = False  # no board pixel within reach: no edge in that row
+    left, right = board_edges(depth, valid, plane, wall, true_left=49.5, true_right=149.5, reach=16)
+    assert list(left[:3]) == [50, 50, 45] and list(right[:3]) == [150, 150, 150]
     assert np.isnan(left[3]) and np.isnan(right[3])
 
 
@@ -82,8 +84,10 @@ def test_board_edges_where_set_up_and_wall_behind(device_and_intrinsics):
         hits, _ = cast_for_sensor(board_scene(z, angle, intrinsics, 0.8), intrinsics, preset)
         depth = np.asarray(hits.depth, dtype=np.float64)
         assert np.nanmax(np.where(hits.hit, depth, np.nan)) == pytest.approx(wall_depth(z, angle, intrinsics), rel=1e-4)
+        true_left, true_right = edge_columns(z, angle, intrinsics)
+        assert true_left == pytest.approx(intrinsics.cx - EDGE_OFFSET * intrinsics.width)
         left, right = board_edges(depth, np.asarray(hits.hit), plane_depth(z, angle, intrinsics),
-                                  wall_depth(z, angle, intrinsics), int(round(intrinsics.cx)))  # fmt: skip
+                                  wall_depth(z, angle, intrinsics), true_left, true_right)  # fmt: skip
         offset = EDGE_OFFSET * intrinsics.width
         assert np.abs(left - (intrinsics.cx - offset)).max() <= 1.0, (z, angle)
         assert np.abs(right - (intrinsics.cx + offset)).max() <= 1.0, (z, angle)

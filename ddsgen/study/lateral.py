@@ -7,8 +7,8 @@ before a fronto-parallel wall :data:`WALL_BEHIND_M` behind its receding edge: ea
 its background, the projector's shadow on the wall beside the left one. (With nothing behind it, ddsgen's edges
 are nearly straight lines, 0.0-0.5 px: docs/noise_study.md.)
 
-Measured per (z, alpha) and frame, on the rows of the central half of the image: per row, the columns where the
-board's valid run starts and ends (:func:`board_edges`); per edge, a straight line fitted to those columns against
+Measured per (z, alpha) and frame, on the rows of the central half of the image: per row, the board's outermost
+valid pixels within a few pixels of its two true edges (:func:`board_edges`); per edge, a straight line fitted to those columns against
 the row (:func:`line_residuals`); the lateral noise is the root mean square of the rows' distances from it, in
 pixels (Nguyen's definition), pooled over the frames. A perfectly rendered straight edge has ~0.29 px of it from
 the pixel grid alone (a uniform rounding error) when it is not exactly vertical; Nguyen measured 0.8 px at small
@@ -28,8 +28,8 @@ from ddsgen.preset import Intrinsics
 EDGE_OFFSET = 0.25
 #: The wall stands this far (m) behind the board's receding edge: both edges are depth jumps of at least this much.
 WALL_BEHIND_M = 1.0
-#: Gaps of at most this many pixels inside a row's board run do not end it (a hole on the board is not an edge).
-RUN_GAP_PX = 3
+#: An edge is looked for this many pixels either side of its true column (the matcher's fattening is a few px).
+EDGE_REACH_PX = 16
 #: Rows whose edge is farther than this many robust sigmas (at least 2 px) from the first line fit do not steer
 #: the second fit; they still count in the residuals.
 OUTLIER_SIGMAS = 5.0
@@ -106,36 +106,44 @@ def plane_depth(z: float, angle_deg: float, intrinsics: Intrinsics) -> np.ndarra
         return np.where(denominator > 1e-9, z * math.cos(a) / denominator, np.inf)
 
 
-def board_edges(depth: np.ndarray, valid: np.ndarray, plane_z: np.ndarray, wall_z: float, centre_column: int
-                ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Per row, the first and one-past-the-last column of the board's run through ``centre_column``.
+def edge_columns(z: float, angle_deg: float, intrinsics: Intrinsics) -> tuple[float, float]:
+    """(left, right): the image columns (px, continuous) of the board's two vertical edges."""
+    a = math.radians(angle_deg)
+    left, right = board_halves(z, angle_deg, intrinsics)
+    x_left = -left * math.cos(a) / (z - left * math.sin(a))
+    x_right = right * math.cos(a) / (z + right * math.sin(a))
+    return intrinsics.cx + intrinsics.fx * x_left, intrinsics.cx + intrinsics.fx * x_right
+
+
+def board_edges(depth: np.ndarray, valid: np.ndarray, plane_z: np.ndarray, wall_z: float, true_left: float,
+                true_right: float, reach: int = EDGE_REACH_PX) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per row, the board's outermost pixels near its true edges: the first board column within ``reach`` px of
+    ``true_left`` and one past the last within ``reach`` px of ``true_right``.
+
+    Holes on the board do not move an edge; a wall pixel misread as the board's near an edge does (it is lateral
+    noise as a user sees it).
 
     Args:
         depth: (H, W) measured depth (m); valid: (H, W) bool.
         plane_z: (W,) the board plane's depth per column (:func:`plane_depth`); a valid pixel is the board's when
             its depth is nearer to it than to ``wall_z``, the wall's.
-        centre_column: a column on the board in every row (the principal point's).
+        true_left, true_right: the edges' columns (:func:`edge_columns`).
 
     Returns:
-        (left, right), each (H,) float64: NaN in rows where the centre column is not on the board. Gaps of at most
-        :data:`RUN_GAP_PX` invalid pixels inside the run are bridged.
+        (left, right), each (H,) float64: NaN in rows without a board pixel within reach of that edge.
     """
     on_board = valid & (np.abs(depth - plane_z[None, :]) < np.abs(depth - wall_z))
-    height, width = on_board.shape
-    left = np.full(height, np.nan)
-    right = np.full(height, np.nan)
-    for row in range(height):
-        columns = np.flatnonzero(on_board[row])
-        if columns.size == 0:
-            continue
-        # Split the row's board pixels into runs at gaps wider than RUN_GAP_PX; keep the run around the centre.
-        breaks = np.flatnonzero(np.diff(columns) > RUN_GAP_PX + 1)
-        starts = np.concatenate([[0], breaks + 1])
-        ends = np.concatenate([breaks, [columns.size - 1]])
-        run = np.flatnonzero((columns[starts] <= centre_column) & (columns[ends] >= centre_column))
-        if run.size:
-            left[row] = columns[starts[run[0]]]
-            right[row] = columns[ends[run[0]]] + 1
+    width = on_board.shape[1]
+
+    def window(centre):
+        return max(int(math.floor(centre)) - reach, 0), min(int(math.ceil(centre)) + reach + 1, width)
+
+    lo, hi = window(true_left)
+    near_left = on_board[:, lo:hi]
+    left = np.where(near_left.any(axis=1), lo + near_left.argmax(axis=1), np.nan)
+    lo, hi = window(true_right)
+    near_right = on_board[:, lo:hi]
+    right = np.where(near_right.any(axis=1), hi - near_right[:, ::-1].argmax(axis=1), np.nan)
     return left, right
 
 
@@ -184,14 +192,14 @@ class LateralAccumulator:
         self.z, self.angle_deg = float(z), float(angle_deg)
         self.plane_z = plane_depth(z, angle_deg, intrinsics)
         self.wall_z = wall_depth(z, angle_deg, intrinsics)
-        self.centre = int(round(intrinsics.cx))
+        self.true_edges = edge_columns(z, angle_deg, intrinsics)
         height = intrinsics.height
         self.rows = np.arange(height // 4, height - height // 4)
         self.squares = {"left": [], "right": []}
 
     def add(self, depth: np.ndarray, valid: np.ndarray) -> None:
         """One frame: depth (H, W) in m, valid (H, W) bool."""
-        left, right = board_edges(depth, valid, self.plane_z, self.wall_z, self.centre)
+        left, right = board_edges(depth, valid, self.plane_z, self.wall_z, *self.true_edges)
         for name, columns in (("left", left), ("right", right)):
             columns = columns[self.rows]
             measured = np.isfinite(columns)
