@@ -86,7 +86,7 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral,
     lateral_section = "" if edges is None else f"\n## Lateral noise\n\n{lateral_table(edges, sensor.intrinsics.fx)}"
     atomic_write_text(out_dir / "noise_table.md", f"# Noise study: {sensor.name}\n\n{table}\n## Quantisation step\n\n"
                       f"{quant}\n{notes}{lateral_section}")  # fmt: skip
-    plot_noise_study(points, sensor, real, out_dir / "noise_study.png")
+    plot_noise_study(points, sensor, real, out_dir / "noise_study.png", lateral=edges)
     if not quiet:
         for message in real.messages:
             click.echo(f"note: {message}", err=True)

@@ -86,9 +86,11 @@ def _label_panel(ax, xlabel: str, ylabel: str, title: str, legend_columns: int =
     ax.grid(True, which="both" if minor_grid else "major", alpha=0.3)
 
 
-def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQuantisation, path: Path | str) -> None:
+def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQuantisation, path: Path | str,
+                     lateral: list | None = None) -> None:  # fmt: skip
     """One PNG, six panels: std vs z per alpha with Nguyen / Khoshelham; std / Nguyen; std vs alpha;
-    quantisation step vs z with the real device's values; bias vs z; valid fraction vs z."""
+    quantisation step vs z with the real device's values; bias vs z; valid fraction vs z. With ``lateral``
+    (:class:`~ddsgen.study.lateral.LateralPoint` list) two more: the lateral noise vs z beside Nguyen's, and its ratio."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -105,7 +107,7 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
         rows = [(p.z, getattr(p, key)) for p in points if p.angle_deg == angle and getattr(p, key) is not None]
         return (np.array([r[0] for r in rows]), np.array([r[1] for r in rows])) if rows else (np.zeros(0), np.zeros(0))
 
-    fig, axes = plt.subplots(2, 3, figsize=(17, 10))
+    fig, axes = plt.subplots(2, 4 if lateral else 3, figsize=(22.5 if lateral else 17, 10))
     ax = axes[0, 0]
     for colour, angle in zip(colours, angles):
         z, s = series(angle, "std_m")
@@ -181,7 +183,30 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
     ax.set_ylim(-0.02, 1.02)
     _label_panel(ax, "plane distance z (m)", "valid fraction of the region", "valid pixels")
 
+    if lateral:
+        _plot_lateral(axes[0, 3], axes[1, 3], lateral, angles, colours)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
+
+
+def _plot_lateral(ax_px, ax_ratio, lateral: list, angles: list[float], colours) -> None:
+    """The lateral noise (px) vs z per alpha with Nguyen's value, and its ratio to Nguyen's (goal band +-30 %)."""
+    from ddsgen.study.lateral import nguyen_lateral_px
+
+    for colour, angle in zip(colours, angles):
+        rows = [(p.z, p.lateral_px) for p in lateral if p.angle_deg == angle and p.lateral_px is not None]
+        nguyen = float(nguyen_lateral_px(angle))
+        ax_px.axhline(nguyen, color=colour, ls="--", lw=1)
+        if rows:
+            z, px = np.array(rows).T
+            ax_px.plot(z, px, "o-", color=colour, ms=4, label=f"simulated α={angle:g}° (dashed: Nguyen {nguyen:.2f})")
+            ax_ratio.plot(z, px / nguyen, "o-", color=colour, ms=4, label=f"α={angle:g}°")
+    ax_px.set_ylim(0.0, None)
+    _label_panel(ax_px, "board distance z (m)", "lateral noise: edge rows' RMS distance from a line (px)",
+                 "lateral noise (board's vertical edges before a wall)")  # fmt: skip
+    ax_ratio.axhspan(0.7, 1.3, color="g", alpha=0.1, label="±30 %")
+    ax_ratio.axhline(1.0, color="k", lw=1)
+    _label_panel(ax_ratio, "board distance z (m)", "simulated / Nguyen 2012 (0.8 + 0.035 θ/(π/2 − θ) px)",
+                 "lateral noise ratio to Nguyen 2012")  # fmt: skip
