@@ -159,7 +159,7 @@ def test_noise_json_schema_and_outputs(study_run):
     assert list(data) == ["points", "lateral"]
     assert len(data["points"]) == len(data["lateral"]) == len(Z_GRID) * len(ANGLES)
     for point in data["lateral"]:
-        assert tuple(point) == ("z", "angle_deg", "lateral_px", "left_px", "right_px", "nguyen_px")
+        assert tuple(point) == ("z", "angle_deg", "lateral_px", "left_px", "right_px", "nguyen_px", "fattening_px")
     for point in data["points"]:
         assert tuple(point) == JSON_KEYS
         for key in JSON_KEYS:

@@ -8,9 +8,10 @@ its background, the projector's shadow on the wall beside the left one. (With no
 are nearly straight lines, 0.0-0.5 px: docs/noise_study.md.)
 
 Measured per (z, alpha) and frame, on the rows of the central half of the image: per row, the board's outermost
-valid pixels within a few pixels of its two true edges (:func:`board_edges`); per edge, a straight line fitted to those columns against
-the row (:func:`line_residuals`); the lateral noise is the root mean square of the rows' distances from it, in
-pixels (Nguyen's definition), pooled over the frames. A perfectly rendered straight edge has ~0.29 px of it from
+valid pixels within a few pixels of its two true edges (:func:`board_edges`); per edge, a straight line fitted to
+those columns against the row (:func:`line_residuals`); the lateral noise is the root mean square of the rows'
+distances from it, in pixels (Nguyen's definition), pooled over the frames. Also the edges' mean distance outside
+the true edges (the fattening). A perfectly rendered straight edge has ~0.29 px of it from
 the pixel grid alone (a uniform rounding error) when it is not exactly vertical; Nguyen measured 0.8 px at small
 angles, growing towards grazing (:func:`nguyen_lateral_px`).
 """
@@ -165,13 +166,17 @@ def line_residuals(rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
 
 @dataclasses.dataclass
 class LateralPoint:
-    """Lateral noise at one (z, alpha): root mean square distance (px) of each edge's rows from its line."""
+    """Lateral noise at one (z, alpha): root mean square distance (px) of each edge's rows from its line; and the
+    fattening: how far (px, mean over the rows) each edge lies outside the board's true edge (the foreground a
+    correlation window carries past an edge; negative: inside)."""
 
     z: float
     angle_deg: float
     left_px: float | None  # the near edge (the board's right side recedes)
     right_px: float | None
     rows: int  # measured rows per edge, summed over the frames
+    left_fattening_px: float | None = None
+    right_fattening_px: float | None = None
 
     @property
     def lateral_px(self) -> float | None:
@@ -179,10 +184,17 @@ class LateralPoint:
         values = [v for v in (self.left_px, self.right_px) if v is not None]
         return math.sqrt(sum(v * v for v in values) / len(values)) if values else None
 
+    @property
+    def fattening_px(self) -> float | None:
+        """Both edges' fattening averaged, or the one measured."""
+        values = [v for v in (self.left_fattening_px, self.right_fattening_px) if v is not None]
+        return sum(values) / len(values) if values else None
+
     def as_json(self) -> dict:
         """The ``lateral`` entries of ``noise.json``: px, with Nguyen's value at this angle."""
         return {"z": self.z, "angle_deg": self.angle_deg, "lateral_px": self.lateral_px, "left_px": self.left_px,
-                "right_px": self.right_px, "nguyen_px": float(nguyen_lateral_px(self.angle_deg))}  # fmt: skip
+                "right_px": self.right_px, "nguyen_px": float(nguyen_lateral_px(self.angle_deg)),
+                "fattening_px": self.fattening_px}  # fmt: skip
 
 
 class LateralAccumulator:
@@ -196,6 +208,7 @@ class LateralAccumulator:
         height = intrinsics.height
         self.rows = np.arange(height // 4, height - height // 4)
         self.squares = {"left": [], "right": []}
+        self.fattening = {"left": [], "right": []}
 
     def add(self, depth: np.ndarray, valid: np.ndarray) -> None:
         """One frame: depth (H, W) in m, valid (H, W) bool."""
@@ -207,14 +220,23 @@ class LateralAccumulator:
             measured &= (columns > 0) & (columns < depth.shape[1])
             if measured.sum() >= 3:
                 self.squares[name].append(line_residuals(self.rows[measured], columns[measured]) ** 2)
+                # The measured boundary lies half a pixel before the first (after the last) board column.
+                true_left, true_right = self.true_edges
+                boundary = columns[measured] - 0.5
+                outside = true_left - boundary if name == "left" else boundary - true_right
+                self.fattening[name].append(outside)
 
     def result(self) -> LateralPoint:
         def rms(name):
             squares = self.squares[name]
             return math.sqrt(float(np.concatenate(squares).mean())) if squares else None
 
+        def mean(name):
+            values = self.fattening[name]
+            return float(np.concatenate(values).mean()) if values else None
+
         rows = sum(len(s) for side in self.squares.values() for s in side)
-        return LateralPoint(self.z, self.angle_deg, rms("left"), rms("right"), rows)
+        return LateralPoint(self.z, self.angle_deg, rms("left"), rms("right"), rows, mean("left"), mean("right"))
 
 
 def run_lateral_study(preset, zs, angles_deg, frames: int = 4, seed: int = 0, rows: int | None = None,
@@ -248,14 +270,16 @@ def run_lateral_study(preset, zs, angles_deg, frames: int = 4, seed: int = 0, ro
 
 
 def lateral_table(points: list[LateralPoint], fx: float) -> str:
-    """A Markdown table of the lateral noise beside Nguyen's (px; mm at the board's distance: px z / fx)."""
+    """A Markdown table of the lateral noise beside Nguyen's (px; mm at the board's distance: px z / fx), and the
+    edges' fattening (px outside the true edge, both edges' mean)."""
 
     def px(value):
         return "n/a" if value is None else f"{value:.2f}"
 
     lines = [
-        "| z (m) | α (°) | left (px) | right (px) | both (px) | Nguyen (px) | both/Nguyen | both (mm) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| z (m) | α (°) | left (px) | right (px) | both (px) | Nguyen (px) | both/Nguyen | both (mm) "
+        "| fattening (px) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for p in points:
         nguyen = float(nguyen_lateral_px(p.angle_deg))
@@ -263,5 +287,5 @@ def lateral_table(points: list[LateralPoint], fx: float) -> str:
         ratio = "n/a" if both is None else f"{both / nguyen:.2f}"
         mm = "n/a" if both is None else f"{1000 * both * p.z / fx:.2f}"
         lines.append(f"| {p.z:g} | {p.angle_deg:g} | {px(p.left_px)} | {px(p.right_px)} | {px(both)} | {nguyen:.2f} "
-                     f"| {ratio} | {mm} |")  # fmt: skip
+                     f"| {ratio} | {mm} | {px(p.fattening_px)} |")  # fmt: skip
     return "\n".join(lines) + "\n"

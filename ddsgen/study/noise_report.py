@@ -90,7 +90,8 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
                      lateral: list | None = None) -> None:  # fmt: skip
     """One PNG, six panels: std vs z per alpha with Nguyen / Khoshelham; std / Nguyen; std vs alpha;
     quantisation step vs z with the real device's values; bias vs z; valid fraction vs z. With ``lateral``
-    (:class:`~ddsgen.study.lateral.LateralPoint` list) two more: the lateral noise vs z beside Nguyen's, and its ratio."""
+    (:class:`~ddsgen.study.lateral.LateralPoint` list) two more: the lateral noise vs z beside Nguyen's, and its
+    ratio."""
     import matplotlib
 
     matplotlib.use("Agg")
