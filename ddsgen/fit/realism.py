@@ -12,6 +12,9 @@ are the image's corners) over these pixel sets:
   pixel where modelled geometry is hit; elsewhere it has no depth by construction.
 
 Aggregates are the mean, min and max over frames of each statistic.
+
+Besides, ``edges``: the objects' outlines in real and simulated depth against the ray-cast silhouette, inside the
+compare region (:mod:`ddsgen.silhouette_edges`: how far the edges lie outside it, and how ragged they are).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import math
 import numpy as np
 
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
+from ddsgen.silhouette_edges import edge_statistics
 
 SCOPES = {
     "real.region": "real frame, compare region (modelled, visible, plausible pixels)",
@@ -31,6 +35,11 @@ SCOPES = {
                     "border the matcher cannot reach)",
 }  # fmt: skip
 STATISTICS = tuple(STATISTIC_LABELS)
+EDGE_LABELS = {
+    "edge_rows": "outline rows measured",
+    "edge_fattening_px": "outline: edge outside it (px)",
+    "edge_jitter_px": "outline: edge jitter (px rms)",
+}
 
 
 def full_frame(array, frame, fill=0) -> np.ndarray:
@@ -74,6 +83,8 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
     sim_valid = full_frame(sim.valid, frame, False)
     real = np.asarray(real_depth_m, dtype=np.float32)
     real_valid = real > 0
+    clean = full_frame(np.asarray(frame.clean_depth), frame, 0.0)
+    instance = full_frame(np.asarray(frame.instance), frame, 0)
     # The simulation's depth is float (EXR): its levels are exact, not rounded.
     return {
         "name": frame.name,
@@ -81,6 +92,8 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
                  "whole_frame": realism_statistics(real, real_valid, None, real_resolution_m)},
         "sim": {"region": realism_statistics(sim_depth, sim_valid, region, 0.0),
                 "modelled": realism_statistics(sim_depth, sim_valid, modelled, 0.0)},
+        "edges": {"real": edge_statistics(real, real_valid, clean, instance, region),
+                  "sim": edge_statistics(sim_depth, sim_valid, clean, instance, region)},
     }  # fmt: skip
 
 
@@ -92,12 +105,20 @@ def aggregate(per_frame: list[dict]) -> dict:
         summary[scope] = {}
         for stat in STATISTICS:
             values = [f[side][where][stat] for f in per_frame if f[side][where][stat] is not None]
-            summary[scope][stat] = ({"mean": _r(np.mean(values)), "min": _r(min(values)), "max": _r(max(values))}
-                                    if values else None)  # fmt: skip
+            summary[scope][stat] = _spread(values)
+    edges = {side: {stat: _spread([f["edges"][side][stat] for f in per_frame]) for stat in EDGE_LABELS}
+             for side in ("real", "sim")}  # fmt: skip
     frames = [{"name": f["name"], **{side: {where: {k: _r(v) for k, v in stats.items()}
-                                            for where, stats in f[side].items()} for side in ("real", "sim")}}
+                                            for where, stats in f[side].items()} for side in ("real", "sim")},
+               "edges": {side: {k: _r(v) for k, v in stats.items()} for side, stats in f["edges"].items()}}
               for f in per_frame]  # fmt: skip
-    return {"scopes": SCOPES, "statistics": list(STATISTICS), "aggregate": summary, "frames": frames}
+    return {"scopes": SCOPES, "statistics": list(STATISTICS), "aggregate": summary, "edges": edges, "frames": frames}
+
+
+def _spread(values: list) -> dict | None:
+    """{mean, min, max} of the values that are not None, or None."""
+    values = [v for v in values if v is not None]
+    return {"mean": _r(np.mean(values)), "min": _r(min(values)), "max": _r(max(values))} if values else None
 
 
 def _r(x, nd=5):
@@ -109,19 +130,25 @@ def _r(x, nd=5):
     return round(x, nd) if math.isfinite(x) else None
 
 
+def _cell(spread: dict | None, whole: bool) -> str:
+    """One table cell: mean [min-max], 22 characters wide; counts (``whole``) without decimals."""
+    if spread is None:
+        return f"{'-':>22s}"
+    if whole:
+        return f"{spread['mean']:>8.1f} [{spread['min']:.0f}-{spread['max']:.0f}]".rjust(22)
+    return f"{spread['mean']:>8.3f} [{spread['min']:.3f}-{spread['max']:.3f}]".rjust(22)
+
+
 def table(realism: dict) -> str:
-    """Plain-text table: one row per statistic, columns real/sim on the region and whole frame (mean [min-max])."""
+    """Plain-text table: one row per statistic, columns real/sim on the region and whole frame (mean [min-max]);
+    the outline rows' statistics (measured in the region) in the two region columns."""
     columns = ("real.region", "sim.region", "real.whole_frame", "sim.modelled")
     lines = [f"{'realism (mean [min-max])':31s}" + "".join(f"{c:>22s}" for c in columns)]
     for stat in STATISTICS:
-        cells = []
-        for scope in columns:
-            v = realism["aggregate"][scope][stat]
-            if v is None:
-                cells.append(f"{'-':>22s}")
-            elif stat == "isolated_dropouts":
-                cells.append(f"{v['mean']:>8.1f} [{v['min']:.0f}-{v['max']:.0f}]".rjust(22))
-            else:
-                cells.append(f"{v['mean']:>8.3f} [{v['min']:.3f}-{v['max']:.3f}]".rjust(22))
+        cells = [_cell(realism["aggregate"][scope][stat], stat == "isolated_dropouts") for scope in columns]
         lines.append(f"{STATISTIC_LABELS[stat]:31s}" + "".join(cells))
+    for stat, label in EDGE_LABELS.items():
+        edges = realism.get("edges", {})
+        cells = [_cell(edges.get(side, {}).get(stat), stat == "edge_rows") for side in ("real", "sim")]
+        lines.append(f"{label:31s}" + "".join(cells))
     return "\n".join(lines)
