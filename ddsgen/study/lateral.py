@@ -246,11 +246,9 @@ def run_lateral_study(preset, zs, angles_deg, frames: int = 4, seed: int = 0, ro
     Arguments as :func:`ddsgen.study.noise.run_noise_study` (the same frame seeds, another scene: the board of
     :func:`board_scene`). Returns one :class:`LateralPoint` per (z, alpha), z-major.
     """
-    import torch
-
     from ddsgen.sensor.depth_sensor import DepthSensor
     from ddsgen.sensor.sensor_cast import cast_for_sensor
-    from ddsgen.study.noise import frame_seed, study_intrinsics
+    from ddsgen.study.noise import simulate_point, study_intrinsics
 
     intrinsics = study_intrinsics(preset, rows)
     sensor = DepthSensor(preset, intrinsics=intrinsics).eval()
@@ -259,12 +257,7 @@ def run_lateral_study(preset, zs, angles_deg, frames: int = 4, seed: int = 0, ro
         for angle in angles_deg:
             _, geometry = cast_for_sensor(board_scene(z, angle, intrinsics, albedo), intrinsics, preset)
             accumulator = LateralAccumulator(z, angle, intrinsics)
-            for k in range(frames):
-                with torch.no_grad():
-                    out = sensor(geometry, seed=frame_seed(seed, z, angle, k))
-                accumulator.add(out.depth.numpy(), out.valid.numpy())
-                if on_frame is not None:
-                    on_frame()
+            simulate_point(sensor, geometry, seed, z, angle, frames, accumulator.add, on_frame)
             points.append(accumulator.result())
     return points
 

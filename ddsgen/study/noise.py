@@ -332,6 +332,20 @@ def frame_seed(seed: int, z: float, angle_deg: float, frame: int) -> list[int]:
     return [int(seed), int(round(z * 10000)), int(round(angle_deg * 10000)), int(frame)]
 
 
+def simulate_point(sensor, geometry, seed: int, z: float, angle_deg: float, frames: int,
+                   add: Callable[[np.ndarray, np.ndarray], None], on_frame: Callable[[], None] | None = None) -> None:
+    """The K = ``frames`` frames of one (z, alpha) through ``sensor``: ``add(depth (H, W) m, valid (H, W) bool)``
+    for each (frame k's noise seed :func:`frame_seed`), then ``on_frame()``."""
+    import torch
+
+    for k in range(frames):
+        with torch.no_grad():
+            out = sensor(geometry, seed=frame_seed(seed, z, angle_deg, k))
+        add(out.depth.numpy(), out.valid.numpy())
+        if on_frame is not None:
+            on_frame()
+
+
 def run_noise_study(
     preset: SensorPreset,
     zs: Iterable[float],
@@ -356,8 +370,6 @@ def run_noise_study(
     Returns:
         One :class:`NoisePoint` per (z, alpha), z-major.
     """
-    import torch
-
     from ddsgen.sensor.depth_sensor import DepthSensor
     from ddsgen.sensor.sensor_cast import cast_for_sensor
 
@@ -372,12 +384,7 @@ def run_noise_study(
             hits, geometry = cast_for_sensor(plane_scene(z, angle, albedo), intr, preset)
             roi = region_of_interest(hits.depth, hits.hit & ~hits.shadow, z)
             acc = _Accumulator(hits.depth, roi, step_floor)
-            for k in range(frames):
-                with torch.no_grad():
-                    out = sensor(geometry, seed=frame_seed(seed, z, angle, k))
-                acc.add(out.depth.numpy(), out.valid.numpy())
-                if on_frame is not None:
-                    on_frame()
+            simulate_point(sensor, geometry, seed, z, angle, frames, acc.add, on_frame)
             points.append(acc.result(float(z), float(angle)))
     return points
 
