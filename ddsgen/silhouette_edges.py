@@ -115,3 +115,86 @@ def edge_statistics(depth_m: np.ndarray, valid: np.ndarray, clean_depth_m: np.nd
         "edge_fattening_px": float(np.mean(values)) if values else None,
         "edge_jitter_px": float(np.sqrt(np.mean(np.square(jitter)))) if jitter else None,
     }
+
+
+# ------------------------------------------------------------------------------------------------ without ground truth
+
+#: A near surface's outline pixel: its next valid pixel along the row (within OUTLINE_GAP_PX) is this much farther.
+OUTLINE_JUMP_RELATIVE = 0.06
+OUTLINE_GAP_PX = 12
+#: Outline pixels of consecutive rows within this many columns are one outline; outlines shorter than
+#: OUTLINE_MIN_ROWS rows are left out.
+OUTLINE_LINK_PX = 2
+OUTLINE_MIN_ROWS = 2 * NEIGHBOUR_ROWS + 1
+
+
+def _outline_pixels(depth_m: np.ndarray, side: int) -> np.ndarray:
+    """(H, W) bool: valid pixels whose next valid pixel towards ``side`` (-1 left, +1 right) along the row, within
+    :data:`OUTLINE_GAP_PX`, is at least :data:`OUTLINE_JUMP_RELATIVE` farther (the near surface's outermost pixel)."""
+    depth = np.asarray(depth_m, np.float64)
+    valid = depth > 0
+    found = np.zeros(depth.shape, bool)
+    farther = np.zeros(depth.shape, bool)
+    width = depth.shape[1]
+    for gap in range(1, OUTLINE_GAP_PX + 1):
+        neighbour = np.zeros_like(depth)
+        if side < 0:
+            neighbour[:, gap:] = depth[:, : width - gap]
+        else:
+            neighbour[:, : width - gap] = depth[:, gap:]
+        first = ~found & (neighbour > 0)  # the first valid pixel at this distance
+        farther |= first & (neighbour > (1.0 + OUTLINE_JUMP_RELATIVE) * depth)
+        found |= first
+    return valid & farther
+
+
+def outline_jitter(depth_m: np.ndarray, region: np.ndarray | None = None) -> dict:
+    """How ragged the near surfaces' left and right outlines of a depth image are, without ground truth.
+
+    Outline pixels (:func:`_outline_pixels`) of consecutive rows within :data:`OUTLINE_LINK_PX` columns are chained
+    into outlines; along each outline at least :data:`OUTLINE_MIN_ROWS` rows long, a row's jitter is its column minus
+    the mean column of the up to eight rows within four of it (a straight or gently curved outline cancels).
+
+    Args:
+        depth_m: (H, W) metres, 0 = invalid. region: (H, W) bool or None: outline pixels outside it do not count.
+
+    Returns:
+        ``{"outline_rows", "outline_jitter_px"}``: rows measured and their root mean square jitter (None if none).
+    """
+    squares = []
+    for side in (-1, 1):
+        pixels = _outline_pixels(depth_m, side)
+        if region is not None:
+            pixels &= region
+        for chain in _chains(pixels):
+            rows = dict(chain)
+            for row, column in chain:
+                window = range(row - NEIGHBOUR_ROWS, row + NEIGHBOUR_ROWS + 1)
+                neighbours = [rows[r] for r in window if r != row and r in rows]
+                if len(neighbours) >= MIN_NEIGHBOURS:
+                    squares.append((column - float(np.mean(neighbours))) ** 2)
+    return {"outline_rows": len(squares),
+            "outline_jitter_px": float(np.sqrt(np.mean(squares))) if squares else None}  # fmt: skip
+
+
+def _chains(pixels: np.ndarray) -> list[list[tuple[int, int]]]:
+    """The outlines of an outline-pixel map: lists of (row, column), one pixel a row, rows consecutive; each pixel
+    continues the open chain whose last column is nearest (within :data:`OUTLINE_LINK_PX`) in the row above."""
+    finished, open_chains = [], []
+    for row in range(pixels.shape[0]):
+        columns = np.flatnonzero(pixels[row])
+        continued = []
+        taken = set()
+        for chain in open_chains:
+            last = chain[-1][1]
+            candidates = [c for c in columns if abs(c - last) <= OUTLINE_LINK_PX and c not in taken]
+            if candidates:
+                column = min(candidates, key=lambda c: abs(c - last))
+                taken.add(column)
+                chain.append((row, int(column)))
+                continued.append(chain)
+            elif len(chain) >= OUTLINE_MIN_ROWS:
+                finished.append(chain)
+        open_chains = continued + [[(row, int(c))] for c in columns if c not in taken]
+    finished.extend(chain for chain in open_chains if len(chain) >= OUTLINE_MIN_ROWS)
+    return finished

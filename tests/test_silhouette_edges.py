@@ -66,3 +66,35 @@ def test_no_depth_as_far_as_it_looks_is_no_edge():
     measured[30, : LEFT] = 1.0
     offsets = edge_offsets(measured, measured > 0, clean, instance)[(1, -1)]
     assert 30 not in offsets and 31 in offsets
+
+
+# ------------------------------------------------------------------------------------------------ without ground truth
+
+
+def _near_far(columns_of_rows, height=80, width=120, gap=0):
+    """A near surface (1.0 m) right of column c(row), a far one (2.0 m) left of it, ``gap`` invalid px between."""
+    depth = np.full((height, width), 2.0)
+    for row, column in enumerate(columns_of_rows):
+        depth[row, column:] = 1.0
+        depth[row, max(column - gap, 0):column] = 0.0
+    return depth
+
+
+def test_outline_jitter_of_known_outlines():
+    from ddsgen.silhouette_edges import outline_jitter
+
+    rows = np.arange(80)
+    straight = outline_jitter(_near_far(np.full(80, 50)))
+    assert straight["outline_rows"] == 80 - 4 and straight["outline_jitter_px"] == 0.0  # 2 end rows lack neighbours
+    # A slanted straight line on the pixel grid: the rounding only (about 1/sqrt(12) px).
+    slanted = outline_jitter(_near_far(np.round(30 + 0.37 * rows).astype(int)))["outline_jitter_px"]
+    assert 0.15 < slanted < 0.45
+    # +-1 px from row to row about a straight line: 1 px; a projector shadow's hole between does not hide it.
+    ragged = outline_jitter(_near_far(50 + np.where(rows % 2, 1, -1), gap=6))
+    assert ragged["outline_jitter_px"] == pytest.approx(1.0, abs=0.05)
+    # A horizontal outline is not a left or right outline; a region leaves outlines out.
+    horizontal = np.full((80, 120), 2.0)
+    horizontal[40:] = 1.0
+    assert outline_jitter(horizontal)["outline_rows"] == 0
+    region = np.zeros((80, 120), bool)
+    assert outline_jitter(_near_far(np.full(80, 50)), region) == {"outline_rows": 0, "outline_jitter_px": None}
