@@ -88,6 +88,7 @@ STATISTIC_LABELS = {
     "isolated_one_surface_share": "  their share inside one surface",
     "isolated_vertical_share": "  vertical share of elongated",
     "wide_band_hole_share": "wide registration bands kept open",
+    "outline_jitter_px": "outline jitter (px rms)",
 }
 ISOLATED_MAX_PX = 20
 CORNER_RADIUS = 0.7
@@ -383,8 +384,11 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     ``jump_holes_right`` (:func:`holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
     (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
     None without isolated dropouts), ``wide_band_hole_share`` (:func:`wide_band_holes`; None without such jumps),
-    ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones), ``pixels``.
+    ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones),
+    ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines), ``pixels``.
     """
+    from ddsgen.silhouette_edges import outline_jitter
+
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
     region = _region(depth.shape, region)
@@ -412,5 +416,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "isolated_one_surface_share": one_surface / (one_surface + at_edge) if one_surface + at_edge else None,
         "wide_band_hole_share": band_holes / band_jumps if band_jumps else None,
         "isolated_vertical_share": vertical / (vertical + horizontal) if vertical + horizontal else None,
+        "outline_jitter_px": outline_jitter(valid_depth, region)["outline_jitter_px"],
         "pixels": int(region.sum()),
     }
