@@ -36,9 +36,9 @@ SCOPES = {
 }  # fmt: skip
 STATISTICS = tuple(STATISTIC_LABELS)
 EDGE_LABELS = {
-    "edge_rows": "outline rows measured",
-    "edge_fattening_px": "outline: edge outside it (px)",
-    "edge_jitter_px": "outline: edge jitter (px rms)",
+    "edge_rows": "GT silhouette rows measured",
+    "edge_fattening_px": "  depth edge outside it (px)",
+    "edge_jitter_px": "  depth edge jitter (px rms)",
 }
 
 
