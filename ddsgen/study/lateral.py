@@ -11,9 +11,9 @@ Measured per (z, alpha) and frame, on the rows of the central half of the image:
 valid pixels within a few pixels of its two true edges (:func:`board_edges`); per edge, a straight line fitted to
 those columns against the row (:func:`line_residuals`); the lateral noise is the root mean square of the rows'
 distances from it, in pixels (Nguyen's definition), pooled over the frames. Also the edges' mean distance outside
-the true edges (the fattening). A perfectly rendered straight edge has ~0.29 px of it from
-the pixel grid alone (a uniform rounding error) when it is not exactly vertical; Nguyen measured 0.8 px at small
-angles, growing towards grazing (:func:`nguyen_lateral_px`).
+the true edges (the fattening). A perfectly rendered straight edge has ~0.29 px of lateral noise from the pixel
+grid alone (a uniform rounding error) when it is not exactly vertical; Nguyen measured 0.8 px at small angles,
+growing towards grazing (:func:`nguyen_lateral_px`).
 """
 
 from __future__ import annotations
