@@ -261,24 +261,3 @@ def run_lateral_study(preset, zs, angles_deg, frames: int = 4, seed: int = 0, ro
             points.append(accumulator.result())
     return points
 
-
-def lateral_table(points: list[LateralPoint], fx: float) -> str:
-    """A Markdown table of the lateral noise beside Nguyen's (px; mm at the board's distance: px z / fx), and the
-    edges' fattening (px outside the true edge, both edges' mean)."""
-
-    def px(value):
-        return "n/a" if value is None else f"{value:.2f}"
-
-    lines = [
-        "| z (m) | α (°) | left (px) | right (px) | both (px) | Nguyen (px) | both/Nguyen | both (mm) "
-        "| fattening (px) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for p in points:
-        nguyen = float(nguyen_lateral_px(p.angle_deg))
-        both = p.lateral_px
-        ratio = "n/a" if both is None else f"{both / nguyen:.2f}"
-        mm = "n/a" if both is None else f"{1000 * both * p.z / fx:.2f}"
-        lines.append(f"| {p.z:g} | {p.angle_deg:g} | {px(p.left_px)} | {px(p.right_px)} | {px(both)} | {nguyen:.2f} "
-                     f"| {ratio} | {mm} | {px(p.fattening_px)} |")  # fmt: skip
-    return "\n".join(lines) + "\n"

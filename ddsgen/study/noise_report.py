@@ -27,16 +27,21 @@ def _mm(value: float | None, digits: int = 2) -> str:
     return "n/a" if value is None else f"{1000 * value:.{digits}f}"
 
 
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table, every column right-aligned, one line per row, ending in a newline."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---:|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
 def noise_table(points: list[NoisePoint]) -> str:
     """A Markdown table of the measurements beside the Nguyen curve (ratios std/Nguyen and rms/Nguyen).
 
     "Nguyen" is the 10-60 deg curve 0.0012 + 0.0019 (z - 0.4)^2; "Nguyen+angle" adds the angle term.
     """
-    lines = [
-        "| z (m) | α (°) | std (mm) | rms (mm) | bias (mm) | valid | outliers | inlier std (mm) | Nguyen (mm) "
-        "| Nguyen+angle (mm) | std/Nguyen | rms/Nguyen | inlier std/Nguyen | step (mm) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+    header = ["z (m)", "α (°)", "std (mm)", "rms (mm)", "bias (mm)", "valid", "outliers", "inlier std (mm)",
+              "Nguyen (mm)", "Nguyen+angle (mm)", "std/Nguyen", "rms/Nguyen", "inlier std/Nguyen", "step (mm)"]
+    rows = []
     for p in points:
         base = float(nguyen_sigma(p.z))
         full = float(nguyen_sigma(p.z, p.angle_deg))
@@ -44,23 +49,19 @@ def noise_table(points: list[NoisePoint]) -> str:
         ratio_rms = "n/a" if p.rms_m is None else f"{p.rms_m / base:.2f}"
         ratio_inlier = "n/a" if p.inlier_std_m is None else f"{p.inlier_std_m / base:.2f}"
         outliers = "n/a" if p.outlier_fraction is None else f"{100 * p.outlier_fraction:.2f}%"
-        lines.append(
-            f"| {p.z:g} | {p.angle_deg:g} | {_mm(p.std_m)} | {_mm(p.rms_m)} | {_mm(p.bias_m)} | "
-            f"{p.valid_fraction:.3f} | {outliers} | {_mm(p.inlier_std_m)} | {1000 * base:.2f} | {1000 * full:.2f} | "
-            f"{ratio} | {ratio_rms} | {ratio_inlier} | {_mm(p.step_m)} |"
-        )
-    return "\n".join(lines) + "\n"
+        rows.append([f"{p.z:g}", f"{p.angle_deg:g}", _mm(p.std_m), _mm(p.rms_m), _mm(p.bias_m),
+                     f"{p.valid_fraction:.3f}", outliers, _mm(p.inlier_std_m), f"{1000 * base:.2f}",
+                     f"{1000 * full:.2f}", ratio, ratio_rms, ratio_inlier, _mm(p.step_m)])  # fmt: skip
+    return markdown_table(header, rows)
 
 
 def quantisation_table(points: list[NoisePoint], preset: SensorPreset, real: RealQuantisation,
                        at=(1.0, 2.0)) -> str:  # fmt: skip
     """Markdown: the quantisation step at ``at`` (m): simulated, preset formula, device formula, real data."""
     f, b, n = preset.focal_px, preset.baseline_m, preset.subpixel_level
-    lines = [
-        f"| z (m) | simulated (mm) | z²/(2^{n}·f·b) (mm) | z²/(8·f·b) (mm) | real LineMOD frame (mm) "
-        "| real distReal list (mm) | simulated / LineMOD | simulated / distReal |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+    header = ["z (m)", "simulated (mm)", f"z²/(2^{n}·f·b) (mm)", "z²/(8·f·b) (mm)", "real LineMOD frame (mm)",
+              "real distReal list (mm)", "simulated / LineMOD", "simulated / distReal"]
+    rows = []
     for z in at:
         sims = [p.step_m for p in points if abs(p.z - z) < 1e-9 and p.step_m is not None]
         sim = float(np.median(sims)) if sims else None
@@ -69,12 +70,31 @@ def quantisation_table(points: list[NoisePoint], preset: SensorPreset, real: Rea
         for name in ("linemod", "distreal"):
             r = real_steps[name]
             ratios.append("n/a" if sim is None or r is None else f"{sim / r:.2f}")
-        lines.append(
-            f"| {z:g} | {_mm(sim)} | {1000 * float(quantisation_step(z, f, b, n)):.2f} | "
-            f"{1000 * float(quantisation_step(z, f, b, 3)):.2f} | {_mm(real_steps['linemod'])} | "
-            f"{_mm(real_steps['distreal'])} | {ratios[0]} | {ratios[1]} |"
-        )
-    return "\n".join(lines) + "\n"
+        rows.append([f"{z:g}", _mm(sim), f"{1000 * float(quantisation_step(z, f, b, n)):.2f}",
+                     f"{1000 * float(quantisation_step(z, f, b, 3)):.2f}", _mm(real_steps["linemod"]),
+                     _mm(real_steps["distreal"]), *ratios])  # fmt: skip
+    return markdown_table(header, rows)
+
+
+def lateral_table(points: list, fx: float) -> str:
+    """A Markdown table of the lateral noise (:class:`~ddsgen.study.lateral.LateralPoint` list) beside Nguyen's (px;
+    mm at the board's distance: px z / fx), and the edges' fattening (px outside the true edge, both edges' mean)."""
+    from ddsgen.study.lateral import nguyen_lateral_px
+
+    def px(value):
+        return "n/a" if value is None else f"{value:.2f}"
+
+    header = ["z (m)", "α (°)", "left (px)", "right (px)", "both (px)", "Nguyen (px)", "both/Nguyen", "both (mm)",
+              "fattening (px)"]
+    rows = []
+    for p in points:
+        nguyen = float(nguyen_lateral_px(p.angle_deg))
+        both = p.lateral_px
+        ratio = "n/a" if both is None else f"{both / nguyen:.2f}"
+        mm = "n/a" if both is None else f"{1000 * both * p.z / fx:.2f}"
+        rows.append([f"{p.z:g}", f"{p.angle_deg:g}", px(p.left_px), px(p.right_px), px(both), f"{nguyen:.2f}", ratio,
+                     mm, px(p.fattening_px)])  # fmt: skip
+    return markdown_table(header, rows)
 
 
 def _label_panel(ax, xlabel: str, ylabel: str, title: str, legend_columns: int = 1, minor_grid: bool = False) -> None:
