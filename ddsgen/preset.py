@@ -76,6 +76,7 @@ FIELDS: dict[str, Field] = {
     "ir_bits": Field(int, "IR sensor bit depth (clip and quantise to 2^bits - 1)", 4, 16, default=10),
     "min_confidence": Field(float, "matcher confidence (best minus second-best ZNCC) below which depth is invalid", 0, 1, default=0.15),
     "shadow_always_invalid": Field(bool, "pixels the projector cannot light are invalid whatever the matcher finds (true: the paper's shadow map); false: only matching decides, so windows at a shadow's edges keep the surface they see", default=True),
+    "no_hit_always_invalid": Field(bool, "pixels whose ray meets no surface are invalid whatever the matcher finds (true: the ray cast's mask); false: only matching decides, so a window at an object's edge over empty space keeps the object's depth", default=True),
     "confirmed_match_zncc": Field(float, "a match that fails min_confidence (a close second peak) is still valid when its best ZNCC exceeds this and a unique match within its window has its disparity (+-1 px): a window across a depth edge sees two surfaces; 1 = off (uniqueness only)", 0, 1, default=1.0),
     "cleanup_speckle_px": Field(int, "device clean-up: valid regions smaller than this are removed (px; 0 = off)", 0, 1_000_000, default=0),
     "cleanup_max_diff_px": Field(float, "device clean-up: neighbours differing by more disparity than this are separate regions (px)", 0, 1000, low_open=True, default=1.0),
@@ -156,6 +157,7 @@ class SensorPreset:
     min_confidence: float
     confirmed_match_zncc: float
     shadow_always_invalid: bool
+    no_hit_always_invalid: bool
     cleanup_speckle_px: int
     cleanup_max_diff_px: float
     cleanup_hole_px: int

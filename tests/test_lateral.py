@@ -122,3 +122,37 @@ def test_no_lateral_writes_the_axial_study_only(tmp_path):
     assert code == 0
     assert list(json.loads((out / "noise.json").read_text())) == ["points"]
     assert "Lateral noise" not in (out / "noise_table.md").read_text()
+
+
+def test_an_edge_over_empty_space_is_carried_like_one_over_a_far_wall(device_and_intrinsics):
+    """kinect_v1 has no mask of where rays meet nothing (``no_hit_always_invalid: false``): a window at the board's
+    edge that still holds its dots keeps its depth, so the board is carried past its edges over empty space and its
+    edges wander, as before a wall; with the ray cast's mask (the paper's) they stay straight at the true edge. Empty
+    space itself stays without depth."""
+    import dataclasses
+
+    import torch
+
+    from ddsgen.sensor.depth_sensor import DepthSensor
+    from ddsgen.sensor.sensor_cast import cast_for_sensor
+
+    device, intrinsics = device_and_intrinsics
+    assert not device.no_hit_always_invalid
+    scene = dataclasses.replace(board_scene(1.5, 0.0, intrinsics, 0.8), background=[])
+    empty = dataclasses.replace(scene, objects=[])
+    results = {}
+    for masked in (False, True):
+        preset = dataclasses.replace(device, no_hit_always_invalid=masked)
+        sensor = DepthSensor(preset, intrinsics=intrinsics).eval()
+        _, geometry = cast_for_sensor(scene, intrinsics, preset)
+        accumulator = LateralAccumulator(1.5, 0.0, intrinsics)
+        with torch.no_grad():
+            for seed in range(2):
+                out = sensor(geometry, seed=[seed])
+                accumulator.add(out.depth.numpy(), out.valid.numpy())
+            nothing = sensor(cast_for_sensor(empty, intrinsics, preset)[1], seed=[0])
+        assert not nothing.valid.any()
+        results[masked] = accumulator.result()
+    free, masked = results[False], results[True]
+    assert free.fattening_px > 1.5 and free.lateral_px > 0.5, free
+    assert masked.fattening_px < 1.0 and masked.lateral_px < 0.5, masked

@@ -396,7 +396,10 @@ class DepthSensor(nn.Module):
                 raw_depth = effect(raw_depth, ctx)
 
         keep = torch.sigmoid((result.confidence - p.min_confidence) / _SOFT_VALIDITY_WIDTH)
-        keep = keep * (lit if p.shadow_always_invalid else geometry.hit.float())
+        if p.shadow_always_invalid:
+            keep = keep * lit
+        elif p.no_hit_always_invalid:
+            keep = keep * geometry.hit.float()
         return FrontEnd(ir=ir, disparity=disparity, raw_depth=raw_depth, confidence=result.confidence,
                         matched=result.valid, keep=keep, ctx=ctx)  # fmt: skip
 
@@ -409,7 +412,9 @@ class DepthSensor(nn.Module):
             if effect.stage == "validity":
                 keep = keep * effect(raw_depth, ctx)
         in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
-        valid = front.matched & geometry.hit & in_range & (keep > 0.5)
+        valid = front.matched & in_range & (keep > 0.5)
+        if p.no_hit_always_invalid or p.shadow_always_invalid:
+            valid = valid & geometry.hit
         if p.shadow_always_invalid:
             valid = valid & ~geometry.shadow
         valid_soft = keep * in_range.float()

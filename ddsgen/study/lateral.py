@@ -4,8 +4,7 @@ Set-up (camera frame = world frame, OpenCV axes, as in :mod:`ddsgen.study.noise`
 rotated by alpha about the vertical axis (its right side receding), tall enough to fill the view but only as wide
 as places its two vertical edges :data:`EDGE_OFFSET` of the image width left and right of the principal point,
 before a fronto-parallel wall :data:`WALL_BEHIND_M` behind its receding edge: each edge is an object's edge before
-its background, the projector's shadow on the wall beside the left one. (With nothing behind it, ddsgen's edges
-are nearly straight lines, 0.0-0.5 px: docs/noise_study.md.)
+its background, the projector's shadow on the wall beside the left one.
 
 Measured per (z, alpha) and frame, on the rows of the central half of the image: per row, the board's outermost
 valid pixels within a few pixels of its two true edges (:func:`board_edges`); per edge, a straight line fitted to
