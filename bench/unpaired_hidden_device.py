@@ -36,7 +36,7 @@ from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS  # noqa: E402
 from ddsgen.fit.unpaired.run import run_unpaired_fit  # noqa: E402
 from ddsgen.fit.unpaired.search import camera_for  # noqa: E402
 from ddsgen.preset import load_preset, save_preset  # noqa: E402
-from ddsgen.scene.scenelist import default_scene_list_dict  # noqa: E402
+from ddsgen.scene.default_scenes import default_scene_list_dict  # noqa: E402
 
 
 def scene_list_a() -> dict:

@@ -12,8 +12,9 @@ import yaml
 
 from ddsgen.errors import InputError
 from ddsgen.scene import load_scene_list, sample_frame
+from ddsgen.scene.default_scenes import default_scene_list_dict
 from ddsgen.scene.sampling import invert_pose
-from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
+from ddsgen.scene.scenelist import scene_list_from_dict
 from ddsgen.scene.shapes import SHAPES, make_shape, mesh_from_ref, shape_params, shape_ref
 
 ROOT = Path(__file__).resolve().parent.parent

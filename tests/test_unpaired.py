@@ -154,7 +154,8 @@ def _endless_ground(data: dict) -> dict:
 
 
 def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
-    from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
+    from ddsgen.scene.default_scenes import default_scene_list_dict
+    from ddsgen.scene.scenelist import scene_list_from_dict
 
     data = default_scene_list_dict()
     pool_ = [o for o in data["scenes"][0]["objects"] if o["class"] in classes]
@@ -370,7 +371,8 @@ def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_de
     device's and kinect_v1's since session 35, makes few: 0.09 %); real frames may have them for other reasons."""
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
     from ddsgen.preset import load_preset
-    from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
+    from ddsgen.scene.default_scenes import default_scene_list_dict
+    from ddsgen.scene.scenelist import scene_list_from_dict
     from ddsgen.sensor.output_window import OutputWindow, measure_device_window
     from ddsgen.sensor.registration import ir_frame_validity
 
@@ -397,7 +399,8 @@ def test_the_fit_reads_registered_frames_with_the_registration_and_plain_frames_
     from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
     from ddsgen.fit.unpaired.realfolder import RealDepthFrame
     from ddsgen.fit.unpaired.search import cast_scenes, render_depths
-    from ddsgen.scene.scenelist import default_scene_list_dict, scene_list_from_dict
+    from ddsgen.scene.default_scenes import default_scene_list_dict
+    from ddsgen.scene.scenelist import scene_list_from_dict
 
     stock, window, real = registered_device
     scenes = scene_list_from_dict(_endless_ground(default_scene_list_dict()))
