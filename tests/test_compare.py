@@ -381,7 +381,7 @@ def test_unmodelled_shadow_has_the_projector_geometry():
 def test_the_support_plane_is_the_one_the_objects_rest_on_not_the_largest():
     """Two planes in view, a table under the object and a larger floor 0.7 m below it: RANSAC alone takes the
     floor (more inliers); with the object's points it takes the table, whatever the seed."""
-    from ddsgen.fit.simulate import fit_support_plane
+    from ddsgen.fit.support_plane import fit_support_plane
     from ddsgen.preset import Intrinsics
 
     intr = Intrinsics(640, 480, 572.4, 572.4, 319.5, 239.5)  # the Kinect's: 0.5 px of disparity is ~2 % of z

@@ -196,7 +196,7 @@ def test_replane_recovers_the_plane_a_disparity_offset_was_added_to():
     """A plane seen with a disparity offset is still a plane (1/z shifts by offset / (f b)); prepare_frames fits
     that biased plane to the real depth, and a model with the offset would bias it twice. One re-planing step
     under that model recovers the true plane."""
-    from ddsgen.fit.simulate import Plane
+    from ddsgen.fit.support_plane import Plane
     from ddsgen.sensor.depth_sensor import SensorOutput
     from effects_geometry import plane_geometry, tilted_normal
 
@@ -296,7 +296,7 @@ def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit(
 
 def _plane_frame(width: int = 160, height: int = 120):
     """A tilted support plane seen by the small Kinect preset, real depth = clean depth (a _Frame)."""
-    from ddsgen.fit.simulate import Plane
+    from ddsgen.fit.support_plane import Plane
     from effects_geometry import plane_geometry, tilted_normal
 
     intr = small_preset(width, height).intrinsics

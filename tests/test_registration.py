@@ -410,7 +410,8 @@ def test_replaning_a_registered_frame_moves_the_plane_in_the_image_and_in_the_ir
     """diagnose re-estimates the support plane in the image's frame; a registered frame's sensor geometry is the
     IR camera's view, so the plane must move there too (offset d - n_x b_r, principal point s px left)."""
     from ddsgen.diagnose.plane import replane
-    from ddsgen.fit.simulate import FrameData, Plane
+    from ddsgen.fit.simulate import FrameData
+    from ddsgen.fit.support_plane import Plane
     from ddsgen.sensor.depth_sensor import SensorOutput
 
     preset = _strip(rows=64)

@@ -29,7 +29,7 @@ def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
 
     Returns ``frame`` itself when it has no plane or too few plane pixels.
     """
-    from ddsgen.fit.simulate import Plane
+    from ddsgen.fit.support_plane import Plane
 
     if frame.plane is None:
         return frame
