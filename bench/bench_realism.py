@@ -33,11 +33,14 @@ sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data"
 
 from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics, wide_band_holes  # noqa: E402
+from ddsgen.preset import load_preset  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
         "isolated_dropout_share": "", "isolated_dropout_share_off_border": "", "isolated_dropout_mean_px": "px", "depth_step_at_1m_mm": "mm",
         "jump_holes_left": "", "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "",
-        "isolated_one_surface_share": "", "wide_band_hole_share": "", "isolated_vertical_share": ""}  # fmt: skip
+        "isolated_one_surface_share": "", "wide_band_hole_share": "", "isolated_vertical_share": "",
+        "outline_jitter_px": "px", "flat_roughness_px": "px", "slanted_roughness_px": "px",
+        "slant_roughness_ratio": ""}  # fmt: skip
 
 
 def _print(name: str, stats: dict) -> None:
@@ -93,10 +96,11 @@ def cat_frame(preset_name: str, pictures: Path | None) -> None:
     region = frame.region.numpy()
     real = frame.real_depth.numpy()
     sim = out.depth.numpy()
-    _print("real_cat", realism_statistics(real, real > 0, region, resolution_m=0.001))
+    fb = frame.intrinsics.fx * camera_preset.baseline_m
+    _print("real_cat", realism_statistics(real, real > 0, region, resolution_m=0.001, disparity_fb=fb))
     # The simulation is compared as the device writes it: millimetre PNG values.
     sim_mm = np.round(sim * 1000.0) / 1000.0
-    _print("sim_cat", realism_statistics(sim_mm, out.valid.numpy(), region, resolution_m=0.001))
+    _print("sim_cat", realism_statistics(sim_mm, out.valid.numpy(), region, resolution_m=0.001, disparity_fb=fb))
     if pictures is not None:
         side_by_side(pictures / "realism_cat.png", np.where(region, real, 0.0), np.where(region, sim_mm, 0.0),
                      ("real Kinect V1 (LineMOD cat)", f"ddsgen {preset_name}, GT pose"))  # fmt: skip
@@ -125,12 +129,16 @@ def real_icbin() -> None:
         print("# IC-BIN frames absent: skipped", flush=True)
         return
     depths = [_read_mm(p) for p in paths]
-    _print_range("real_icbin", [realism_statistics(d) for d in depths])
+    _print_range("real_icbin", [realism_statistics(d, disparity_fb=ICBIN_FB) for d in depths])
     _print_pooled("real_icbin", depths)
 
 
 TUM_DEPTH = DATA / "tum_rgbd_frame_open3d" / "TUM_depth.png"
 TUM_UNITS_PER_M = 5000.0  # TUM RGB-D's depth PNG convention (its PROVENANCE.txt)
+# f b (px m) for the roughness in disparity: a Kinect's 7.5 cm baseline with TUM's default focal length (its
+# PROVENANCE.txt) and, for IC-BIN (no calibration shipped), a PrimeSense Carmine's nominal 550 px.
+TUM_FB = 525.0 * 0.075
+ICBIN_FB = 550.0 * 0.075
 
 
 def real_tum() -> None:
@@ -138,7 +146,7 @@ def real_tum() -> None:
         print("# TUM RGB-D frame absent: skipped", flush=True)
         return
     depth = cv2.imread(str(TUM_DEPTH), cv2.IMREAD_UNCHANGED).astype(np.float64) / TUM_UNITS_PER_M
-    _print("real_tum", realism_statistics(depth))
+    _print("real_tum", realism_statistics(depth, disparity_fb=TUM_FB))
 
 
 def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
@@ -147,7 +155,9 @@ def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         render_dataset(preset_name, None, n, tmp, workers=1, seed=0, progress=False)
         depths = [_read_mm(p) for p in sorted(Path(tmp, "depth").glob("*.png"))]
-    stats = [realism_statistics(d) for d in depths]
+    preset = load_preset(preset_name)
+    fb = preset.focal_px * preset.baseline_m
+    stats = [realism_statistics(d, disparity_fb=fb) for d in depths]
     _print_range("sim_render", stats)
     _print_pooled("sim_render", depths)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid

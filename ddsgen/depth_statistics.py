@@ -89,8 +89,12 @@ STATISTIC_LABELS = {
     "isolated_vertical_share": "  vertical share of elongated",
     "wide_band_hole_share": "wide registration bands kept open",
     "outline_jitter_px": "outline jitter (px rms)",
+    "flat_roughness_px": "roughness, flat surfaces (px)",
+    "slanted_roughness_px": "roughness, slanted surfaces (px)",
+    "slant_roughness_ratio": "  slanted / flat",
 }
 ISOLATED_MAX_PX = 20
+_NO_ROUGHNESS = {"flat_roughness_px": None, "slanted_roughness_px": None, "slant_roughness_ratio": None}
 CORNER_RADIUS = 0.7
 JUMP_MIN_RELATIVE = 0.06
 JUMP_FLAT_PX = 4
@@ -374,7 +378,7 @@ def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None, min_b
 
 
 def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, region: np.ndarray | None = None,
-                       resolution_m: float = 0.001) -> dict:
+                       resolution_m: float = 0.001, disparity_fb: float | None = None) -> dict:
     """The hole, validity and quantisation statistics of one frame, as a JSON-ready dict.
 
     Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),
@@ -385,9 +389,13 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
     None without isolated dropouts), ``wide_band_hole_share`` (:func:`wide_band_holes`; None without such jumps),
     ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones),
-    ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines), ``pixels``.
+    ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines),
+    ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``
+    (:func:`ddsgen.slant_roughness.slant_roughness`, in the disparity of a sensor with ``disparity_fb`` = f b in
+    px m; None without it or without enough such surface), ``pixels``.
     """
     from ddsgen.silhouette_edges import outline_jitter
+    from ddsgen.slant_roughness import slant_roughness
 
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
@@ -417,5 +425,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "wide_band_hole_share": band_holes / band_jumps if band_jumps else None,
         "isolated_vertical_share": vertical / (vertical + horizontal) if vertical + horizontal else None,
         "outline_jitter_px": outline_jitter(valid_depth, region)["outline_jitter_px"],
+        **(slant_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb else _NO_ROUGHNESS),
         "pixels": int(region.sum()),
     }

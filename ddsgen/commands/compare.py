@@ -58,7 +58,7 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     title = f"{camera_preset.name} vs {real_dir} ({len(frames)} frame(s))"
     with SimFolderWriter(save_sim, camera_preset, seed) if save_sim else contextlib.nullcontext() as writer:
         border = camera_preset.block_size_px // 2 + 1 if crop else 0  # as prepare_frame's crop region
-        outputs = FrameOutputs(scans, Path(report_dir), region, writer, border)
+        outputs = FrameOutputs(scans, Path(report_dir), region, writer, border, camera_preset.baseline_m)
         report = gap(sensor, frames, region=region, seed=seed, keep_maps=True, progress=not quiet, on_frame=outputs)
     written = outputs.finish(report, title)
     click.echo(table(report, title))

@@ -30,14 +30,17 @@ class FrameOutputs:
         sim_writer: a :class:`~ddsgen.fit.save_sim.SimFolderWriter` inside its ``with``, or None.
         crop_border_px: with ``--crop``, the crop window's border the matcher cannot reach (see
             :func:`ddsgen.fit.realism.frame_realism`); 0 without crop.
+        baseline_m: the sensor's baseline (the roughness statistics are in its disparity); None: without them.
     """
 
-    def __init__(self, scans, report_dir: str | Path, region: str = "all", sim_writer=None, crop_border_px: int = 0):
+    def __init__(self, scans, report_dir: str | Path, region: str = "all", sim_writer=None, crop_border_px: int = 0,
+                 baseline_m: float | None = None):  # fmt: skip
         self.scans = scans
         self.report_dir = Path(report_dir)
         self.region = region
         self.sim_writer = sim_writer
         self.crop_border_px = int(crop_border_px)
+        self.baseline_m = baseline_m
         self.statistics: list[dict] = []
         self.pictures: list[tuple[str, str]] = []
 
@@ -50,7 +53,8 @@ class FrameOutputs:
         # PNG values are rounded to the file's unit; EXR values are not
         resolution = 0.0 if str(scan.source_depth_path).lower().endswith(".exr") else float(scan.depth_scale)
         region = region_mask(frame, self.region).numpy()
-        self.statistics.append(realism.frame_realism(frame, sim, region, real, resolution, self.crop_border_px))
+        self.statistics.append(realism.frame_realism(frame, sim, region, real, resolution, self.crop_border_px,
+                                                     self.baseline_m))  # fmt: skip
         relative = f"{FRAMES_FOLDER}/{len(self.pictures):06d}.png"
         side_by_side(self.report_dir / relative, f"{frame.name}: real | simulated | difference", real,
                      realism.full_frame(sim.depth.detach().numpy(), frame, 0.0),

@@ -61,7 +61,7 @@ def full_frame(array, frame, fill=0) -> np.ndarray:
 
 
 def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real_resolution_m: float,
-                  crop_border_px: int = 0) -> dict:  # fmt: skip
+                  crop_border_px: int = 0, baseline_m: float | None = None) -> dict:  # fmt: skip
     """The statistics of one frame, real and simulated (see the module docstring).
 
     Args:
@@ -72,6 +72,8 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
         real_resolution_m: the rounding unit of the real values (PNG: its depth_scale; EXR: 0).
         crop_border_px: with ``--crop``, the border of the crop window the matcher cannot reach
             (half a block + 1 px; the compare region leaves it out too), not counted as modelled.
+        baseline_m: the sensor's baseline, for the roughness in disparity (f b / z with the frame's f; None: no
+            roughness statistics).
     """
     region = full_frame(region, frame, False)
     hit = np.asarray(frame.hit).copy()
@@ -85,13 +87,14 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
     real_valid = real > 0
     clean = full_frame(np.asarray(frame.clean_depth), frame, 0.0)
     instance = full_frame(np.asarray(frame.instance), frame, 0)
+    fb = frame.intrinsics.fx * baseline_m if baseline_m else None
     # The simulation's depth is float (EXR): its levels are exact, not rounded.
     return {
         "name": frame.name,
-        "real": {"region": realism_statistics(real, real_valid, region, real_resolution_m),
-                 "whole_frame": realism_statistics(real, real_valid, None, real_resolution_m)},
-        "sim": {"region": realism_statistics(sim_depth, sim_valid, region, 0.0),
-                "modelled": realism_statistics(sim_depth, sim_valid, modelled, 0.0)},
+        "real": {"region": realism_statistics(real, real_valid, region, real_resolution_m, fb),
+                 "whole_frame": realism_statistics(real, real_valid, None, real_resolution_m, fb)},
+        "sim": {"region": realism_statistics(sim_depth, sim_valid, region, 0.0, fb),
+                "modelled": realism_statistics(sim_depth, sim_valid, modelled, 0.0, fb)},
         "edges": {"real": edge_statistics(real, real_valid, clean, instance, region),
                   "sim": edge_statistics(sim_depth, sim_valid, clean, instance, region)},
     }  # fmt: skip

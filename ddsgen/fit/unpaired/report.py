@@ -49,9 +49,10 @@ def _save(fig, path: Path) -> None:
     _plt().close(fig)
 
 
-def median_statistics(depths: list[np.ndarray], resolution_m: float) -> dict:
-    """Median over frames of :func:`~ddsgen.depth_statistics.realism_statistics` (None-safe)."""
-    rows = [realism_statistics(d, resolution_m=resolution_m) for d in depths]
+def median_statistics(depths: list[np.ndarray], resolution_m: float, disparity_fb: float | None = None) -> dict:
+    """Median over frames of :func:`~ddsgen.depth_statistics.realism_statistics` (None-safe; ``disparity_fb``:
+    f b (px m) for the roughness statistics)."""
+    rows = [realism_statistics(d, resolution_m=resolution_m, disparity_fb=disparity_fb) for d in depths]
     out = {}
     for key in STATISTIC_KEYS:
         values = [r[key] for r in rows if r[key] is not None]
@@ -170,13 +171,15 @@ def plot_frames(columns: dict[str, list[np.ndarray]], path: Path, rows: int = 3)
 
 
 def write_report(folder: str | Path, content: dict, pooled: dict[str, dict], depths: dict[str, list[np.ndarray]],
-                 resolution_m: float, seed: int = 0) -> dict:  # fmt: skip
-    """Write the report files; returns the JSON content (with the statistics added)."""
+                 resolution_m: float, seed: int = 0, disparity_fb: float | None = None) -> dict:  # fmt: skip
+    """Write the report files; returns the JSON content (with the statistics added; ``disparity_fb``: f b in px m,
+    for the roughness statistics)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     content = dict(content)
     content["feature_summary"] = {label: summary(f) for label, f in pooled.items()}
-    content["realism_statistics"] = {label: median_statistics(d, resolution_m) for label, d in depths.items()}
+    content["realism_statistics"] = {label: median_statistics(d, resolution_m, disparity_fb)
+                                     for label, d in depths.items()}  # fmt: skip
     plot_distributions(pooled, folder / "distributions.png")
     plot_patches(depths, folder / "patches.png", seed=seed)
     plot_frames(depths, folder / "frames.png")

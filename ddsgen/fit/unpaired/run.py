@@ -83,7 +83,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                           "model": model.name,
                           "stock_radius_distance": {m.name: m.distance for m in candidates}},
     }  # fmt: skip
-    content = write_report(report, content, pooled, depths, resolution, seed)
+    content = write_report(report, content, pooled, depths, resolution, seed, fb)
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
