@@ -40,7 +40,7 @@ KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count
         "jump_holes_left": "", "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "",
         "isolated_one_surface_share": "", "wide_band_hole_share": "", "isolated_vertical_share": "",
         "outline_jitter_px": "px", "flat_roughness_px": "px", "slanted_roughness_px": "px",
-        "slant_roughness_ratio": ""}  # fmt: skip
+        "slant_roughness_ratio": "", "noise_correlation_row": "", "noise_correlation_column": ""}  # fmt: skip
 
 
 def _print(name: str, stats: dict) -> None:

@@ -92,9 +92,12 @@ STATISTIC_LABELS = {
     "flat_roughness_px": "roughness, flat surfaces (px)",
     "slanted_roughness_px": "roughness, slanted surfaces (px)",
     "slant_roughness_ratio": "  slanted / flat",
+    "noise_correlation_row": "noise correlation, next in row",
+    "noise_correlation_column": "noise correlation, next in column",
 }
 ISOLATED_MAX_PX = 20
-_NO_ROUGHNESS = {"flat_roughness_px": None, "slanted_roughness_px": None, "slant_roughness_ratio": None}
+_NO_ROUGHNESS = {"flat_roughness_px": None, "slanted_roughness_px": None, "slant_roughness_ratio": None,
+                 "noise_correlation_row": None, "noise_correlation_column": None}
 CORNER_RADIUS = 0.7
 JUMP_MIN_RELATIVE = 0.06
 JUMP_FLAT_PX = 4
@@ -390,12 +393,12 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     None without isolated dropouts), ``wide_band_hole_share`` (:func:`wide_band_holes`; None without such jumps),
     ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones),
     ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines),
-    ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``
-    (:func:`ddsgen.slant_roughness.slant_roughness`, in the disparity of a sensor with ``disparity_fb`` = f b in
-    px m; None without it or without enough such surface), ``pixels``.
+    ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``, ``noise_correlation_row``,
+    ``noise_correlation_column`` (:func:`ddsgen.surface_roughness.surface_roughness`, in the disparity of a sensor
+    with ``disparity_fb`` = f b in px m; None without it or without enough such surface), ``pixels``.
     """
     from ddsgen.silhouette_edges import outline_jitter
-    from ddsgen.slant_roughness import slant_roughness
+    from ddsgen.surface_roughness import surface_roughness
 
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
@@ -425,6 +428,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "wide_band_hole_share": band_holes / band_jumps if band_jumps else None,
         "isolated_vertical_share": vertical / (vertical + horizontal) if vertical + horizontal else None,
         "outline_jitter_px": outline_jitter(valid_depth, region)["outline_jitter_px"],
-        **(slant_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb else _NO_ROUGHNESS),
+        **(surface_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb else _NO_ROUGHNESS),
         "pixels": int(region.sum()),
     }

@@ -336,7 +336,7 @@ def test_compare_real_cat_cropped_statistics_on_whole_frames(linemod, tmp_path, 
     assert -0.5 < real_edges["edge_fattening_px"] < 2.0 and 0.3 < real_edges["edge_jitter_px"] < 1.5
     assert abs(sim_edges["edge_fattening_px"] - real_edges["edge_fattening_px"]) < 0.5
     assert abs(sim_edges["edge_jitter_px"] - real_edges["edge_jitter_px"]) < 0.5
-    # Roughness in disparity where the surfaces face the camera (ddsgen.slant_roughness): real 0.061 px in the region,
+    # Roughness in disparity where the surfaces face the camera (ddsgen.surface_roughness): real 0.061 px in the region,
     # 0.060 over the whole frame, whose slanted surfaces are 1.85x rougher; the simulation within 0.015 px.
     real_flat, sim_flat = frame["real"]["region"]["flat_roughness_px"], frame["sim"]["region"]["flat_roughness_px"]
     assert 0.045 < real_flat < 0.075 and abs(sim_flat - real_flat) < 0.015

@@ -1,11 +1,12 @@
-"""Roughness against the disparity's slope along the rows (ddsgen.slant_roughness), on made-up and real frames."""
+"""Roughness against the disparity's slope, and the noise's grain (ddsgen.surface_roughness), on made-up and real
+frames."""
 
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ddsgen.slant_roughness import local_quadratic_fit, roughness_by_slope, slant_roughness, slope_residuals
+from ddsgen.surface_roughness import local_quadratic_fit, roughness_by_slope, surface_residuals, surface_roughness
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 FB = 572.41 * 0.075  # the Kinect's f b (px m)
@@ -27,10 +28,10 @@ def test_a_noisy_slanted_surface_gives_its_noise_and_its_slope(slope):
     noise): the roughness is the noise (the fit's 6 parameters over 225 px take 1.3 % of it), in the slope's bin,
     and the fitted slope is the true one."""
     depth = _surface_depth(slope, 0.08, curvature=2e-4)
-    residuals, slopes = slope_residuals(depth, FB)
-    assert len(residuals) > 2000
-    assert np.median(np.abs(slopes - slope)) < 0.01
-    rows = roughness_by_slope(residuals, slopes)
+    residuals = surface_residuals(depth, FB)
+    assert len(residuals.residual) > 2000
+    assert np.median(np.abs(residuals.slope - slope)) < 0.01
+    rows = roughness_by_slope(residuals)
     measured = [row for row in rows if row["roughness_px"] is not None]
     assert len(measured) == 1 and measured[0]["slope_px"][0] <= slope < measured[0]["slope_px"][1], rows
     assert measured[0]["roughness_px"] == pytest.approx(0.08 * np.sqrt(1 - 6 / 225), rel=0.05)
@@ -40,11 +41,11 @@ def test_windows_across_a_depth_edge_do_not_count():
     """A near board in front of a far one: the fits across the edge are dropped, so the roughness stays the noise."""
     depth = _surface_depth(0.0, 0.05, seed=1)
     depth[:, 80:] = _surface_depth(0.0, 0.05, seed=2, base_px=27.0)[:, 80:]  # 13 px of disparity further
-    _, _, _, window_rms, fitted = local_quadratic_fit(FB / depth, np.ones(depth.shape, bool), stride=2)
-    across = fitted & (np.abs(np.arange(160) - 79.5) < 7)[None, :]  # windows that hold both boards
-    assert across.sum() > 100 and (window_rms[across] > 1.0).all()
-    assert (window_rms[fitted & ~across] < 0.06).all()
-    stats = slant_roughness(depth, FB)
+    fit = local_quadratic_fit(FB / depth, np.ones(depth.shape, bool), stride=2)
+    across = fit.fitted & (np.abs(np.arange(160) - 79.5) < 7)[None, :]  # windows that hold both boards
+    assert across.sum() > 100 and (fit.window_rms[across] > 1.0).all()
+    assert (fit.window_rms[fit.fitted & ~across] < 0.06).all()
+    stats = surface_roughness(depth, FB)
     assert stats["flat_roughness_px"] == pytest.approx(0.05 * np.sqrt(1 - 6 / 225), rel=0.05)
     assert stats["slanted_roughness_px"] is None and stats["slant_roughness_ratio"] is None
 
@@ -54,13 +55,27 @@ def test_only_usable_pixels_enter_and_thin_windows_are_not_fitted():
     depth = _surface_depth(0.0, 0.0)
     usable = np.ones(depth.shape, bool)
     usable[:, ::4] = False  # 75 % of every window
-    residual, _, _, _, fitted = local_quadratic_fit(FB / depth, usable)
-    assert not fitted.any() and np.isnan(residual).all()
+    fit = local_quadratic_fit(FB / depth, usable)
+    assert not fit.fitted.any() and np.isnan(fit.residual).all()
     depth[50:70, 70:90] = 0.0  # a hole: the pixels near it are not fitted, the rest are exact
     region = np.zeros(depth.shape, bool)
     region[:, :100] = True
-    residuals, slopes = slope_residuals(depth, FB, region=region)
-    assert 0 < len(residuals) < (100 * 120) / 4 and np.abs(residuals).max() < 1e-9
+    residuals = surface_residuals(depth, FB, region=region)
+    assert 0 < len(residuals.residual) < (100 * 120) / 4 and np.abs(residuals.residual).max() < 1e-9
+
+
+def test_the_noise_grain_is_the_correlation_of_neighbours_along_rows_and_columns():
+    """White noise has no grain (correlation 0 both ways, less the fit's own -1/225-ish); noise smoothed along the
+    rows by [1, 2, 1] / 4 has the known correlation 2/3 between row neighbours and none between column ones."""
+    import cv2
+
+    white = surface_roughness(_surface_depth(0.0, 0.06, seed=3, h=240, w=320), FB)
+    assert abs(white["noise_correlation_row"]) < 0.05 and abs(white["noise_correlation_column"]) < 0.05
+    u, v = np.meshgrid(np.arange(320.0), np.arange(240.0))
+    noise = cv2.filter2D(np.random.default_rng(4).normal(0.0, 0.1, (240, 320)), -1, np.array([[0.25, 0.5, 0.25]]))
+    grained = surface_roughness(FB / (40.0 + 0.001 * u + noise), FB)
+    assert grained["noise_correlation_row"] == pytest.approx(2 / 3, abs=0.06)
+    assert abs(grained["noise_correlation_column"]) < 0.05
 
 
 @pytest.mark.skipif(not (SHARED / "icbin_primesense_unpaired").is_dir(), reason="shared real data not present")
@@ -69,7 +84,7 @@ def test_real_primesense_depth_is_rougher_where_the_disparity_runs_steeply():
     0.07-0.15 px per px (a board at 1 m turned by 50-65 deg). Nguyen 2012's 10-60 deg curve has no such rise."""
     import cv2
 
-    rows = [slant_roughness(cv2.imread(str(p), cv2.IMREAD_UNCHANGED) / 1000.0, 550.0 * 0.075)
+    rows = [surface_roughness(cv2.imread(str(p), cv2.IMREAD_UNCHANGED) / 1000.0, 550.0 * 0.075)
             for p in sorted((SHARED / "icbin_primesense_unpaired").glob("seq*/depth/*.png"))]  # fmt: skip
     assert len(rows) == 9
     flat = [row["flat_roughness_px"] for row in rows]
