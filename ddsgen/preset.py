@@ -77,6 +77,7 @@ FIELDS: dict[str, Field] = {
     "min_confidence": Field(float, "matcher confidence (best minus second-best ZNCC) below which depth is invalid", 0, 1, default=0.15),
     "shadow_always_invalid": Field(bool, "pixels the projector cannot light are invalid whatever the matcher finds (true: the paper's shadow map); false: only matching decides, so windows at a shadow's edges keep the surface they see", default=True),
     "no_hit_always_invalid": Field(bool, "pixels whose ray meets no surface are invalid whatever the matcher finds (true: the ray cast's mask); false: only matching decides, so a window at an object's edge over empty space keeps the object's depth", default=True),
+    "row_smoothing_weight": Field(float, "the device averages each valid disparity with its left and right neighbours on the same surface (within 1 px), weights [w, 1 - 2w, w], before its 2^-n px quantum: real depth's noise is grained along the rows (ddsgen/sensor/row_smoothing.py); 0 = off", 0, 0.5, default=0.0),
     "confirmed_match_zncc": Field(float, "a match that fails min_confidence (a close second peak) is still valid when its best ZNCC exceeds this and a unique match within its window has its disparity (+-1 px): a window across a depth edge sees two surfaces; 1 = off (uniqueness only)", 0, 1, default=1.0),
     "cleanup_speckle_px": Field(int, "device clean-up: valid regions smaller than this are removed (px; 0 = off)", 0, 1_000_000, default=0),
     "cleanup_max_diff_px": Field(float, "device clean-up: neighbours differing by more disparity than this are separate regions (px)", 0, 1000, low_open=True, default=1.0),
@@ -155,6 +156,7 @@ class SensorPreset:
     focus_distance_m: float
     ir_bits: int
     min_confidence: float
+    row_smoothing_weight: float
     confirmed_match_zncc: float
     shadow_always_invalid: bool
     no_hit_always_invalid: bool

@@ -24,6 +24,7 @@ from ddsgen.preset import Intrinsics, SensorPreset
 from ddsgen.sensor.cleanup import device_cleanup
 from ddsgen.sensor.effects import build_effects
 from ddsgen.sensor.ir import IRNoise, render_ir
+from ddsgen.sensor.row_smoothing import smooth_along_rows
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
@@ -382,7 +383,8 @@ class DepthSensor(nn.Module):
             result = result.columns(width)
             ir, signal = ir[:, :width], signal[:, :width]
             ctx.update(geometry=geometry, signal=signal, noise=noise.columns(width))
-        disparity = result.disparity
+        quantum = p.subpixel_step_px if quantise else None
+        disparity = smooth_along_rows(result.disparity, result.valid, p.row_smoothing_weight, quantum)
         for effect in self.effects:
             if effect.stage == "disparity":
                 disparity = effect(disparity, ctx)

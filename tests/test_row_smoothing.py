@@ -1,0 +1,51 @@
+"""The device's disparity smoothing along the rows (ddsgen.sensor.row_smoothing)."""
+
+import numpy as np
+import pytest
+import torch
+
+from ddsgen.sensor.row_smoothing import smooth_along_rows
+
+
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_white_noise_gets_the_grain_of_the_three_taps_along_the_rows_only():
+    """Weights [1/4, 1/2, 1/4] on white noise: row neighbours correlate (2 w (1 - 2w) + w^2) / ((1 - 2w)^2 + 2 w^2)
+    = 2/3, column neighbours not at all, and the variance falls to 3/8."""
+    noise = torch.from_numpy(np.random.default_rng(0).normal(0.0, 0.1, (200, 300)))
+    disparity = 40.0 + noise
+    out = smooth_along_rows(disparity, torch.ones_like(disparity, dtype=torch.bool), 0.25, None).numpy() - 40.0
+    inner = out[:, 1:-1]
+    assert _correlation(inner[:, 1:], inner[:, :-1]) == pytest.approx(2 / 3, abs=0.02)
+    assert abs(_correlation(inner[1:], inner[:-1])) < 0.02
+    assert inner.var() / noise.numpy().var() == pytest.approx(3 / 8, rel=0.03)
+
+
+def test_depth_edges_and_invalid_pixels_are_not_averaged_in():
+    """A near surface (60 px) beside a far one (40 px) and a hole: every pixel keeps its own surface's disparity,
+    invalid pixels keep theirs, and the output stays on the 1/8-px quantum."""
+    disparity = torch.full((4, 12), 40.0, dtype=torch.float64)
+    disparity[:, 6:] = 60.0
+    disparity[:, 2] += 0.125  # one pixel an eighth higher: its neighbours move by a 32nd, rounded away
+    valid = torch.ones_like(disparity, dtype=torch.bool)
+    valid[:, 9] = False
+    disparity[:, 9] = 0.0
+    out = smooth_along_rows(disparity, valid, 0.25, 0.125)
+    assert torch.equal(out[:, 6:9], disparity[:, 6:9]) and torch.equal(out[:, 10:], disparity[:, 10:])
+    assert torch.equal(out[:, 9], disparity[:, 9]) and torch.equal(out[:, 5], disparity[:, 5])
+    assert torch.equal(torch.round(out * 8), out * 8)
+    assert torch.all(out[:, [1, 3]] == 40.0)  # 40 + 0.125 / 4, rounded to the quantum
+    assert torch.all(out[:, 2] == 40.0)  # 40 + 0.125 / 2: half a quantum, rounded to even
+
+
+def test_zero_weight_is_the_identity_and_the_gradient_is_the_transposed_filter():
+    """w = 0 returns the input itself; without the quantum the map is linear, so autograd matches finite differences
+    (float64 gradcheck), edges and holes included."""
+    disparity = torch.tensor([[40.0, 40.2, 40.1, 55.0, 55.3, 0.0, 41.0]], dtype=torch.float64)
+    valid = disparity > 0
+    assert smooth_along_rows(disparity, valid, 0.0, 0.125) is disparity
+    x = disparity.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda d: smooth_along_rows(d, valid, 0.3, None), (x,))
