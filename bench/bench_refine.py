@@ -48,7 +48,8 @@ from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_di
 from ddsgen.scene_gradients.hits import posed_geometry  # noqa: E402
 from ddsgen.scene_gradients.refine import robust_depth_loss, simulate_depth  # noqa: E402
 from ddsgen.scene_gradients.static_scene import refine_static_scene  # noqa: E402
-from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry  # noqa: E402
+from ddsgen.sensor.depth_sensor import DepthSensor  # noqa: E402
+from ddsgen.sensor.geometry import SensorGeometry  # noqa: E402
 
 LINEMOD = ROOT.parent / "shared" / "data" / "linemod_bop"
 SHAPES = [("box", {"size": (0.07, 0.055, 0.045)}), ("mug", {}), ("l_bracket", {}), ("box", {"size": (0.05, 0.09, 0.04)})]

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ddsgen.preset import load_preset
-from ddsgen.sensor.depth_sensor import SensorGeometry
+from ddsgen.sensor.geometry import SensorGeometry
 
 
 def small_preset(width: int = 160, height: int = 120, **changes):

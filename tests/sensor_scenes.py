@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from ddsgen.preset import Intrinsics, load_preset
-from ddsgen.sensor.depth_sensor import SensorGeometry
+from ddsgen.sensor.geometry import SensorGeometry
 
 
 def small_kinect(width: int = 160, height: int = 120, **changes):

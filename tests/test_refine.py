@@ -20,7 +20,8 @@ from ddsgen.scene import shapes
 from ddsgen.scene.sampling import FrameScene, PlacedObject
 from ddsgen.scene_gradients import RefinableScene, RefineSettings, posed_geometry, refine_poses, render_depth
 from ddsgen.scene_gradients.poses import axis_angle_to_matrix, perturb_pose, pose_difference
-from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.geometry import SensorGeometry
 
 LINEMOD = Path(__file__).resolve().parents[2] / "shared" / "data" / "linemod_bop"
 

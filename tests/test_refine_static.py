@@ -21,7 +21,8 @@ from ddsgen.scene.sampling import FrameScene, PlacedObject
 from ddsgen.scene_gradients import RefinableScene, RefineSettings, refine_poses
 from ddsgen.scene_gradients.poses import SharedObjectCorrections, axis_angle_to_matrix, perturb_pose, pose_difference
 from ddsgen.scene_gradients.static_scene import refine_static_scene
-from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.geometry import SensorGeometry
 from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, written_inputs
 
 

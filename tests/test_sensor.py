@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from ddsgen.preset import load_preset
-from ddsgen.sensor.depth_sensor import DepthSensor, SensorGeometry
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.geometry import SensorGeometry
 from sensor_scenes import plane_geometry, small_kinect
 
 

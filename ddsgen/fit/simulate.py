@@ -10,7 +10,7 @@ builds a :class:`FrameData`:
    large background quad, so that the table and the objects' projector shadows on it are
    modelled too;
 3. one ray cast (embreex) with the sensor's baseline and shadow bias -> the constant
-   :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` the differentiable sensor consumes
+   :class:`~ddsgen.sensor.geometry.SensorGeometry` the differentiable sensor consumes
    (ray casting is not differentiable: it is done once per frame and cached in FrameData);
 4. optionally a **crop** to the objects' bounding box plus a margin (a sub-window of a
    pinhole image is a pinhole image with a shifted principal point, so the crop is

@@ -22,7 +22,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from ddsgen.sensor.depth_sensor import SensorGeometry
+from ddsgen.sensor.geometry import SensorGeometry
 
 # |n . d| below this is treated as grazing (avoids dividing by ~0 on silhouette pixels).
 _MIN_COS = 1e-4
@@ -109,7 +109,7 @@ def posed_geometry(scene: SceneTensors, rotations: torch.Tensor, translations: t
         albedo: (N,) their IR reflectances.
 
     Returns:
-        :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` (float32, (H, W)): points (m), normals
+        :class:`~ddsgen.sensor.geometry.SensorGeometry` (float32, (H, W)): points (m), normals
         (unit, facing the camera), albedo, clean_depth (m) recomputed in torch; hit and shadow as cast.
     """
     height, width = scene.shape

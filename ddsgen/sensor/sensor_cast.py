@@ -13,7 +13,7 @@ from ddsgen.sensor.ir_margin import cast_margin, cast_with_margin
 
 def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool = True):
     """Ray-cast ``scene`` for the sensor: ``(hits, geometry)``, the output image's RayHits and the
-    :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` (:func:`sensor_geometry`).
+    :class:`~ddsgen.sensor.geometry.SensorGeometry` (:func:`sensor_geometry`).
 
     ``output_shadows=False``: a registered device's output view skips its shadow rays (``hits.shadow`` is None;
     the sensor runs on the IR camera's view, which has its own): 25-30 ms of a 640x480 frame. An unregistered
@@ -27,10 +27,10 @@ def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool 
 
 
 def sensor_geometry(scene, intrinsics: Intrinsics, preset, hits):
-    """The :class:`~ddsgen.sensor.depth_sensor.SensorGeometry` of ``scene`` given its output image's ``hits``:
+    """The :class:`~ddsgen.sensor.geometry.SensorGeometry` of ``scene`` given its output image's ``hits``:
     the IR image with the preset's margin strip; for a device registered to an RGB camera
     (:mod:`ddsgen.sensor.registration`) the IR camera's own view and the map back to the output image."""
-    from ddsgen.sensor.depth_sensor import SensorGeometry
+    from ddsgen.sensor.geometry import SensorGeometry
     from ddsgen.sensor.registration import ir_view, is_registered, registration_index
 
     if not is_registered(preset):

@@ -117,7 +117,7 @@ def scene_speckle(geometry, unit_salt: list[int], height: int, width: int, shape
     """(height, width) float32 speckle factors fixed to the scene: :func:`speckle_field` drawn from
     ``default_rng(scene_seed(geometry.points, geometry.hit) + unit_salt)``.
 
-    Memoised on the ``geometry`` object (a :class:`~ddsgen.sensor.depth_sensor.SensorGeometry`): an entry holds
+    Memoised on the ``geometry`` object (a :class:`~ddsgen.sensor.geometry.SensorGeometry`): an entry holds
     the very tensors it was drawn for and their version counters, so new tensors or an in-place change of the
     points or the hit mask draw anew. A geometry with a ``speckle_scene`` shows that geometry's field. The array
     returned may be shared: do not modify it.

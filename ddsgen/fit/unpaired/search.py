@@ -96,7 +96,7 @@ def camera_for(preset, width: int, height: int):
 
 def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = False) -> list:
     """Sample and ray cast ``n_frames`` frames of the scene list with the preset's camera ->
-    list of :class:`~ddsgen.sensor.depth_sensor.SensorGeometry`."""
+    list of :class:`~ddsgen.sensor.geometry.SensorGeometry`."""
     from tqdm import tqdm
 
     from ddsgen.scene.sampling import sample_frame
