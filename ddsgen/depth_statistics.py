@@ -63,6 +63,9 @@ there):
   beside near surfaces (16 rendered kinect_v1 frames: 0.78), a forward map without a vertical fill leaves dashes
   along near-horizontal edges (0.19; docs/realism.md, session 35). Per frame it rests on few holes: pool frames.
 
+* **roughness and grain** (with the sensor's f b): how rough flat and slanted surfaces are in disparity and how the
+  noise is grained, from local quadratic fits (:mod:`ddsgen.surface_roughness`).
+
 A ``region`` (bool (H, W)) restricts every statistic to the pixels that count (e.g. the
 modelled geometry of a real frame); components are still found on the whole image, and a
 component counts for the region when any of its pixels lies in it.
@@ -96,8 +99,6 @@ STATISTIC_LABELS = {
     "noise_correlation_column": "noise correlation, next in column",
 }
 ISOLATED_MAX_PX = 20
-_NO_ROUGHNESS = {"flat_roughness_px": None, "slanted_roughness_px": None, "slant_roughness_ratio": None,
-                 "noise_correlation_row": None, "noise_correlation_column": None}
 CORNER_RADIUS = 0.7
 JUMP_MIN_RELATIVE = 0.06
 JUMP_FLAT_PX = 4
@@ -398,7 +399,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     with ``disparity_fb`` = f b in px m; None without it or without enough such surface), ``pixels``.
     """
     from ddsgen.silhouette_edges import outline_jitter
-    from ddsgen.surface_roughness import surface_roughness
+    from ddsgen.surface_roughness import ROUGHNESS_KEYS, surface_roughness
 
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
@@ -428,6 +429,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "wide_band_hole_share": band_holes / band_jumps if band_jumps else None,
         "isolated_vertical_share": vertical / (vertical + horizontal) if vertical + horizontal else None,
         "outline_jitter_px": outline_jitter(valid_depth, region)["outline_jitter_px"],
-        **(surface_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb else _NO_ROUGHNESS),
+        **(surface_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb
+           else dict.fromkeys(ROUGHNESS_KEYS)),  # fmt: skip
         "pixels": int(region.sum()),
     }

@@ -47,6 +47,9 @@ SLANTED_SLOPE = (0.07, 0.15)
 STRIDE = 2
 #: A bin with fewer residuals has no roughness (None).
 MIN_PIXELS = 200
+#: The keys of :func:`surface_roughness`'s result.
+ROUGHNESS_KEYS = ("flat_roughness_px", "slanted_roughness_px", "slant_roughness_ratio", "noise_correlation_row",
+                  "noise_correlation_column")  # fmt: skip
 # Polynomial coordinates are the pixel's offset from the image centre in units of this many px (conditioning).
 _COORDINATE_SCALE = 100.0
 

@@ -1,7 +1,7 @@
 """DepthSensor: the differentiable structured-light sensor, from hit geometry to depth.
 
     geometry (ray cast, constant) -> IR image -> [ir effects] -> block matching
-    -> [disparity effects] -> depth z = f b / d -> [depth effects] -> validity
+    -> the device's smoothing along the rows -> [disparity effects] -> depth z = f b / d -> [depth effects] -> validity
     -> the device's clean-up (specks and small holes) (-> optional post-processing CNN)
 
 Everything in :meth:`DepthSensor.forward` is a torch function of the sensor's
