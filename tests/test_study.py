@@ -15,19 +15,8 @@ import pytest
 from ddsgen.cli import main
 from ddsgen.errors import InputError
 from ddsgen.preset import load_preset
-from ddsgen.study.noise import (
-    DISTREAL_MM,
-    JSON_KEYS,
-    LINEMOD_DEPTH,
-    lattice_step,
-    nguyen_sigma,
-    parse_grid,
-    plane_residuals,
-    plane_scene,
-    quantisation_step,
-    real_quantisation,
-    study_intrinsics,
-)
+from ddsgen.study.noise import JSON_KEYS, nguyen_sigma, parse_grid, plane_residuals, plane_scene, study_intrinsics
+from ddsgen.study.quantisation import DISTREAL_MM, LINEMOD_DEPTH, lattice_step, quantisation_step, real_quantisation
 
 Z_GRID = (0.5, 1.0, 1.5)
 ANGLES = (0.0, 30.0, 45.0, 60.0, 75.0)

@@ -51,7 +51,8 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral,
     from ddsgen.errors import InputError
     from ddsgen.preset import load_preset, save_preset
     from ddsgen.study.lateral import run_lateral_study
-    from ddsgen.study.noise import parse_grid, real_quantisation, run_noise_study, study_intrinsics
+    from ddsgen.study.noise import parse_grid, run_noise_study, study_intrinsics
+    from ddsgen.study.quantisation import real_quantisation
     from ddsgen.study.noise_report import (lateral_table, noise_table, plot_noise_study, quantisation_table,
                                            write_noise_json)
 

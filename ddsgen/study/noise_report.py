@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.preset import SensorPreset
-from ddsgen.study.noise import NoisePoint, RealQuantisation, khoshelham_sigma, local_steps, nguyen_sigma, quantisation_step
+from ddsgen.study.noise import NoisePoint, khoshelham_sigma, nguyen_sigma
+from ddsgen.study.quantisation import RealQuantisation, local_steps, quantisation_step
 
 
 def write_noise_json(points: list[NoisePoint], path: Path | str, lateral: list | None = None) -> None:
