@@ -32,7 +32,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data"
 
-from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics, wide_band_holes  # noqa: E402
+from ddsgen.depth_jumps import wide_band_holes  # noqa: E402
+from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",

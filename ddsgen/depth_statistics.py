@@ -21,15 +21,6 @@ there):
   0.77-0.94: projector beam and lens vignetting).
 * **depth step at 1 m**: the spacing of the depth levels the device outputs, scaled to 1 m
   with the step's z^2 law (1/8 px disparity at f = 572 px, b = 75 mm: 2.92 mm).
-* **holes at depth jumps**: along each image row, a *jump* is a near surface beside a far one
-  (depths differing by more than ``JUMP_MIN_RELATIVE`` = 6 %, each flat over ``JUMP_FLAT_PX`` = 4
-  valid pixels), with at most ``JUMP_MAX_GAP_PX`` invalid pixels between them. The statistic is
-  the share of jumps that have a hole between the surfaces, separately for jumps whose near
-  surface lies to the right (the hole is on its left: the side of a projector shadow when the
-  projector sits at +x, as on a Kinect) and to the left. Geometry predicts a shadow hole of
-  f b (1/z_near - 1/z_far) px on the left side of every near surface; the real frames have
-  one at 9-58 % of such jumps (the matcher and the device fill the rest).
-
 * **isolated dropouts per edge**: isolated dropouts per 1000 pixels of depth edge. An edge
   pixel is one whose depth differs from its right or lower neighbour's by more than
   ``EDGE_MIN_RELATIVE`` = 3 %, on the depth map with every hole filled from its nearest valid
@@ -46,14 +37,7 @@ there):
   default). The eleven real frames: 18 % (71 of 386, most of them 1-2 px); the rest sit at depth edges. A simulation with many more has holes no real device leaves, such as a
   registration band drawn inside the near surface (docs/realism.md, session 33).
 
-* **wide registration bands kept open**: depth registered to the RGB camera (LineMOD, IC-BIN, TUM, kinect_v1) has a
-  band right of every near surface that the IR camera does not see, f b_r (1/z_near - 1/z_far) px wide (f b_r:
-  ``KINECT_FOCAL_REGISTRATION_PX_M``). Along each row, a jump with the near surface on the left, only invalid pixels
-  (at most ``JUMP_MAX_GAP_PX``) between, an edge within 45 deg of vertical (a jump of the same sign within
-  ``BAND_EDGE_COLUMNS`` columns two rows above and below), and a band predicted from the two measured depths of at
-  least ``WIDE_BAND_PX`` = 6 px. The statistic is the share of those jumps with a hole between the surfaces. Real
-  frames keep nearly all such bands open (IC-BIN 0.98 pooled, the cat 0.93; bands up to 3-4 px are closed nine times
-  in ten): a simulation that closes them draws the far surface, or the near one, where the device shows nothing.
+* **holes at depth jumps** and **wide registration bands kept open**: :mod:`ddsgen.depth_jumps`.
 
 * **vertical share of elongated isolated dropouts**: an isolated dropout is *vertical* when its bounding box is at
   least twice as tall as wide, *horizontal* when at least twice as wide as tall (the rest, single pixels included,
@@ -75,6 +59,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from ddsgen.depth_jumps import holes_at_depth_jumps, wide_band_holes
 
 #: The statistics of :func:`realism_statistics`, in reporting order, with their table labels.
 STATISTIC_LABELS = {
@@ -100,20 +86,11 @@ STATISTIC_LABELS = {
 }
 ISOLATED_MAX_PX = 20
 CORNER_RADIUS = 0.7
-JUMP_MIN_RELATIVE = 0.06
-JUMP_FLAT_PX = 4
-JUMP_MAX_GAP_PX = 40
 EDGE_MIN_RELATIVE = 0.03
 EDGE_NEAR_VALID_PX = 8
 ONE_SURFACE_DISPARITY_PX = 1.0
 #: f b of a Kinect V1 (px m, f = 572.41 px, b = 75 mm): the disparity of depth z is f b / z.
 KINECT_FOCAL_BASELINE_PX_M = 572.41 * 0.075
-#: f b_r of a registered Kinect V1 (px m): the IR camera sits b_r = 27 mm from the RGB camera (kinect_v1.yaml).
-KINECT_FOCAL_REGISTRATION_PX_M = 572.41 * 0.027
-WIDE_BAND_PX = 6.0
-BAND_EDGE_COLUMNS = 3
-#: Flatness tolerance of the surfaces on either side of a jump (m).
-_JUMP_FLAT_M = 0.02
 # Depth values are compared within this relative window around each reference depth.
 _STEP_WINDOW = 0.05
 _MIN_LEVELS = 4
@@ -311,76 +288,6 @@ def depth_step_at_1m(depth_m: np.ndarray, valid: np.ndarray | None = None, regio
     return float(np.median(scaled)) if scaled else None
 
 
-def holes_at_depth_jumps(depth_m: np.ndarray, region: np.ndarray | None = None) -> tuple[float | None, float | None]:
-    """(left, right): share of the horizontal depth jumps with invalid pixels between the two surfaces,
-    for near surfaces on the right of the jump (hole on their left) and on its left; None without jumps.
-
-    Args:
-        depth_m: (H, W) metres, 0 = invalid.
-        region: (H, W) bool or None; a jump counts when both its ends lie in it.
-    """
-    depth = np.asarray(depth_m, np.float64)
-    region = _region(depth.shape, region)
-    height, width = depth.shape
-    with_hole = {"left": [], "right": []}
-    offsets = np.arange(JUMP_FLAT_PX)
-    for y in range(height):
-        row = depth[y]
-        cols = np.flatnonzero(row > 0)
-        a, b = cols[:-1], cols[1:]  # consecutive valid pixels, with b - a - 1 invalid ones between
-        za, zb = row[a], row[b]
-        jump = ((b - a - 1) <= JUMP_MAX_GAP_PX) & (np.abs(za - zb) > JUMP_MIN_RELATIVE * np.minimum(za, zb))
-        jump &= (a >= JUMP_FLAT_PX - 1) & (b <= width - JUMP_FLAT_PX) & region[y, a] & region[y, b]
-        a, b, za, zb = a[jump], b[jump], za[jump], zb[jump]
-        if not len(a):
-            continue
-        before = row[a[:, None] - offsets]  # (n, JUMP_FLAT_PX): the surface ending at a
-        after = row[b[:, None] + offsets]
-        flat = (np.abs(before - za[:, None]) < _JUMP_FLAT_M).all(1) & (np.abs(after - zb[:, None]) < _JUMP_FLAT_M).all(1)
-        hole = (b - a - 1) > 0
-        near_on_right = zb < za
-        with_hole["left"].append(hole[flat & near_on_right])
-        with_hole["right"].append(hole[flat & ~near_on_right])
-    shares = []
-    for side in ("left", "right"):
-        holes = np.concatenate(with_hole[side]) if with_hole[side] else np.zeros(0, bool)
-        shares.append(float(holes.mean()) if len(holes) else None)
-    return shares[0], shares[1]
-
-
-def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None, min_band_px: float = WIDE_BAND_PX,
-                    focal_registration_px_m: float = KINECT_FOCAL_REGISTRATION_PX_M) -> tuple[int, int]:
-    """(with_hole, jumps): the near-left depth jumps on near-vertical edges whose predicted registration band
-    f b_r (1/z_near - 1/z_far) is at least ``min_band_px``, and how many of them keep invalid pixels between the
-    two surfaces (see the module docstring).
-
-    Args:
-        depth_m: (H, W) metres, 0 = invalid.
-        region: (H, W) bool or None; a jump counts when both its ends lie in it.
-    """
-    depth = np.asarray(depth_m, np.float64)
-    region = _region(depth.shape, region)
-    height, width = depth.shape
-    inverse = np.where(depth > 0, 1.0 / np.where(depth > 0, depth, 1.0), 0.0).reshape(-1)
-    valid = np.flatnonzero(inverse > 0)  # row-major: consecutive entries of one row are left to right
-    a, b = valid[:-1], valid[1:]  # consecutive valid pixels, with b - a - 1 invalid ones between
-    band = focal_registration_px_m * (inverse[a] - inverse[b])  # > 0: the near surface is on the left
-    keep = (a // width == b // width) & ((b - a - 1) <= JUMP_MAX_GAP_PX) & (np.abs(band) >= 1.0)
-    a, b, bands = a[keep], b[keep], band[keep]
-    rows, lefts, rights = a // width, a % width, b % width
-    centres = (lefts + rights) // 2
-    # Jumps of each sign, widened by BAND_EDGE_COLUMNS along the row: the same edge two rows up and down.
-    kernel = np.ones((1, 2 * BAND_EDGE_COLUMNS + 1), np.uint8)
-    near_left = np.zeros((height, width), np.uint8)
-    near_left[rows[bands > 0], centres[bands > 0]] = 1
-    near_left = cv2.dilate(near_left, kernel).astype(bool)
-    wide = (bands >= min_band_px) & (rows >= 2) & (rows < height - 2)
-    rows, lefts, rights, centres = rows[wide], lefts[wide], rights[wide], centres[wide]
-    vertical = near_left[rows - 2, centres] & near_left[rows + 2, centres]
-    counted = vertical & region[rows, lefts] & region[rows, rights]
-    return int(((rights - lefts - 1) > 0)[counted].sum()), int(counted.sum())
-
-
 def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, region: np.ndarray | None = None,
                        resolution_m: float = 0.001, disparity_fb: float | None = None) -> dict:
     """The hole, validity and quantisation statistics of one frame, as a JSON-ready dict.
@@ -389,9 +296,9 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     ``isolated_dropout_share`` (of the invalid pixels), ``isolated_dropout_share_off_border`` (of those outside the
     blind border bands), ``isolated_dropout_mean_px`` (their mean size; None
     without any), ``depth_step_at_1m_mm``, ``jump_holes_left``,
-    ``jump_holes_right`` (:func:`holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
+    ``jump_holes_right`` (:func:`ddsgen.depth_jumps.holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
     (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
-    None without isolated dropouts), ``wide_band_hole_share`` (:func:`wide_band_holes`; None without such jumps),
+    None without isolated dropouts), ``wide_band_hole_share`` (:func:`ddsgen.depth_jumps.wide_band_holes`; None without such jumps),
     ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones),
     ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines),
     ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``, ``noise_correlation_row``,

@@ -5,9 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddsgen.depth_statistics import (blind_border_bands, corner_valid_share, depth_edges, depth_step_at_1m, holes_at_depth_jumps,
+from ddsgen.depth_jumps import holes_at_depth_jumps, wide_band_holes
+from ddsgen.depth_statistics import (blind_border_bands, corner_valid_share, depth_edges, depth_step_at_1m,
                                      isolated_dropout_orientation, isolated_dropouts, isolated_dropouts_by_rim,
-                                     realism_statistics, wide_band_holes)
+                                     realism_statistics)
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -348,7 +348,7 @@ def test_a_forward_registered_device_keeps_the_band_between_a_near_box_and_the_w
     further on, beside the wall, so the band reads as a hole inside the box's depth (measured: 0 of 82 rows keep a
     hole between box and wall). Mapped forward (registration_forward_gap_px 4, kinect_v1) the carry lands beside the box and
     the band stays open between the two surfaces (92 of 92), as on real registered frames (0.98)."""
-    from ddsgen.depth_statistics import wide_band_holes
+    from ddsgen.depth_jumps import wide_band_holes
 
     preset = _strip(rows=96)
     _, geometry = cast_for_sensor(_scene(1.5, 0.8), preset.intrinsics, preset)
