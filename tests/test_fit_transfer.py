@@ -21,7 +21,8 @@ from ddsgen.fit.device_keys import search_grid, set_key
 from ddsgen.fit.losses import FIT_WEIGHTS, LossWeights, without_plane_pose
 from ddsgen.fit.plane_depth import plane_depth_for, undo_disparity_effects
 from ddsgen.fit.fit_report import at_bound
-from ddsgen.fit.fitting import SENSOR_PARAMS, fit_sensor, resolve_params
+from ddsgen.fit.fitting import fit_sensor
+from ddsgen.fit.parameters import SENSOR_PARAMS, resolve_params
 from ddsgen.fit.priors import Priors
 from ddsgen.fit.revert import revert_unhelpful, snapshot
 from ddsgen.fit.simulate import prepare_frames, simulate

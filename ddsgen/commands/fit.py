@@ -117,8 +117,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     from ddsgen.fit.plane_depth import plane_depth_for
     from ddsgen.fit.simulate import prepare_frames
     from ddsgen.fit.fit_report import parameter_rows, write_fit_report
-    from ddsgen.fit.fitting import (DEFAULT_PARAMS, SENSOR_PARAMS, fit_sensor, physical_values, refine_frame_poses,
-                                    resolve_params)
+    from ddsgen.fit.fitting import fit_sensor, refine_frame_poses
+    from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, resolve_params
     from ddsgen.fit.priors import Priors
     from ddsgen.fit.revert import param_group, revert_summary, revert_unhelpful, snapshot
     from ddsgen.fit.split import SPLIT_MEANING, split_fit_held_out

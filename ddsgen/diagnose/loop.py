@@ -102,7 +102,8 @@ from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.diagnose.sentences import format_values, step_sentence, structure_summary
 from ddsgen.fit import DEFAULT_TILE_PX
-from ddsgen.fit.fitting import DEFAULT_PARAMS, fit_sensor, split_frames
+from ddsgen.fit.fitting import fit_sensor, split_frames
+from ddsgen.fit.parameters import DEFAULT_PARAMS
 from ddsgen.fit.simulate import simulate, twin_draws
 from ddsgen.sensor.effects import REGISTRY, library_names
 

@@ -6,7 +6,7 @@ grain and contrast), a non-differentiable selection (the clean-up sizes are conn
 thresholds: integers) or the IR image's brightness field (the projector's and the lens's fall-off,
 whose only trace in depth is where the matcher's confidence drops below its threshold: validity,
 which has no gradient). So each is fitted by a **1-D search** over a grid within its bounds
-(:data:`ddsgen.fit.fitting.SENSOR_PARAMS` entries with ``attr=None``; integers for integer keys),
+(:data:`ddsgen.fit.parameters.SENSOR_PARAMS` entries with ``attr=None``; integers for integer keys),
 minimising the fit loss (depth + roughness + validity, same noise draws at every value) plus the
 prior toward the input value, holding the other parameters; searched in table order, once.
 

@@ -1,7 +1,7 @@
 """Bounds and priors that keep fitted sensor parameters physical.
 
 Every sensor parameter ``fit`` can move is one :class:`SensorParam` entry of
-:data:`ddsgen.fit.fitting.SENSOR_PARAMS` (adding a parameter to the fit is adding one entry):
+:data:`ddsgen.fit.parameters.SENSOR_PARAMS` (adding a parameter to the fit is adding one entry):
 
 * ``attr`` -- the :class:`~ddsgen.sensor.depth_sensor.DepthSensor` tensor that stores it
   (``None``: a device key of the preset, fitted by a 1-D search, :mod:`ddsgen.fit.device_keys`),

@@ -3,7 +3,7 @@
 A fit lowers the loss on its own frames by construction; whether a change *transfers* shows on
 held-out frames. :func:`revert_unhelpful` measures the held-out gap of the fitted sensor and of
 the input sensor, then, group by group (eta_c / sigma, beta, baseline / focal, each effect, the
-CNN: the ``group`` of :data:`ddsgen.fit.fitting.SENSOR_PARAMS`), puts the group's input values
+CNN: the ``group`` of :data:`ddsgen.fit.parameters.SENSOR_PARAMS`), puts the group's input values
 back and keeps them so when the held-out gap is not higher without the group's change. What
 remains is reported per group, and the output says plainly when the fit did not beat the input.
 
@@ -30,7 +30,7 @@ def param_group(name: str, table: dict) -> str:
 
 
 def snapshot(resolved: dict[str, list[torch.Tensor]]) -> dict[str, list[torch.Tensor]]:
-    """Copies of the current values of resolved parameters (``fitting.resolve_params``)."""
+    """Copies of the current values of resolved parameters (``parameters.resolve_params``)."""
     return {name: [t.detach().clone() for t in tensors] for name, tensors in resolved.items()}
 
 
@@ -47,7 +47,7 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
     """Revert the groups that do not lower the held-out gap (in place on ``sensor``).
 
     Args:
-        resolved: name -> tensors (``fitting.resolve_params`` of the fitted names).
+        resolved: name -> tensors (``parameters.resolve_params`` of the fitted names).
         start: :func:`snapshot` of the same names taken before the fit.
         held: held-out FrameData, or a callable sensor -> FrameData preparing them for the sensor as it is
             (support planes where its disparity errors put them, :mod:`ddsgen.fit.plane_depth`);

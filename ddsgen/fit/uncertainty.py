@@ -203,7 +203,7 @@ def _device_key_entry(sensor, frames, tiles, name, spec, result, seed, weights, 
 
 
 def _physical(sensor, name: str, table: dict) -> float:
-    from ddsgen.fit.fitting import physical_values
+    from ddsgen.fit.parameters import physical_values
 
     values = physical_values(sensor)
     return float(values[table[name].key] if name in table else values[name])
