@@ -298,7 +298,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     without any), ``depth_step_at_1m_mm``, ``jump_holes_left``,
     ``jump_holes_right`` (:func:`ddsgen.depth_jumps.holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
     (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
-    None without isolated dropouts), ``wide_band_hole_share`` (:func:`ddsgen.depth_jumps.wide_band_holes`; None without such jumps),
+    None without isolated dropouts), ``wide_band_hole_share`` (:func:`ddsgen.depth_jumps.wide_band_holes`; None
+    without such jumps),
     ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones),
     ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines),
     ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``, ``noise_correlation_row``,
