@@ -38,7 +38,8 @@ BAND_EDGE_COLUMNS = 3
 _JUMP_FLAT_M = 0.02
 
 
-def _region(shape, region) -> np.ndarray:
+def region_or_all(shape, region) -> np.ndarray:
+    """(H, W) bool: ``region``, or every pixel when it is None (the statistics' ``region`` argument)."""
     return np.ones(shape, bool) if region is None else np.asarray(region, bool)
 
 
@@ -51,7 +52,7 @@ def holes_at_depth_jumps(depth_m: np.ndarray, region: np.ndarray | None = None) 
         region: (H, W) bool or None; a jump counts when both its ends lie in it.
     """
     depth = np.asarray(depth_m, np.float64)
-    region = _region(depth.shape, region)
+    region = region_or_all(depth.shape, region)
     height, width = depth.shape
     with_hole = {"left": [], "right": []}
     offsets = np.arange(JUMP_FLAT_PX)
@@ -90,7 +91,7 @@ def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None, min_b
         region: (H, W) bool or None; a jump counts when both its ends lie in it.
     """
     depth = np.asarray(depth_m, np.float64)
-    region = _region(depth.shape, region)
+    region = region_or_all(depth.shape, region)
     height, width = depth.shape
     inverse = np.where(depth > 0, 1.0 / np.where(depth > 0, depth, 1.0), 0.0).reshape(-1)
     valid = np.flatnonzero(inverse > 0)  # row-major: consecutive entries of one row are left to right

@@ -60,7 +60,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ddsgen.depth_jumps import holes_at_depth_jumps, wide_band_holes
+from ddsgen.depth_jumps import holes_at_depth_jumps, region_or_all, wide_band_holes
 
 #: The statistics of :func:`realism_statistics`, in reporting order, with their table labels.
 STATISTIC_LABELS = {
@@ -96,10 +96,6 @@ _STEP_WINDOW = 0.05
 _MIN_LEVELS = 4
 
 
-def _region(shape, region) -> np.ndarray:
-    return np.ones(shape, bool) if region is None else np.asarray(region, bool)
-
-
 def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
                       max_pixels: int = ISOLATED_MAX_PX) -> tuple[int, float]:
     """(count, share): invalid components smaller than ``max_pixels`` touching the region, and the
@@ -109,7 +105,7 @@ def isolated_dropouts(valid: np.ndarray, region: np.ndarray | None = None,
         valid: (H, W) bool, True where the sensor output depth.
         region: (H, W) bool or None (whole image).
     """
-    return _count_and_share(*_isolated_components(valid, region, max_pixels), _region(np.shape(valid), region))
+    return _count_and_share(*_isolated_components(valid, region, max_pixels), region_or_all(np.shape(valid), region))
 
 
 def _count_and_share(invalid: np.ndarray, labels: np.ndarray, stats: np.ndarray, isolated: np.ndarray,
@@ -152,7 +148,7 @@ def _isolated_components(valid: np.ndarray, region: np.ndarray | None,
     """(invalid (H, W) bool, labels (H, W) int32, stats (n, 5) of cv2.connectedComponentsWithStats, isolated (n,)
     bool): the 8-connected invalid components; ``isolated`` marks those under ``max_pixels`` touching the region."""
     valid = np.asarray(valid, bool)
-    region = _region(valid.shape, region)
+    region = region_or_all(valid.shape, region)
     invalid = ~valid
     n, labels, stats, _ = cv2.connectedComponentsWithStats(invalid.astype(np.uint8), connectivity=8)
     isolated = np.zeros(n, bool)
@@ -190,7 +186,7 @@ def isolated_dropouts_by_rim(depth_m: np.ndarray, region: np.ndarray | None = No
     """
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0
-    region = _region(depth.shape, region)
+    region = region_or_all(depth.shape, region)
     n, labels, stats, _ = cv2.connectedComponentsWithStats((~valid).astype(np.uint8), connectivity=8)
     disparity = np.divide(focal_baseline_px_m, depth, out=np.zeros_like(depth), where=valid)
     height, width = depth.shape
@@ -248,7 +244,7 @@ def corner_valid_share(valid: np.ndarray, region: np.ndarray | None = None,
                        corner_radius: float = CORNER_RADIUS) -> tuple[float | None, float | None]:
     """(corner share, whole share) of valid pixels; None where the region has no such pixel."""
     valid = np.asarray(valid, bool)
-    region = _region(valid.shape, region)
+    region = region_or_all(valid.shape, region)
     corner = region & (normalised_radius(*valid.shape) > corner_radius)
     share = lambda mask: float(valid[mask].mean()) if mask.any() else None  # noqa: E731
     return share(corner), share(region)
@@ -269,7 +265,7 @@ def depth_step_at_1m(depth_m: np.ndarray, valid: np.ndarray | None = None, regio
         resolution_m: the rounding unit of the values (0.001 for millimetre PNGs, 0 for EXR).
     """
     depth = np.asarray(depth_m, np.float64)
-    mask = _region(depth.shape, region) & (depth > 0)
+    mask = region_or_all(depth.shape, region) & (depth > 0)
     if valid is not None:
         mask &= np.asarray(valid, bool)
     levels = np.unique(np.round(depth[mask], 6))
@@ -311,7 +307,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
 
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
-    region = _region(depth.shape, region)
+    region = region_or_all(depth.shape, region)
     components = _isolated_components(valid, region, ISOLATED_MAX_PX)  # found once, for count, share and orientation
     count, share = _count_and_share(*components, region)
     corner, whole = corner_valid_share(valid, region)
