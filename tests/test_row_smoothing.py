@@ -13,8 +13,8 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_white_noise_gets_the_grain_of_the_three_taps_along_the_rows_only():
-    """Weights [1/4, 1/2, 1/4] on white noise: row neighbours correlate (2 w (1 - 2w) + w^2) / ((1 - 2w)^2 + 2 w^2)
-    = 2/3, column neighbours not at all, and the variance falls to 3/8."""
+    """Weights [1/4, 1/2, 1/4] on white noise: row neighbours correlate 2 w (1 - 2w) / ((1 - 2w)^2 + 2 w^2) = 2/3,
+    column neighbours not at all, and the variance falls to 3/8."""
     noise = torch.from_numpy(np.random.default_rng(0).normal(0.0, 0.1, (200, 300)))
     disparity = 40.0 + noise
     out = smooth_along_rows(disparity, torch.ones_like(disparity, dtype=torch.bool), 0.25, None).numpy() - 40.0
@@ -24,21 +24,24 @@ def test_white_noise_gets_the_grain_of_the_three_taps_along_the_rows_only():
     assert inner.var() / noise.numpy().var() == pytest.approx(3 / 8, rel=0.03)
 
 
-def test_depth_edges_and_invalid_pixels_are_not_averaged_in():
-    """A near surface (60 px) beside a far one (40 px) and a hole: every pixel keeps its own surface's disparity,
-    invalid pixels keep theirs, and the output stays on the 1/8-px quantum."""
+def test_the_device_averages_its_sub_pixel_matches_and_quantises_once():
+    """A near surface (60 px) beside a far one (40 px) and a hole, w = 0.2, quantum 1/8 px: every pixel keeps its
+    own surface's disparity, the invalid pixel is only quantised, and all land on the quantum. A match at 40.07 px
+    among neighbours at 40 averages to 40.042 and rounds to 40; rounded first (40.125) it would have stayed there
+    (40.075 rounds back up): the average acts below the quantum."""
     disparity = torch.full((4, 12), 40.0, dtype=torch.float64)
     disparity[:, 6:] = 60.0
-    disparity[:, 2] += 0.125  # one pixel an eighth higher: its neighbours move by a 32nd, rounded away
+    disparity[:, 2] += 0.07
     valid = torch.ones_like(disparity, dtype=torch.bool)
     valid[:, 9] = False
-    disparity[:, 9] = 0.0
-    out = smooth_along_rows(disparity, valid, 0.25, 0.125)
-    assert torch.equal(out[:, 6:9], disparity[:, 6:9]) and torch.equal(out[:, 10:], disparity[:, 10:])
-    assert torch.equal(out[:, 9], disparity[:, 9]) and torch.equal(out[:, 5], disparity[:, 5])
+    disparity[:, 9] = 3.3
+    out = smooth_along_rows(disparity, valid, 0.2, 0.125)
     assert torch.equal(torch.round(out * 8), out * 8)
-    assert torch.all(out[:, [1, 3]] == 40.0)  # 40 + 0.125 / 4, rounded to the quantum
-    assert torch.all(out[:, 2] == 40.0)  # 40 + 0.125 / 2: half a quantum, rounded to even
+    assert torch.equal(out[:, 6:9], disparity[:, 6:9]) and torch.equal(out[:, 10:], disparity[:, 10:])
+    assert torch.all(out[:, 9] == 3.25) and torch.equal(out[:, 5], disparity[:, 5])
+    assert torch.all(out[:, :6] == 40.0)
+    rounded_first = torch.round(disparity * 8) / 8
+    assert torch.all(smooth_along_rows(rounded_first, valid, 0.2, 0.125)[:, 2] == 40.125)
 
 
 def test_zero_weight_is_the_identity_and_the_gradient_is_the_transposed_filter():

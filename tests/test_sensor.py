@@ -140,7 +140,9 @@ def test_depth_gradient_matches_central_finite_difference(gradient_setup, name):
     The step eps = 3e-3 in log space moves disparities by < 0.05 px (small against the
     soft-argmax spread); the mean is taken in float64 (a float32 sum of ~10k depths rounds the
     difference to ~1e-5 steps, more than eta_c's whole derivative). Measured agreement: 0.03-0.5 %
-    (focal 0.5 %); 3 % relative tolerance.
+    (focal 0.5 %); 3 % relative tolerance. beta's derivative is the smallest (~7e-6 m): over 3e-3 its difference sits
+    at the float32 matcher's round-off (autograd / difference 0.99, 0.96, 0.98 with the row smoothing's w at 0,
+    0.16, 0.25), over 1e-2 it is clear of it (1.003, 0.995, 1.004), so beta takes 1e-2.
     """
     sensor, geometry, noise, mask = gradient_setup
 
@@ -152,7 +154,7 @@ def test_depth_gradient_matches_central_finite_difference(gradient_setup, name):
     loss().backward()
     autograd = float(parameter.grad)
     assert math.isfinite(autograd)
-    eps = 3e-3
+    eps = 1e-2 if name == "log_beta" else 3e-3
     with torch.no_grad():
         parameter += eps
         plus = float(loss())

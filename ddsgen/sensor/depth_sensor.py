@@ -288,9 +288,13 @@ class DepthSensor(nn.Module):
         fb = float((fx * baseline).detach())
         d_min = max(fb / p.z_max_m, 0.0)
         d_max = min(fb / p.z_min_m, float(self.pad - p.block_size_px))
+        # A device that smooths along its rows averages the matcher's sub-pixel estimates and quantises once after:
+        # smoothing values already on the 2^-n px quantum and rounding again moves a pixel only when w times its
+        # neighbours' offset reaches half a step (a step function of w, with ties at w = 1/4).
+        smooths = p.row_smoothing_weight > 0
         result = match(
             ir, self.reference_phases(ir_width), self.pad, d_min, d_max, p.block_size_px, self.beta,
-            p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise,
+            p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise and not smooths,
             confirmed_match_zncc=p.confirmed_match_zncc,
         )  # fmt: skip
         if ir_width != width:  # back to the depth image's grid
