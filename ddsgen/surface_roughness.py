@@ -154,13 +154,14 @@ class SurfaceResiduals:
 
 
 def surface_residuals(depth_m: np.ndarray, disparity_fb: float, valid: np.ndarray | None = None,
-                      region: np.ndarray | None = None) -> SurfaceResiduals:  # fmt: skip
+                      region: np.ndarray | None = None, stride: int = STRIDE) -> SurfaceResiduals:  # fmt: skip
     """The local-fit residuals of a depth image's surfaces (see the module docstring).
 
     Args:
         depth_m: (H, W) depth (m), 0 where invalid.
         disparity_fb: f b of the sensor (px m): disparity = f b / z.
         valid: (H, W) bool (default depth > 0); region: (H, W) bool, the pixels that count (default all).
+        stride: fit every ``stride``-th row and column (:func:`local_quadratic_fit`).
     """
     depth = np.asarray(depth_m, np.float64)
     usable = (depth >= DEPTH_RANGE_M[0]) & (depth <= DEPTH_RANGE_M[1])
@@ -169,7 +170,7 @@ def surface_residuals(depth_m: np.ndarray, disparity_fb: float, valid: np.ndarra
     if region is not None:
         usable &= np.asarray(region, bool)
     disparity = disparity_fb / np.where(usable, depth, 1.0)
-    fit = local_quadratic_fit(disparity, usable, stride=STRIDE)
+    fit = local_quadratic_fit(disparity, usable, stride=stride)
     measured = fit.fitted & (fit.window_rms < WINDOW_RMS_PX) & (np.abs(fit.residual) < OUTLIER_PX)
     measured &= np.abs(fit.slope_v) < MAX_VERTICAL_SLOPE
 

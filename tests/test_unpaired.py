@@ -84,6 +84,38 @@ def test_noise_texture_does_not_depend_on_the_plane_pose_but_on_the_noise():
     assert clean[:, :, 0].sum() == clean.sum()  # no noise: every second difference is ~0
 
 
+def _row_filtered_plane(z0: float, tilt_v: float, sigma_px: float, weight: float, seed: int) -> np.ndarray:
+    """(H, W) depth of a plane whose white disparity noise is averaged [w, 1 - 2w, w] along the rows."""
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    noise = np.random.default_rng(seed).normal(0, sigma_px, (H, W + 2))
+    noise = weight * noise[:, :-2] + (1 - 2 * weight) * noise[:, 1:-1] + weight * noise[:, 2:]
+    return FB / (FB / z0 + tilt_v * (v - H / 2) + noise)
+
+
+def test_grain_is_the_row_filter_of_the_noise_and_not_its_amplitude():
+    """The grain feature's correlations of flat-surface residuals with the next pixel in the row and in the column:
+    white disparity noise averaged [w, 1 - 2w, w] along the rows correlates 2w(1 - 2w) / (2w^2 + (1 - 2w)^2) along
+    them (0 for w = 0, 0.545 for w = 0.2) and 0 down the columns, at any amplitude and on a tilted plane; the
+    grain term tells w = 0.2 from w = 0.1, not from twice the noise."""
+    from ddsgen.fit.unpaired.features import grain_correlations
+
+    def correlations(weight, sigma_px=0.05, tilt_v=0.0, seed=0):
+        features = [frame_features(_row_filtered_plane(1.2, tilt_v, sigma_px, weight, seed + k), FB) for k in range(3)]
+        return pool(features), grain_correlations(pool(features)["grain"])
+
+    # The local quadratic fits absorb a little of the noise (6 coefficients over 225 px): residuals correlate
+    # slightly less than the noise itself.
+    white, (row, column) = correlations(0.0)
+    assert abs(row) < 0.06 and abs(column) < 0.06
+    grained, (row, column) = correlations(0.2)
+    assert row == pytest.approx(0.545, abs=0.04) and abs(column) < 0.06
+    louder, loud = correlations(0.2, sigma_px=0.1, tilt_v=0.05, seed=10)
+    assert np.allclose(loud, (row, column), atol=0.04)
+    assert distance_terms(louder, grained)["grain"] < 0.003
+    assert distance_terms(correlations(0.1)[0], grained)["grain"] > 0.02
+    assert distance_terms(white, grained)["grain"] > 0.2
+
+
 def test_quantised_disparity_shows_as_a_lattice_of_second_differences():
     """A disparity lattice of 1/8 px puts every |second difference| on a multiple of 1/8 px
     (every 4th bin of 1/32 px); the matching lattice distance is small, another lattice's large."""
@@ -294,6 +326,31 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     assert abs(falloff - 12.0) < 3.0 and abs(falloff - 12.0) <= 2 * sigma
     assert not result.bootstrap["projector_falloff_exponent"]["scene_content"]["kept_input_value"]
     assert result.distance_after["radius"] < 0.5 * result.distance_before["radius"]
+
+
+def test_unpaired_fit_recovers_the_device_smoothing_along_its_rows():
+    """A hidden kinect_v1 that averages its disparity [0.2, 0.6, 0.2] along the rows (row_smoothing_weight), targets
+    on scene list A, fit from the same device without it (w = 0) on the built-in list: the search on the grain (the
+    flat noise's correlation with the next pixel in the row and in the column) finds w. Measured with four (real,
+    fit) seed pairs: 0.148-0.218, each within its reported spread (0.014-0.058)."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+    from ddsgen.preset import load_preset
+    from ddsgen.scene.scenelist import load_scene_list
+
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    stock = camera_for(load_preset("kinect_v1"), W, H).replace(row_smoothing_weight=0.0)
+    device = stock.replace(row_smoothing_weight=0.2)
+    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
+    depths = render_depths(device, cast_scenes(device, scenes_a, 8, seed=11), seed=11)
+    real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    result = fit_unpaired(stock, real, cast_scenes(stock, load_scene_list(None), 6, seed=3), seed=0, bootstrap=40,
+                          keys=("row_smoothing_weight",), progress=False)  # fmt: skip
+    weight = result.after["row_smoothing_weight"]
+    assert abs(weight - 0.2) < 0.06 and abs(weight - 0.2) <= 2 * result.uncertainty["row_smoothing_weight"]
+    assert not result.bootstrap["row_smoothing_weight"]["scene_content"]["kept_input_value"]
+    assert result.distance_after["grain"] < 0.3 * result.distance_before["grain"]
 
 
 def test_joint_uncertainty_sees_a_trade_off_that_the_profiles_do_not():

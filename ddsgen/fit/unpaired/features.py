@@ -20,6 +20,13 @@ hold other objects. So every feature is conditioned on local geometry or depth:
 * **validity by image radius** ``radius_valid`` / ``radius_all`` (R,): valid pixels per ring of
   the normalised image radius (projector beam and lens fall-off); compared relative to the
   whole frame's valid share.
+* **grain of the noise** ``grain`` (2, 6): on flat surfaces, the residuals of local quadratic fits
+  (:mod:`ddsgen.surface_roughness`) and their right (row 0) and lower (row 1) neighbours' under the
+  same fit, as the sums that make a pooled correlation. The correlation does not depend on the
+  noise's amplitude (beta, the SNR: measured on IC-BIN from kinect_v1, beta 10-25 moves it by
+  0.01) nor, unlike the second differences, on how much of the scene slants (a quantised slope
+  is a staircase): what sets it is how the device combines neighbouring matches (measured on
+  real Kinect V1 frames: 0.62 along the rows, 0.43 down the columns; docs/noise_study.md).
 
 Counts add over frames (:func:`pool`), so a bootstrap over frames only re-sums arrays.
 """
@@ -30,6 +37,7 @@ import cv2
 import numpy as np
 
 from ddsgen.depth_statistics import ISOLATED_MAX_PX, normalised_radius
+from ddsgen.surface_roughness import FLAT_SLOPE, surface_residuals
 
 #: Depth bin edges (m) of the conditioned features.
 DEPTH_EDGES = np.array([0.4, 0.8, 1.2, 1.8, 4.0])
@@ -50,7 +58,12 @@ RADIUS_EDGES = np.array([0.0, 0.3, 0.5, 0.7, 0.85, 1.01])
 #: Bins with fewer samples than this (real or simulated) are left out of the distance.
 MIN_SAMPLES = 200
 
-FEATURE_KEYS = ("noise", "holes", "valid", "radius_valid", "radius_all")
+#: Local fits of the grain feature at every GRAIN_STRIDE-th row and column: pooled over frames a
+#: sixteenth of the pixels is plenty, at half the cost of surface_roughness's stride 2 (0.075 s per
+#: 640 x 480 frame; IC-BIN seq1/0000: correlations 0.534 / 0.498 at stride 4, 0.533 / 0.482 at 2).
+GRAIN_STRIDE = 4
+
+FEATURE_KEYS = ("noise", "holes", "valid", "radius_valid", "radius_all", "grain")
 #: Hole size classes in the distance: holes below 80 px (the sensor's); larger ones are mostly
 #: projector shadows and out-of-range background, set by the scenes (reported, not fitted).
 SENSOR_HOLE_CLASSES = 5
@@ -115,6 +128,28 @@ def _hole_histogram(valid: np.ndarray, depth: np.ndarray, q: np.ndarray) -> np.n
     return flat.reshape(2, n_depth, n_size)
 
 
+def _grain_sums(depth: np.ndarray, focal_baseline_px_m: float) -> np.ndarray:
+    """(2, 6) float64: for the pairs (residual a, its right neighbour's b) in row 0 and (a, its lower
+    neighbour's b) in row 1, over flat surfaces: [pairs, sum a, sum b, sum ab, sum a^2, sum b^2]."""
+    flat = surface_residuals(depth, focal_baseline_px_m, stride=GRAIN_STRIDE).where(*FLAT_SLOPE)
+    sums = np.zeros((2, 6))
+    for row, neighbour in enumerate((flat.right, flat.below)):
+        both = np.isfinite(neighbour)
+        a, b = flat.residual[both], neighbour[both]
+        sums[row] = (both.sum(), a.sum(), b.sum(), (a * b).sum(), (a * a).sum(), (b * b).sum())
+    return sums
+
+
+def grain_correlations(grain: np.ndarray) -> np.ndarray | None:
+    """(2,) correlation of flat-surface residuals with their right and lower neighbours' from pooled
+    ``grain`` sums; None with fewer than MIN_SAMPLES pairs either way."""
+    n, sum_a, sum_b, sum_ab, sum_aa, sum_bb = np.asarray(grain, np.float64).T
+    if n.min() < MIN_SAMPLES:
+        return None
+    covariance = sum_ab / n - sum_a * sum_b / n**2
+    return covariance / np.sqrt((sum_aa / n - (sum_a / n) ** 2) * (sum_bb / n - (sum_b / n) ** 2))
+
+
 def frame_features(depth_m: np.ndarray, focal_baseline_px_m: float) -> dict[str, np.ndarray]:
     """The additive feature counts of one frame.
 
@@ -125,7 +160,7 @@ def frame_features(depth_m: np.ndarray, focal_baseline_px_m: float) -> dict[str,
 
     Returns:
         dict of int64 arrays: ``noise`` (2, D, B+1), ``holes`` (2, D, S), ``valid`` (D,),
-        ``radius_valid`` (R,), ``radius_all`` (R,).
+        ``radius_valid`` (R,), ``radius_all`` (R,); and float64 sums ``grain`` (2, 6).
     """
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0
@@ -141,7 +176,8 @@ def frame_features(depth_m: np.ndarray, focal_baseline_px_m: float) -> dict[str,
     radius_valid = np.bincount(ring[valid], minlength=n_ring)[:n_ring]
     radius_all = np.bincount(ring.ravel(), minlength=n_ring)[:n_ring]
     return {"noise": noise.astype(np.int64), "holes": holes.astype(np.int64), "valid": valid_count.astype(np.int64),
-            "radius_valid": radius_valid.astype(np.int64), "radius_all": radius_all.astype(np.int64)}  # fmt: skip
+            "radius_valid": radius_valid.astype(np.int64), "radius_all": radius_all.astype(np.int64),
+            "grain": _grain_sums(depth, focal_baseline_px_m)}  # fmt: skip
 
 
 def pool(per_frame: list[dict[str, np.ndarray]], indices=None) -> dict[str, np.ndarray]:
@@ -152,8 +188,9 @@ def pool(per_frame: list[dict[str, np.ndarray]], indices=None) -> dict[str, np.n
 
 # ---- distance -----------------------------------------------------------------------------------
 #: Weights of the feature groups in the distance (noise is a Hellinger^2 in [0, 1]; the rates are
-#: squared log ratios, so a factor of 2 costs 0.48 x weight).
-WEIGHTS = {"noise": 1.0, "holes": 0.05, "radius": 0.05}
+#: squared log ratios, so a factor of 2 costs 0.48 x weight; grain is the sum of the two
+#: correlations' squared differences: 0.1 off in each costs 0.02 x weight).
+WEIGHTS = {"noise": 1.0, "holes": 0.05, "radius": 0.05, "grain": 1.0}
 #: Floor of a hole rate (invalid pixels per valid pixel) so that "none" and "almost none" compare finitely.
 _RATE_FLOOR = 1e-4
 
@@ -190,6 +227,9 @@ def distance_terms(sim: dict[str, np.ndarray], real: dict[str, np.ndarray]) -> d
         return (f["radius_valid"] + 1.0) / (f["radius_all"] + 1.0) / max(whole, 1e-6)
 
     terms["radius"] = float(np.mean(np.log(relative_share(sim) / relative_share(real)) ** 2))
+    sim_grain, real_grain = grain_correlations(sim["grain"]), grain_correlations(real["grain"])
+    measured = sim_grain is not None and real_grain is not None
+    terms["grain"] = float(np.sum((sim_grain - real_grain) ** 2)) if measured else 0.0
     terms["total"] = float(sum(WEIGHTS[k] * terms[k] for k in WEIGHTS))
     return {k: float(v) for k, v in terms.items()}
 
@@ -197,8 +237,8 @@ def distance_terms(sim: dict[str, np.ndarray], real: dict[str, np.ndarray]) -> d
 def summary(pooled: dict[str, np.ndarray]) -> dict:
     """Readable statistics of pooled features (for the report): per depth bin the median and
     90th percentile of |second difference| (px, rows), the isolated-dropout rate and the hole
-    rate per size class (invalid px per 1e4 valid px), and
-    the valid share per radius ring."""
+    rate per size class (invalid px per 1e4 valid px), the valid share per radius ring, and the
+    flat-surface noise's correlation with the next pixel in the row and in the column."""
     centres = np.arange(len(NOISE_EDGES) - 2) * NOISE_BIN_PX  # bin k holds |second difference| ~ k/32 px
     rows = []
     for d in range(len(DEPTH_EDGES) - 1):
@@ -216,6 +256,9 @@ def summary(pooled: dict[str, np.ndarray]) -> dict:
                                                if per_valid else None),
         })  # fmt: skip
     share = pooled["radius_valid"] / np.maximum(pooled["radius_all"], 1)
+    grain = grain_correlations(pooled["grain"])
     return {"depth_bins": rows, "hole_size_edges_px": HOLE_SIZE_EDGES[:-1].tolist(),
             "valid_share_by_radius": [round(float(s), 4) for s in share],
-            "radius_edges": RADIUS_EDGES.tolist()}  # fmt: skip
+            "radius_edges": RADIUS_EDGES.tolist(),
+            "noise_correlation_row": None if grain is None else round(float(grain[0]), 4),
+            "noise_correlation_column": None if grain is None else round(float(grain[1]), 4)}  # fmt: skip

@@ -8,7 +8,8 @@ parameter (e.g. a fall-off exponent of a device-faithful preset) is one line in
 
 What depth alone constrains (see docs/unpaired_fit.md): the IR signal-to-noise ratio
 (eta_c against the fixed read noise: only their ratio is identifiable from depth), the
-soft-argmax temperature beta (noise texture), the confidence threshold (dropouts), the
+soft-argmax temperature beta (noise texture), the device's smoothing along its rows (the noise's
+correlation with the next pixel in the row), the confidence threshold (dropouts), the
 sub-pixel level (the disparity lattice); the device keys: the projector's fall-off exponent
 (validity by image radius), the clean-up's hole and speck sizes (hole-size histogram).
 Baseline and focal length are left to the preset: without calibration, the preset's f b is
@@ -82,6 +83,12 @@ UNPAIRED_PARAMETERS: dict[str, UnpairedParameter] = {
     "subpixel_level": UnpairedParameter("subpixel_level", 1, 4, log=False, integer=True),
     "emitted_intensity": UnpairedParameter("emitted_intensity", 2.0e5, 5.0e7, grid=8),
     "softargmax_beta": UnpairedParameter("softargmax_beta", 4.0, 60.0),
+    # The device's smoothing along its rows: it raises the flat-surface noise's correlation with the next pixel in
+    # the row (and lowers the column's a little), which beta and the SNR hardly move -> searched on the grain alone.
+    # Up to 0.3: beyond ~0.3 the side taps outweigh the centre, and the correlation falls again (no longer a
+    # one-valued function of w).
+    "row_smoothing_weight": UnpairedParameter("row_smoothing_weight", 0.0, 0.3, log=False, grid=7,
+                                              terms=("grain",)),
     "min_confidence": UnpairedParameter("min_confidence", 0.05, 0.35, log=False),
     # Device keys (kinect_v1): the beam's fall-off darkens the corners -> searched on validity by
     # radius alone (it also changes the hole rates, but those are scene-dominated: measured, they
