@@ -380,10 +380,33 @@ def test_joint_uncertainty_sees_a_trade_off_that_the_profiles_do_not():
     assert joint_valley["a"]["std"] > 10 * conditional and joint_valley["b"]["std"] > 10 * conditional
     assert joint_bowl["a"]["std"] == pytest.approx(np.std([t[0] / 4.0 for t in resamples]), rel=0.05)
     assert not joint_bowl["a"]["lower_bound"]
-    # A saddle has no minimum: clipped to the limit, never a confident value.
+    # A saddle has no minimum along its falling direction: that key is clipped to the limit, never a confident
+    # value; the other, curved upward, keeps its vertex.
     x = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1]], float)
-    _, clipped = quadratic_minimum(x, x[:, 0] ** 2 - x[:, 1] ** 2, limit=4.0)
-    assert clipped
+    x_min, clipped = quadratic_minimum(x, (x[:, 0] - 0.5) ** 2 - x[:, 1] ** 2 + 0.1 * x[:, 1], limit=4.0)
+    assert clipped.tolist() == [False, True] and x_min == pytest.approx([0.5, -4.0])  # slope +0.1: downhill is -x1
+
+
+def test_a_key_the_frames_do_not_constrain_does_not_unsettle_an_independent_one():
+    """Two keys, one flat (as the SNR at a high SNR: the distance hardly moves with it) and one in a sharp bowl of
+    its own (as the row smoothing on the grain): only the flat key's spread is a lower bound; the bowl's is its own
+    (the minimum of 2 u^2 + t u: std of t / 4)."""
+    from ddsgen.fit.unpaired.joint import joint_uncertainty
+    from ddsgen.fit.unpaired.parameters import UnpairedParameter
+
+    params = [UnpairedParameter("flat", 0.0, 10.0, log=False, grid=11), UnpairedParameter("sharp", 0.0, 10.0,
+                                                                                          log=False, grid=11)]  # fmt: skip
+    rng = np.random.default_rng(1)
+    resamples = [rng.normal(0.0, 0.02, 2) for _ in range(200)]
+
+    def distance(v, tilt):
+        u, w = v["sharp"] - 5.0, v["flat"] - 5.0
+        return 2.0 * u**2 + tilt[0] * u + tilt[1] * w - 1e-4 * w**2
+
+    joint = joint_uncertainty(params, {"flat": 5.0, "sharp": 5.0}, distance, resamples)
+    assert joint["flat"]["lower_bound"] and joint["flat"]["clipped"] == 1.0
+    assert not joint["sharp"]["lower_bound"] and joint["sharp"]["clipped"] == 0.0
+    assert joint["sharp"]["std"] == pytest.approx(np.std([t[0] / 4.0 for t in resamples]), rel=0.05)
 
 
 # ---- the device's window, registered or not -------------------------------------------------------
