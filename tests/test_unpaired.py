@@ -197,11 +197,21 @@ def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
     return scene_list_from_dict(_endless_ground(data))
 
 
+def _real_like_frames(device, n_frames: int = 8, seed: int = 11) -> list:
+    """Frames a hidden ``device`` renders of scene list A (boxes, cans, mugs at 0.7-1.4 m), rounded like a
+    millimetre PNG: the "real" folder of the hidden-device tests."""
+    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.fit.unpaired.search import cast_scenes, render_depths
+
+    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
+    depths = render_depths(device, cast_scenes(device, scenes_a, n_frames, seed=seed), seed=seed)
+    return [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+
+
 @pytest.fixture(scope="module")
 def hidden_device():
     """(stock preset at 160x120, real-like frames of a hidden device on scene list A)."""
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
-    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
+    from ddsgen.fit.unpaired.search import camera_for
     from ddsgen.preset import load_preset
 
     torch = pytest.importorskip("torch")
@@ -209,10 +219,7 @@ def hidden_device():
     # The paper's sensor: at the device preset's signal-to-noise ratio eta_c is not identifiable from depth
     # (measured: 4.5e7 fitted for a hidden 5e6), which is a limit of unpaired fitting, not of this test's subject.
     stock = camera_for(load_preset("kinect_v1_paper"), W, H)
-    hidden = stock.replace(**HIDDEN)
-    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
-    depths = render_depths(hidden, cast_scenes(hidden, scenes_a, 8, seed=11), seed=11)
-    return stock, [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    return stock, _real_like_frames(stock.replace(**HIDDEN))
 
 
 def _fit(stock, real, scene_list):
@@ -295,10 +302,8 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     distances than list A): on the built-in list the two halves of the fit scenes are a tabletop and
     a wall, whose validity by radius differs more (5.4e-4, scaled) than the fall-off's whole range
     moves it at this size (160x120, 6 fit frames), and the fit rightly keeps the stock's value."""
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
-    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired
     from ddsgen.preset import load_preset
-    from ddsgen.scene.scenelist import load_scene_list
 
     torch = pytest.importorskip("torch")
     torch.set_num_threads(1)
@@ -308,10 +313,7 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
                                                                emitted_intensity=5.0e5,
                                                                cleanup_fill_width_px=0)  # fmt: skip
     hidden = {"projector_falloff_exponent": 12.0, "cleanup_hole_px": 0}
-    device = stock.replace(**hidden)
-    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
-    depths = render_depths(device, cast_scenes(device, scenes_a, 24, seed=11), seed=11)
-    real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    real = _real_like_frames(stock.replace(**hidden), n_frames=24)
     tabletop = _scene_list(("ball", "ring", "cone", "bracket", "box"), [0.8, 1.5], wall=False)
     result = fit_unpaired(stock, real, cast_scenes(stock, tabletop, 6, seed=3), seed=0, bootstrap=40,
                           keys=tuple(hidden), progress=False)  # fmt: skip
@@ -333,18 +335,14 @@ def test_unpaired_fit_recovers_the_device_smoothing_along_its_rows():
     on scene list A, fit from the same device without it (w = 0) on the built-in list: the search on the grain (the
     flat noise's correlation with the next pixel in the row and in the column) finds w. Measured with four (real,
     fit) seed pairs: 0.148-0.218, each within its reported spread (0.014-0.058)."""
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
-    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired
     from ddsgen.preset import load_preset
     from ddsgen.scene.scenelist import load_scene_list
 
     torch = pytest.importorskip("torch")
     torch.set_num_threads(1)
     stock = camera_for(load_preset("kinect_v1"), W, H).replace(row_smoothing_weight=0.0)
-    device = stock.replace(row_smoothing_weight=0.2)
-    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
-    depths = render_depths(device, cast_scenes(device, scenes_a, 8, seed=11), seed=11)
-    real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    real = _real_like_frames(stock.replace(row_smoothing_weight=0.2))
     result = fit_unpaired(stock, real, cast_scenes(stock, load_scene_list(None), 6, seed=3), seed=0, bootstrap=40,
                           keys=("row_smoothing_weight",), progress=False)  # fmt: skip
     weight = result.after["row_smoothing_weight"]
@@ -555,8 +553,7 @@ def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined()
     must not claim a value there: the hidden cos^8 lies within its reported 2 sigma, which spans the
     range, and the key is flagged as weakly identified (a bootstrap of +-1/2 step around the minimum
     reported 16 +- 2.5 for a hidden 7)."""
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
-    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired
     from ddsgen.preset import load_preset
     from ddsgen.scene.scenelist import load_scene_list
 
@@ -564,10 +561,7 @@ def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined()
     torch.set_num_threads(1)
     stock = camera_for(load_preset("kinect_v1"), W, H).replace(registration_ir_offset_m=0.0, registration_shift_px=0.0,
                                                                emitted_intensity=5.0e7)  # fmt: skip
-    device = stock.replace(projector_falloff_exponent=8.0)
-    scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
-    depths = render_depths(device, cast_scenes(device, scenes_a, 8, seed=11), seed=11)
-    real = [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    real = _real_like_frames(stock.replace(projector_falloff_exponent=8.0))
     result = fit_unpaired(stock, real, cast_scenes(stock, load_scene_list(None), 6, seed=3), seed=0, bootstrap=40,
                           keys=("projector_falloff_exponent",), progress=False)  # fmt: skip
     falloff, sigma = result.after["projector_falloff_exponent"], result.uncertainty["projector_falloff_exponent"]
