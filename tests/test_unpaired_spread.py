@@ -35,7 +35,7 @@ def test_a_log_scale_key_has_its_spread_as_a_factor():
 
 
 def _frame(valid_share_outer: float) -> dict:
-    """Per-frame features with only the radius rings filled (1000 px per ring)."""
+    """Per-frame features with only the radius rings filled (1000 px per ring; no grain measured)."""
     from ddsgen.fit.unpaired.features import DEPTH_EDGES, HOLE_SIZE_EDGES, NOISE_EDGES, RADIUS_EDGES
 
     rings = len(RADIUS_EDGES) - 1
@@ -44,7 +44,7 @@ def _frame(valid_share_outer: float) -> dict:
     return {"noise": np.zeros((2, len(DEPTH_EDGES) - 1, len(NOISE_EDGES) - 1), np.int64),
             "holes": np.zeros((2, len(DEPTH_EDGES) - 1, len(HOLE_SIZE_EDGES) - 1), np.int64),
             "valid": np.zeros(len(DEPTH_EDGES) - 1, np.int64),
-            "radius_valid": valid, "radius_all": np.full(rings, 1000, np.int64)}  # fmt: skip
+            "radius_valid": valid, "radius_all": np.full(rings, 1000, np.int64), "grain": np.zeros((2, 6))}  # fmt: skip
 
 
 def test_the_scale_is_the_distance_between_the_two_halves_of_the_fit_scenes_scaled_to_the_pools():
