@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -67,6 +68,11 @@ def test_cli_unpaired_bad_file_is_one_line_exit_2_and_writes_nothing(tmp_path, c
     err = capsys.readouterr().err.strip()
     assert "0.png: cannot read depth PNG" in err and len(err.splitlines()) == 1
     assert not out.exists() and not (tmp_path / "fitted_report").exists()
+    # A parameter the unpaired fit does not search (a paired fit's name) is named before anything is read.
+    assert main(["fit", "kinect_v1", str(real), "--unpaired", "--out", str(out), "--quiet", "--params", "beta"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--params: 'beta' is not fitted by --unpaired" in err and "row_smoothing_weight" in err
+    assert len(err.splitlines()) == 1 and not out.exists()
 
 
 # ---- features ---------------------------------------------------------------------------------
@@ -263,24 +269,22 @@ def test_unpaired_fit_does_not_follow_scene_content(hidden_device):
     _assert_near_hidden(result)
 
 
-def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys, monkeypatch):
-    """The command end to end (the fit itself is tested above: only the lattice is fitted here,
-    to keep it fast)."""
+def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys):
+    """The command end to end (the fit itself is tested above: only the lattice is fitted here, ``--params
+    subpixel_level``, to keep it fast)."""
     from ddsgen.cli import main
-    from ddsgen.fit.unpaired import parameters
     from ddsgen.io.png import write_depth_png
     from ddsgen.preset import load_preset, save_preset
 
-    lattice_only = {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]}
-    monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS", lattice_only)
     stock, real = hidden_device
     for frame in real[:4]:  # as a device registered to its RGB camera writes them: a band without depth at the right
         write_depth_png(tmp_path / "real" / "depth" / frame.name, np.where(np.arange(W) < W - 10, frame.depth, 0.0))
     save_preset(stock, tmp_path / "stock.yaml")
     out = tmp_path / "out" / "fitted.yaml"
     assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--out", str(out),
-                 "--quiet", "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+                 "--quiet", "--report", str(tmp_path / "report"), "--params", "subpixel_level"]) == 0  # fmt: skip
     fitted = load_preset(out)
+    assert list(json.loads((tmp_path / "report" / "unpaired_report.json").read_text())["after"]) == ["subpixel_level"]
     assert fitted.subpixel_level == HIDDEN["subpixel_level"] and fitted.width_px == W
     # The output window is measured from the folder: the 10-column band, nothing at the top or bottom.
     assert (fitted.output_right_border_px, fitted.output_top_border_px, fitted.output_bottom_border_px) == (10, 0, 0)
@@ -511,15 +515,12 @@ def test_the_reading_can_be_given_instead_of_measured(registered_device):
         choose_window_model(stock.replace(**UNREGISTERED), real, scenes, 2, seed=0, reading="registered")
 
 
-def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_as_it_is(registered_device, tmp_path,
-                                                                                          monkeypatch):  # fmt: skip
+def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_as_it_is(registered_device, tmp_path):
     """--registration unregistered with the registered kinect_v1: the fitted preset has the registration off and the
-    frames' own window; the report's stock column is still the stock preset, registered, on its own ray casts."""
-    import json
-
+    frames' own window; the report's stock column is still the stock preset, registered, on its own ray casts (only
+    the lattice is fitted, to keep it fast)."""
     from ddsgen.cli import main
     from ddsgen.depth_statistics import realism_statistics
-    from ddsgen.fit.unpaired import parameters
     from ddsgen.fit.unpaired.run import DEFAULT_SIM_FRAMES
     from ddsgen.fit.unpaired.search import cast_scenes, render_depths
     from ddsgen.io.png import write_depth_png
@@ -527,15 +528,14 @@ def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_a
     from ddsgen.scene.scenelist import load_scene_list
     from ddsgen.sensor.output_window import measure_output_window
 
-    monkeypatch.setattr(parameters, "UNPAIRED_PARAMETERS",
-                        {"subpixel_level": parameters.UNPAIRED_PARAMETERS["subpixel_level"]})  # fmt: skip
     stock, window, real = registered_device
     for frame in real:
         write_depth_png(tmp_path / "real" / frame.name, frame.depth)
     save_preset(stock, tmp_path / "stock.yaml")
     out = tmp_path / "fitted.yaml"
     assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--registration",
-                 "unregistered", "--out", str(out), "--quiet", "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+                 "unregistered", "--out", str(out), "--quiet", "--report", str(tmp_path / "report"),
+                 "--params", "subpixel_level"]) == 0  # fmt: skip
     fitted = load_preset(out)
     assert fitted.registration_ir_offset_m == 0 and fitted.registration_shift_px == 0
     own = measure_output_window([f.depth > 0 for f in real]).as_keys()

@@ -11,6 +11,7 @@ from ddsgen.commands import (POSITIVE, REPRODUCIBLE_THREADS_HELP, common_options
                              threads_option, use_threads)
 from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.inputs import load_inputs
+from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import check_can_create_folder
 
@@ -26,7 +27,8 @@ from ddsgen.io.atomic import check_can_create_folder
                    "read_noise_mean; the device keys projector_falloff, vignetting, speckle_grain, speckle_shape, "
                    "shot_noise_gain, cleanup_speckle, cleanup_hole, cleanup_max_diff, cleanup_fill_width, confirmed_match "
                    "(1-D searches); effects, "
-                   "effect:NAME[.PARAM], cnn (2-layer post-processing CNN).")
+                   "effect:NAME[.PARAM], cnn (2-layer post-processing CNN). With --unpaired: the preset keys "
+                   f"{', '.join(UNPAIRED_PARAMETERS)} (default: all of them).")
 @click.option("--steps", type=int, default=100, show_default=True, help="Adam steps.")
 @click.option("--tile", "tile_px", type=int, default=DEFAULT_TILE_PX, show_default=True,
               help="Each Adam step simulates a random TILE x TILE window of each fit frame (a stochastic gradient "
@@ -104,8 +106,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         from ddsgen.fit.unpaired.run import print_summary, run_unpaired_fit
 
         content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
-                                   report_dir=report_dir, seed=seed, registration=registration,
-                                   progress=not quiet)  # fmt: skip
+                                   report_dir=report_dir, seed=seed, keys=split_names(params) or None,
+                                   registration=registration, progress=not quiet)  # fmt: skip
         print_summary(content)
         return
     import dataclasses

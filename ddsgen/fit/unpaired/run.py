@@ -27,7 +27,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                      registration: str = "auto", progress: bool = True) -> dict:  # fmt: skip
     """Fit the preset to the real depth frames below ``real_dir``; write OUT and the report.
 
-    ``keys``: fit only these keys of the table (default: all; see :mod:`.parameters`).
+    ``keys``: fit only these keys of the table (default: all; see :mod:`.parameters`); another name is an
+    InputError, raised before anything is read or rendered.
     ``registration``: how to read the frames' depth (:data:`~.device_window.READINGS`; "auto" measures it).
     Returns the report's JSON content.
     """
@@ -39,6 +40,10 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
     if sim_frames < 2:
         raise InputError(f"--sim-frames: {sim_frames}: need at least 2 frames")
+    unknown = [key for key in keys or () if key not in UNPAIRED_PARAMETERS]
+    if unknown:
+        raise InputError(f"--params: {unknown[0]!r} is not fitted by --unpaired "
+                         f"(it fits {', '.join(UNPAIRED_PARAMETERS)})")  # fmt: skip
     report = Path(report_dir) if report_dir else out.with_name(out.stem + "_report")
     original = load_preset(preset_ref)
     scene_list = load_scene_list(scenes)
