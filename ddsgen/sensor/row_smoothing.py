@@ -27,7 +27,7 @@ SAME_SURFACE_PX = 1.0
 
 def smooth_along_rows(disparity: torch.Tensor, valid: torch.Tensor, weight: float,
                       quantum_px: float | None) -> torch.Tensor:  # fmt: skip
-    """Average each valid disparity with its row neighbours on the same surface, then re-quantise.
+    """Average each valid disparity with its row neighbours on the same surface, then quantise.
 
     Args:
         disparity: (H, W) the matcher's sub-pixel disparity (px), not yet on the device's quantum.
