@@ -189,14 +189,27 @@ def robust_sigma(values: np.ndarray) -> float | None:
     return float(1.4826 * np.median(np.abs(values - np.median(values))))
 
 
+def correlation_sums(residual: np.ndarray, neighbour: np.ndarray) -> np.ndarray:
+    """(6,) float64 over the pairs where the neighbour's residual exists: [pairs, sum a, sum b, sum ab, sum a^2,
+    sum b^2] (a: residual, b: neighbour). Sums of several frames add up to the pooled ones."""
+    both = np.isfinite(neighbour)
+    a, b = residual[both], neighbour[both]
+    return np.array([both.sum(), a.sum(), b.sum(), (a * b).sum(), (a * a).sum(), (b * b).sum()], np.float64)
+
+
+def correlation_from_sums(sums: np.ndarray) -> float | None:
+    """The correlation of a and b from :func:`correlation_sums` (one frame's or pooled); None under MIN_PIXELS
+    pairs."""
+    n, sum_a, sum_b, sum_ab, sum_aa, sum_bb = np.asarray(sums, np.float64)
+    if n < MIN_PIXELS:
+        return None
+    covariance = sum_ab / n - sum_a * sum_b / n**2
+    return float(covariance / np.sqrt((sum_aa / n - (sum_a / n) ** 2) * (sum_bb / n - (sum_b / n) ** 2)))
+
+
 def neighbour_correlation(residual: np.ndarray, neighbour: np.ndarray) -> float | None:
     """Correlation of residuals with their neighbours' (pairs where both exist); None with under MIN_PIXELS pairs."""
-    both = np.isfinite(neighbour)
-    if both.sum() < MIN_PIXELS:
-        return None
-    a, b = residual[both], neighbour[both]
-    a, b = a - a.mean(), b - b.mean()
-    return float(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    return correlation_from_sums(correlation_sums(residual, neighbour))
 
 
 def roughness_by_slope(residuals: SurfaceResiduals, bins=SLOPE_BINS) -> list[dict]:

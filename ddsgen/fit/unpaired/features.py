@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from ddsgen.depth_statistics import ISOLATED_MAX_PX, normalised_radius
-from ddsgen.surface_roughness import FLAT_SLOPE, surface_residuals
+from ddsgen.surface_roughness import FLAT_SLOPE, correlation_from_sums, correlation_sums, surface_residuals
 
 #: Depth bin edges (m) of the conditioned features.
 DEPTH_EDGES = np.array([0.4, 0.8, 1.2, 1.8, 4.0])
@@ -129,25 +129,17 @@ def _hole_histogram(valid: np.ndarray, depth: np.ndarray, q: np.ndarray) -> np.n
 
 
 def _grain_sums(depth: np.ndarray, focal_baseline_px_m: float) -> np.ndarray:
-    """(2, 6) float64: for the pairs (residual a, its right neighbour's b) in row 0 and (a, its lower
-    neighbour's b) in row 1, over flat surfaces: [pairs, sum a, sum b, sum ab, sum a^2, sum b^2]."""
+    """(2, 6) :func:`~ddsgen.surface_roughness.correlation_sums` of flat-surface residuals with their right (row 0)
+    and lower (row 1) neighbours'."""
     flat = surface_residuals(depth, focal_baseline_px_m, stride=GRAIN_STRIDE).where(*FLAT_SLOPE)
-    sums = np.zeros((2, 6))
-    for row, neighbour in enumerate((flat.right, flat.below)):
-        both = np.isfinite(neighbour)
-        a, b = flat.residual[both], neighbour[both]
-        sums[row] = (both.sum(), a.sum(), b.sum(), (a * b).sum(), (a * a).sum(), (b * b).sum())
-    return sums
+    return np.stack([correlation_sums(flat.residual, flat.right), correlation_sums(flat.residual, flat.below)])
 
 
 def grain_correlations(grain: np.ndarray) -> np.ndarray | None:
     """(2,) correlation of flat-surface residuals with their right and lower neighbours' from pooled
-    ``grain`` sums; None with fewer than MIN_SAMPLES pairs either way."""
-    n, sum_a, sum_b, sum_ab, sum_aa, sum_bb = np.asarray(grain, np.float64).T
-    if n.min() < MIN_SAMPLES:
-        return None
-    covariance = sum_ab / n - sum_a * sum_b / n**2
-    return covariance / np.sqrt((sum_aa / n - (sum_a / n) ** 2) * (sum_bb / n - (sum_b / n) ** 2))
+    ``grain`` sums; None with fewer than MIN_PIXELS pairs either way."""
+    correlations = [correlation_from_sums(sums) for sums in grain]
+    return None if None in correlations else np.array(correlations)
 
 
 def frame_features(depth_m: np.ndarray, focal_baseline_px_m: float) -> dict[str, np.ndarray]:
