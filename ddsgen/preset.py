@@ -98,6 +98,7 @@ FIELDS: dict[str, Field] = {
     "pattern": Field(str, "dot pattern: a file in pattern_assets/ or a path (relative to the preset)", default="kinect_like_640.png"),
     "pattern_psf_px": Field(float, "Gaussian point-spread sigma of a projected dot (px)", 0, 10, low_open=True, default=0.5),
     "pattern_dot_jitter_px": Field(float, "projected dots sit this far (uniform, +-half, projector px) off the pattern's pixel lattice; 0 = on the lattice", 0, 2, default=0.0),
+    "reference_speckle_contrast": Field(float, "speckle of the device's stored reference image (captured at calibration): each reference pixel times 1 + c N(0, 1), fixed per unit; it grains the disparity noise down the columns as well as along the rows (ddsgen/sensor/reference_speckle.py); 0 = off", 0, 2, default=0.0),
     "effects": Field(list, "extra physical effects: list of {name: EFFECT, PARAM: value}", default=()),
     "postprocess": Field(str, "optional post-processing CNN weights file (relative to the preset)", default=None),
 }
@@ -179,6 +180,7 @@ class SensorPreset:
     pattern: str
     pattern_psf_px: float
     pattern_dot_jitter_px: float
+    reference_speckle_contrast: float
     effects: tuple
     postprocess: str | None
     source: str = ""  # file the preset came from (for messages and relative paths)

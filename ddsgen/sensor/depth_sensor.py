@@ -32,6 +32,7 @@ from ddsgen.sensor.registration import (
     band_hole_fill_index, forward_registration_index, gather_flat, register, register_images,
     splat_fill_index,
 )
+from ddsgen.sensor.reference_speckle import reference_speckle_factor
 from ddsgen.sensor.row_smoothing import smooth_along_rows
 from ddsgen.sensor.speckle import scene_speckle
 
@@ -90,10 +91,14 @@ def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pa
 
 @functools.lru_cache(maxsize=8)
 def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int):
-    """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin)."""
+                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int, speckle_contrast: float = 0.0):
+    """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin), with the
+    stored reference's own speckle of ``speckle_contrast`` (:mod:`ddsgen.sensor.reference_speckle`)."""
     field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px, unit)
-    return field.reference_phases(ir_width, height, pad, n_sub)
+    phases = field.reference_phases(ir_width, height, pad, n_sub)
+    if speckle_contrast > 0:
+        phases = phases * reference_speckle_factor(*phases.shape, speckle_contrast, unit)
+    return phases
 
 
 def _log_param(value: float) -> nn.Parameter:
@@ -214,7 +219,8 @@ class DepthSensor(nn.Module):
         """(S, H, ir_width + pad) reference images at infinity (default ``ir_width``: the image width W),
         cached once per process and sensor."""
         width = self.intr.width if ir_width is None else int(ir_width)
-        return _reference_phases(*self._pattern_key(), self.preset.subpixel_level, width).to(self.device_)
+        p = self.preset
+        return _reference_phases(*self._pattern_key(), p.subpixel_level, width, p.reference_speckle_contrast).to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
         """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator.
