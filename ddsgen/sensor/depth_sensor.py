@@ -97,7 +97,7 @@ def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int,
     field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px, unit)
     phases = field.reference_phases(ir_width, height, pad, n_sub)
     if speckle_contrast > 0:
-        phases = phases * reference_speckle_factor(*phases.shape, speckle_contrast, unit)
+        phases = phases * reference_speckle_factor(*phases.shape, speckle_contrast, unit).to(phases.device)
     return phases
 
 
@@ -220,7 +220,8 @@ class DepthSensor(nn.Module):
         cached once per process and sensor."""
         width = self.intr.width if ir_width is None else int(ir_width)
         p = self.preset
-        return _reference_phases(*self._pattern_key(), p.subpixel_level, width, p.reference_speckle_contrast).to(self.device_)
+        phases = _reference_phases(*self._pattern_key(), p.subpixel_level, width, p.reference_speckle_contrast)
+        return phases.to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
         """Unit noise draws for a frame; ``seed`` is an int, a sequence of ints or a numpy Generator.
