@@ -69,7 +69,7 @@ def test_presets_command_lists_one_line_per_shipped_preset(capsys):
     rows = {line.split()[0]: line for line in lines[1:-1]}
     assert sorted(rows) == shipped_preset_names()
     kinect = rows["kinect_v1"]
-    assert "640x480" in kinect and "0.4-4 m" in kinect and "b 75 mm" in kinect
+    assert "640x480" in kinect and "0.4-10 m" in kinect and "b 75 mm" in kinect
     assert kinect.rstrip().endswith("Kinect V1 as the device measures")  # the file's first comment line
     assert "1280x1024" in rows["matterport_pro2"]
 

@@ -68,7 +68,7 @@ def test_save_and_reload_round_trip(tmp_path):
         ({"emitted_intensity": float("inf")}, "emitted_intensity: must be a finite number"),
         ({"width_px": "wide"}, "width_px: expected a number"),
         ({"subpixel_level": 1.5}, "subpixel_level: expected an integer"),
-        ({"z_min_m": 5.0}, "z_min_m: must be smaller than z_max_m"),
+        ({"z_min_m": 12.0}, "z_min_m: must be smaller than z_max_m"),
         ({"effects": [{"name": "lens_distorsion"}]}, "unknown effect 'lens_distorsion'"),
         ({"speckle_fixed_to_scene": "yes"}, "speckle_fixed_to_scene: expected true or false"),
         ({"speckle_fixed_to_scene": 1}, "speckle_fixed_to_scene: expected true or false"),

@@ -96,7 +96,7 @@ def test_wheel_install_renders_from_any_folder_like_the_editable_install(wheel, 
     listing = _run([venv / "bin" / "ddsgen", "presets"], work, env).stdout
     assert sorted(p.name for p in work.iterdir()) == ["o"], "nothing but the output folder in the current folder"
     lines = {line.split()[0]: line for line in listing.splitlines()}
-    assert "640x480" in lines["kinect_v1"] and "0.4-4 m" in lines["kinect_v1"]
+    assert "640x480" in lines["kinect_v1"] and "0.4-10 m" in lines["kinect_v1"]
     assert str(new_site) in listing.splitlines()[-1], "the listed presets are the wheel's"
 
     for stem in ("zncc", "raster", "registration"):  # the matcher's kernels, the ray-cast raster, the registration maps
