@@ -218,9 +218,15 @@ def _psf_peak(sigma_x: float, sigma_y: float, box_x: int, box_y: int) -> float:
 DOT_JITTER_SEED = 20120917
 
 
+def unit_seed(base: int, unit: int = 0) -> int | list[int]:
+    """numpy seed of a fixed random property of one unit of the device: ``base`` for unit 0 (the unit ddsgen renders
+    with, whose draws predate units), ``[base, unit]`` for another."""
+    return base if unit == 0 else [base, int(unit)]
+
+
 def dot_jitter_seed(unit: int = 0) -> int | list[int]:
     """numpy seed of the dots' fixed offsets of one unit of the device (0: the unit ddsgen renders with)."""
-    return DOT_JITTER_SEED if unit == 0 else [DOT_JITTER_SEED, int(unit)]
+    return unit_seed(DOT_JITTER_SEED, unit)
 
 
 class PatternField:

@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ddsgen.sensor.pattern import unit_seed
+
 #: numpy seed of unit 0's reference speckle (another unit: [seed, unit]): a property of the unit, the same in
 #: every process.
 REFERENCE_SPECKLE_SEED = 0x5EF5
@@ -42,11 +44,10 @@ def reference_speckle_factor(phases: int, height: int, columns: int, contrast: f
     """
     if contrast <= 0:
         return torch.ones(phases, height, columns)
-    rng = np.random.default_rng(REFERENCE_SPECKLE_SEED if unit == 0 else [REFERENCE_SPECKLE_SEED, int(unit)])
+    rng = np.random.default_rng(unit_seed(REFERENCE_SPECKLE_SEED, unit))
     # One value per stored pixel; column 0 is the pixel left of the first reference column (phases past 1/2).
     stored = rng.standard_normal((height, columns + 1)).astype(np.float32)
-    factor = np.empty((phases, height, columns), dtype=np.float32)
-    for s in range(phases):
-        left = 1 if 2 * s > phases else 0  # u = j - pad - s/S is nearest to stored pixel j - pad - 1 past 1/2
-        factor[s] = stored[:, 1 - left:1 - left + columns]
-    return torch.from_numpy(np.clip(1.0 + contrast * factor, 0.0, None))
+    # Past half a pixel, u = j - pad - s/S is nearest to stored pixel j - pad - 1.
+    past_half = (2 * np.arange(phases) > phases)[:, None, None]
+    factor = np.where(past_half, stored[None, :, :-1], stored[None, :, 1:])
+    return torch.from_numpy(np.clip(1.0 + contrast * factor, 0.0, None).astype(np.float32))
