@@ -181,6 +181,7 @@ class _Frame:
     clean_depth: torch.Tensor | None = None
     hit: torch.Tensor | None = None
     index: int = 0
+    resolved_depth_m: float = math.inf
 
     def noise_seed(self, seed: int = 0) -> list[int]:  # as FrameData's
         from ddsgen.fit.simulate import SIM_STREAM

@@ -104,7 +104,7 @@ def _validity_frame(height: int = 30, width: int = 40):
     frame = SimpleNamespace(region=region, real_depth=torch.where(real_valid, depth, torch.zeros_like(depth)),
                             real_valid=real_valid, clean_depth=depth, plane=None,
                             instance=torch.zeros(height, width, dtype=torch.int32),
-                            intrinsics=SimpleNamespace(fx=100.0))  # fmt: skip
+                            intrinsics=SimpleNamespace(fx=100.0), resolved_depth_m=float("inf"))  # fmt: skip
     soft = torch.rand(height, width, generator=g)
     sim = SimpleNamespace(depth=depth, valid=soft > 0.5, valid_soft=soft)
     return frame, sim
@@ -153,3 +153,49 @@ def test_tensor_memo_follows_its_tensors_and_stays_bounded():
     assert memoised(memo, (a,), ("k",), 2, lambda: compute(a)) == 6.0 and len(calls) == 3
     assert len(memo) == 2  # the oldest went to make room
     assert memoised(memo, (b,), ("k",), 2, lambda: compute(b)) == 3.0 and len(memo) == 2
+
+
+def test_resolved_depth_is_where_one_disparity_quantum_is_the_clip():
+    """Kinect V1 (f b = 572.41 px x 0.075 m): 1/8 px steps resolve to 4.14 m, 1/4 px to 2.93 m; there one step
+    of the quantum is a CLIP_MM depth step (z^2 step / (f b))."""
+    fb = 572.41 * 0.075
+    for step, expected in ((1 / 8, 4.14), (1 / 4, 2.93)):
+        z = losses.resolved_depth_m(fb, step)
+        assert z == pytest.approx(expected, abs=0.005)
+        assert 1000.0 * z**2 * step / fb == pytest.approx(CLIP_MM)
+
+
+def test_surfaces_beyond_the_resolved_depth_count_in_the_depth_term_only_where_resolved():
+    """A wall at 6 m (beyond 4.14 m) beside one at 2 m: a 40 mm error on the far wall moves neither the depth nor
+    the per-pixel term; the same error on the near wall moves the depth term; the far wall's holes still count in
+    the validity term, and its noise texture in the gradient term."""
+    height, width = 40, 60
+    clean = torch.full((height, width), 2.0)
+    clean[:, 30:] = 6.0
+    g = torch.Generator().manual_seed(3)
+    real = clean + 0.01 * torch.randn(height, width, generator=g)
+    all_valid = torch.ones(height, width, dtype=torch.bool)
+    frame = SimpleNamespace(region=all_valid.clone(), real_depth=real, real_valid=all_valid.clone(), clean_depth=clean,
+                            plane=None, instance=torch.zeros(height, width, dtype=torch.int32),
+                            intrinsics=SimpleNamespace(fx=572.41),
+                            resolved_depth_m=losses.resolved_depth_m(572.41 * 0.075, 1 / 8))  # fmt: skip
+    far = clean > 5.0
+
+    def terms(error_m, valid=all_valid):
+        sim = SimpleNamespace(depth=real + error_m, valid=valid, valid_soft=valid.float())
+        return {k: float(v) for k, v in frame_loss(sim, frame, LossWeights()).items()}
+
+    def on(mask, value):
+        return torch.where(mask, value, torch.zeros_like(real))
+
+    exact = terms(torch.zeros_like(real))
+    assert exact["depth"] == 0.0 and exact["validity"] == 0.0 and exact["gradient"] == 0.0
+    far_error = terms(on(far, torch.full_like(real, 0.04)))
+    assert far_error["depth"] == 0.0 and far_error["pixel"] == 0.0
+    assert terms(on(~far, torch.full_like(real, 0.04)))["depth"] > 30.0
+    assert terms(on(far, 0.1 * torch.randn(height, width, generator=g)))["gradient"] > 10.0  # rougher far wall
+    far_hole = all_valid.clone()
+    far_hole[10:30, 35:55] = False
+    assert terms(torch.zeros_like(real), far_hole)["validity"] > 1.0
+    frame.resolved_depth_m = float("inf")  # without the limit the far wall's error counts
+    assert terms(on(far, torch.full_like(real, 0.04)))["depth"] > 15.0

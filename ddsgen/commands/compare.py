@@ -27,7 +27,8 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     sensor; only pixels where modelled geometry is visible and plausible count.
 
     The headline gap (mm) = systematic depth error (Huber of the local mean of sim - real over
-    1.5 deg of view, 15 px at 640 x 480) + noise-texture mismatch (|Sobel| roughness per depth
+    1.5 deg of view, 15 px at 640 x 480, where one disparity step is at most a 50 mm depth step:
+    nearer than 4.14 m for the Kinect V1) + noise-texture mismatch (|Sobel| roughness per depth
     bin) + validity disagreement (100 mm x squared difference of local valid rates), averaged
     over frames; the noise floor
     is the same metric between the simulation and other units of the simulated sensor (their own

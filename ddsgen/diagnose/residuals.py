@@ -2,7 +2,8 @@
 
 For every pixel of a frame's comparison region (:mod:`ddsgen.fit.simulate`) two residuals:
 
-* depth error ``sim - real`` (mm) where both are valid (clipped to +-:data:`CLIP_MM`, so a
+* depth error ``sim - real`` (mm) where both are valid and the sensor resolves depth (nearer than
+  the frame's ``resolved_depth_m``, as the gap's depth terms; clipped to +-:data:`CLIP_MM`, so a
   few flying pixels cannot dominate a bin);
 * validity disagreement ``sim_valid - real_valid`` in {-1, 0, 1} (> 0: the simulation reports
   depth that the real sensor did not).
@@ -32,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import VALIDITY_MM
+from ddsgen.fit.losses import VALIDITY_MM, depth_compared
 from ddsgen.sensor.effects.features import edge_distance, local_signal, normalised_coordinates
 
 #: Depth errors are clipped to +- this (mm) before averaging.
@@ -122,7 +123,7 @@ def pixel_residuals(frames, sims, stride: int = 1) -> PixelResiduals:
         values = frame_axes(frame, sim)
         sim_valid = sim.valid.detach()
         real_valid = frame.real_valid
-        both = sim_valid & real_valid
+        both = sim_valid & real_valid & depth_compared(frame)  # depth errors only where the sensor resolves them
         e = (sim.depth.detach() - frame.real_depth) * 1000.0
         e = torch.where(both, e.clamp(-CLIP_MM, CLIP_MM), torch.full_like(e, float("nan")))
         for k in AXES:

@@ -20,6 +20,12 @@ For each frame, on its comparison region R (modelled geometry visible and plausi
   local valid rates (same window) of sim and real: where one sensor has depth and the other
   has none, the disagreement costs like a gross depth error.
 
+D_f counts only the pixels of R nearer than the depth the sensor resolves
+(:func:`ddsgen.fit.losses.resolved_depth_m`: beyond it one disparity quantum is a depth step larger
+than the 50 mm clip; Kinect V1 at 1/8 px: 4.14 m). There a depth error is 0 or clipped whatever
+the sensor does, and its noise, growing as z^2, would outweigh the near surfaces' evidence; G_f and
+V_f still count those pixels.
+
     gap = mean over frames of gap_f.
 
 These are exactly the loss terms of :mod:`ddsgen.fit.losses` (so ``fit`` minimises what
@@ -49,7 +55,7 @@ import numpy as np
 import torch
 
 from ddsgen.fit.local_patches import patch_gap, patch_line, patch_summary
-from ddsgen.fit.losses import LossWeights, frame_loss, local_window
+from ddsgen.fit.losses import LossWeights, depth_compared, frame_loss, local_window
 from ddsgen.fit.simulate import FrameData, simulate, simulate_twin, twin_draws
 
 DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
@@ -97,7 +103,8 @@ DEFINITION = (
     "gap = mean over frames of D + G + V (mm) on the modelled, plausible region: D = mean Huber(5 mm) of the local "
     "mean of sim - real (both valid, clipped to +-50 mm) over a window of 1.5 deg of view (15 px at 640 x 480, "
     "at least 5 px); G = Huber of the difference of mean |Sobel(depth - clean)| of sim and real per 0.25 m depth "
-    "bin; V = 100 mm x mean squared difference of the local valid rates (same window). "
+    "bin; D only where one disparity quantum is a depth step of at most 50 mm (Kinect V1 at 1/8 px: nearer than "
+    "4.14 m); V = 100 mm x mean squared difference of the local valid rates (same window). "
     "noise_floor = the same between the simulation and another unit of the same sensor model (its own noise draw, "
     "laser speckle and dot positions, as the real unit has its own); excess = gap - noise_floor."
 )
@@ -165,7 +172,7 @@ def frame_gap(sim, frame: FrameData, region: str = "all") -> dict:
     with torch.no_grad():
         terms = frame_loss(sim, f, GAP_WEIGHTS)
     mask = f.region
-    both = mask & sim.valid & f.real_valid
+    both = depth_compared(f) & sim.valid & f.real_valid
     err = ((sim.depth - f.real_depth)[both] * 1000.0).numpy()
     bias, spread = _robust(err)
     return {

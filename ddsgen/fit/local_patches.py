@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import masked_local_mean
+from ddsgen.fit.losses import depth_compared, masked_local_mean
 
 #: The twin's local offsets exceed the patch threshold on this fraction of the pixels at most.
 TWIN_QUANTILE = 0.999
@@ -104,10 +104,11 @@ def residual_mm(sim, region: torch.Tensor, depth: torch.Tensor, valid: torch.Ten
 
 
 def patches_against(sim, frame, twin, window: int) -> FramePatches:
-    """:func:`find_patches` of ``frame`` (FrameData; ``frame.region``: the pixels compared) from its simulation
-    ``sim`` and one twin ``twin`` (SensorOutputs)."""
-    return find_patches(frame.name, residual_mm(sim, frame.region, frame.real_depth, frame.real_valid),
-                        residual_mm(sim, frame.region, twin.depth, twin.valid), window)  # fmt: skip
+    """:func:`find_patches` of ``frame`` (FrameData; the pixels whose depth is compared:
+    :func:`~ddsgen.fit.losses.depth_compared`) from its simulation ``sim`` and one twin ``twin`` (SensorOutputs)."""
+    compared = depth_compared(frame)
+    return find_patches(frame.name, residual_mm(sim, compared, frame.real_depth, frame.real_valid),
+                        residual_mm(sim, compared, twin.depth, twin.valid), window)  # fmt: skip
 
 
 def patch_count(patches: list[FramePatches]) -> int:

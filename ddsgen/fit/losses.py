@@ -27,6 +27,12 @@ All terms are computed on one frame's comparison region (see
   :data:`VALIDITY_MM`: a patch where one sensor has depth and the other has none costs like
   a gross depth error (a flying pixel), not like a few millimetres of noise.
 * ``pixel`` (weight 0 by default): the paper's per-pixel Huber, for completeness.
+
+The depth term counts only pixels nearer than the depth the sensor resolves (:func:`resolved_depth_m`:
+beyond it one step of the output's disparity quantum is a larger depth step than :data:`CLIP_MM`,
+so a pixel's error there is 0 or clipped, and the local mean says on which side of a level the noise
+landed rather than how far the sensor is off). Such far surfaces still count in the gradient and
+validity terms.
 """
 
 from __future__ import annotations
@@ -54,6 +60,20 @@ CLIP_MM = 50.0
 VALIDITY_MM = 100.0
 #: Depth bins of the roughness statistic (m).
 ROUGHNESS_BIN_M = 0.25
+
+
+def resolved_depth_m(fb_px_m: float, step_px: float) -> float:
+    """Depth (m) up to which one disparity quantum of the output (``step_px``, px) is a depth step of at most
+    :data:`CLIP_MM`: the step is z^2 step / (f b), so z = sqrt(CLIP_MM f b / step). Kinect V1 (f b = 43.5 px m):
+    4.17 m at 1/8 px, 2.95 m at 1/4 px. ``fb_px_m``: focal length (px) times baseline (m)."""
+    return math.sqrt(CLIP_MM / 1000.0 * fb_px_m / step_px)
+
+
+def depth_compared(frame) -> torch.Tensor:
+    """(H, W) bool: the pixels of ``frame``'s comparison region whose depth values count (the depth term, the
+    per-pixel term, local patches): its region nearer than ``frame.resolved_depth_m`` (by the clean depth, so the
+    same pixels for every model)."""
+    return frame.region & (frame.clean_depth <= frame.resolved_depth_m)
 
 
 def local_window(focal_px: float) -> int:
@@ -254,7 +274,8 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
     real = frame.real_depth * 1000.0
     clean = frame.clean_depth * 1000.0
     simd = sim.depth * 1000.0
-    both = region & sim.valid & frame.real_valid
+    measured = region & sim.valid & frame.real_valid
+    both = measured & depth_compared(frame)
     k = local_window(frame.intrinsics.fx)
     zero = simd.sum() * 0.0
     terms = {"depth": zero, "gradient": zero, "validity": zero, "pixel": zero}
@@ -268,7 +289,8 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
             terms["depth"] = masked_mean(huber(local), keep)
         # Reported even at weight 0 (compare), but then without a graph to back-propagate through.
         terms["pixel"] = masked_mean(huber(err if weights.pixel else err.detach()), both)
-        textured = texture_pixels(both, frame, weights.plane_nuisance)
+    if bool(measured.any()):
+        textured = texture_pixels(measured, frame, weights.plane_nuisance)
         r_sim, ok = roughness(simd - clean, textured)  # both roughness maps are defined on the same pixels
         r_real, _ = roughness(real - clean, textured)
         if bool(ok.any()):

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ddsgen.errors import InputError
+from ddsgen.fit.losses import resolved_depth_m
 from ddsgen.fit.support_plane import Plane, fit_support_plane, plane_pose
 from ddsgen.preset import Intrinsics, SensorPreset
 
@@ -68,6 +69,8 @@ class FrameData:
     full_intrinsics: the camera of the uncropped frame.
     clean_depth: float32 m, the image's ray-cast depth (0 = no hit); hit: bool. For a device registered to an
         RGB camera the geometry is the IR camera's view, these are the image's; default: the geometry's.
+    resolved_depth_m: the depth values of pixels beyond this clean depth do not count, their validity does
+        (:func:`ddsgen.fit.losses.resolved_depth_m`; inf: all count).
     """
 
     name: str
@@ -87,6 +90,7 @@ class FrameData:
     full_intrinsics: Intrinsics | None = None
     clean_depth: torch.Tensor | None = None
     hit: torch.Tensor | None = None
+    resolved_depth_m: float = math.inf
 
     def __post_init__(self):
         if self.clean_depth is None:
@@ -238,6 +242,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         instance=t(instance), real_depth=t(real), real_valid=t(real > 0), region=t(region),
         object_region=t(region & (instance > 0)), incidence_deg=t(incidence), radius=t(radius), plane=plane,
         pose_error_mm=pose_error, full_intrinsics=intr, clean_depth=t(hits.depth), hit=t(hits.hit),
+        resolved_depth_m=resolved_depth_m(fb, preset.subpixel_step_px),
     )  # fmt: skip
 
 
