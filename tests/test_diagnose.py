@@ -88,12 +88,12 @@ def scans(tmp_path_factory):
 
 
 def stock():
-    """The Kinect V1 preset with the device's 1/8 px sub-pixel steps, measuring to 4 m as the device's specification
-    (and the paper) say: the scene list was built for that range. With the driver's 10 m (kinect_v1 since session
-    46) the far floor is measured too, and the disparity_offset case ties with depth_scale (credited falls 43.0 %
-    and 43.0 %; depth_scale is named first): the support plane absorbs both on the floor, so the far floor adds
-    noise to the held-out gap and no evidence."""
-    return small_preset(640, 480, subpixel_level=3, z_max_m=4.0)
+    """The Kinect V1 preset with the device's 1/8 px sub-pixel steps, measuring to the driver's 10 m. Two rules make
+    the far floor harmless: its depth beyond 4.14 m, where one 1/8-px step is more than the depth term's 50 mm clip,
+    is not compared (:func:`ddsgen.fit.losses.resolved_depth_m`), and candidates are judged against the floor over
+    the reported units (:func:`ddsgen.diagnose.acceptance.judged_floors`). With neither, the disparity_offset case
+    tied with depth_scale (credited falls 43.0 % each, depth_scale named first; session 46 pinned 4 m here)."""
+    return small_preset(640, 480, subpixel_level=3)
 
 
 def render_scans(root, name: str, effects: list[dict], perturb: bool = True, seed: int = 11, n: int = FRAMES):
@@ -697,9 +697,9 @@ def test_independent_measurement_model_writes_each_effect_by_its_formula():
     assert (edges[mid, left + 5 : left + 15] > 0).all(), "beyond it: depth"
 
 
-def test_reported_floor_averages_several_units_and_leaves_the_rule_alone():
-    """Reported gaps beyond the floor average the floor over several units (as compare does); the acceptance rule
-    keeps comparing every model against the same single unit."""
+def test_reported_floor_averages_several_units_and_the_rule_judges_against_the_same_units():
+    """Reported gaps beyond the floor average the floor over several units (as compare does), and the acceptance
+    rule compares two models' floors over the same units when both have them (else over the one unit both have)."""
     from ddsgen.diagnose.evaluation import evaluate
     from ddsgen.fit.compare import frame_gap_mm
     from ddsgen.fit.simulate import simulate, simulate_twin
@@ -711,7 +711,13 @@ def test_reported_floor_averages_several_units_and_leaves_the_rule_alone():
     three = evaluate(sensor, [frame], seed=3, floor_draws=3)
     assert one.reported_floors is None and one.floor == pytest.approx(one.frame_floors[0])
     assert three.frame_gaps == one.frame_gaps and three.frame_floors == one.frame_floors
-    assert relative_fall(one, three) == pytest.approx(0.0)  # the rule sees no difference
+    assert relative_fall(one, three) == pytest.approx(0.0)  # different unit counts: unit 1 only, no difference
+    # A candidate whose gap falls by 1 mm while its floor falls by 0.5 mm on average over three units but not at
+    # all against unit 1: credited 0.5 mm (the average), not 1 mm (unit 1's chance draw).
+    before = Evaluation([10.0], [8.0], reported_floors=[9.0], floor_draws=3)
+    after = Evaluation([9.0], [8.0], reported_floors=[8.5], floor_draws=3)
+    assert relative_fall(before, after) == pytest.approx(0.05)
+    assert relative_fall(dataclasses.replace(before, reported_floors=None, floor_draws=1), after) == pytest.approx(0.1)
     with torch.no_grad():
         sim = simulate(sensor, frame, 3)
         units = []

@@ -24,8 +24,8 @@ UNEXPLAINED_MIN_MM = 1.0
 
 RULE = (
     f"Each round, the candidate with the largest credited fall of the held-out gap -- per frame, the fall of the "
-    f"gap minus any fall of the model's own noise floor (noise it hides rather than explains), same noise draws "
-    f"for every model -- is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
+    f"gap minus any fall of the model's own noise floor (noise it hides rather than explains; the floor averaged "
+    f"over the same several units as the reported one), same noise draws for every model -- is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
     f"and (b) it is not carried by a few frames: over {BOOTSTRAP_RESAMPLES} bootstrap resamples of the held-out "
     f"frames (with replacement), the {100 * BOOTSTRAP_QUANTILE:.0f}th percentile of that relative fall stays above "
     f"zero; a validity effect (one that only removes pixels) must moreover not lower the held-out likelihood of the "
@@ -37,14 +37,26 @@ RULE = (
 )
 
 
+def judged_floors(before: Evaluation, after: Evaluation) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame floors of ``before`` and ``after`` as the rule compares them: averaged over the units both were
+    measured against (``reported_floors``, the same draws for every model) when they were measured with the same
+    number, else the one unit both have (``frame_floors``)."""
+    if before.reported_floors is not None and after.reported_floors is not None \
+            and before.floor_draws == after.floor_draws:
+        return np.asarray(before.reported_floors), np.asarray(after.reported_floors)
+    return np.asarray(before.frame_floors), np.asarray(after.frame_floors)
+
+
 def frame_falls(before: Evaluation, after: Evaluation) -> np.ndarray:
     """Per-frame credited fall of the gap: ``(gap_before - gap_after) - max(0, floor_before - floor_after)``.
 
     A candidate gets no credit for the part of its gap fall that its own noise floor falls too (noise it
-    hides, e.g. by dropping the noisiest pixels), and no credit either for making its own draws noisier.
+    hides, e.g. by dropping the noisiest pixels), and no credit either for making its own draws noisier. The
+    floors are :func:`judged_floors`: one unit's floor scatters by tens of percent on one frame, and the rule is
+    one-sided, so a model whose draws differ (any depth change) would be charged that scatter.
     """
     gb, ga = np.asarray(before.frame_gaps), np.asarray(after.frame_gaps)
-    fb, fa = np.asarray(before.frame_floors), np.asarray(after.frame_floors)
+    fb, fa = judged_floors(before, after)
     return (gb - ga) - np.maximum(0.0, fb - fa)
 
 

@@ -24,11 +24,11 @@ from ddsgen.fit.simulate import simulate, simulate_twin
 class Evaluation:
     """Gap and noise floor of one model on some frames (per frame and mean, mm).
 
-    ``frame_floors`` is the floor against one other unit (unit 1, the same draw for every model): what
-    the acceptance rule compares between models. ``reported_floors``, when measured, is the floor averaged
-    over several units per frame, as ``compare`` reports it: one unit's floor on few frames scatters by
-    tens of percent, so the gaps *beyond the floor* that a diagnosis reports (baseline and accepted
-    steps) use it."""
+    ``frame_floors`` is the floor against one other unit (unit 1, the same draw for every model).
+    ``reported_floors``, when measured, is the floor averaged over several units per frame, as ``compare``
+    reports it: one unit's floor on few frames scatters by tens of percent, so the gaps *beyond the floor* that a
+    diagnosis reports and the acceptance rule's floors (:func:`~ddsgen.diagnose.acceptance.judged_floors`) use
+    it."""
 
     frame_gaps: list[float]
     frame_floors: list[float]
@@ -103,7 +103,7 @@ def evaluate(sensor, frames, seed: int, replane_steps: int = 0, floor_draws: int
     """Per-frame gap and noise floor (:func:`frame_evaluation`) of ``sensor``, planes re-estimated first if asked.
 
     ``floor_draws`` > 1 also measures ``reported_floors``: per frame the mean floor over that many units
-    (the first of them is ``frame_floors``' unit, so the acceptance rule is unchanged)."""
+    (the first of them is ``frame_floors``' unit)."""
     if replane_steps:
         frames = replaned(sensor, frames, seed, replane_steps)
     gaps, floors, lls, averaged = [], [], [], []

@@ -50,7 +50,10 @@ Two things make the comparison fair to every candidate:
   without such dropout -- while a genuinely missing effect lowers the gap and leaves the
   floor. So a candidate is credited, per frame and with the same noise draws for every model,
   with the fall of its gap minus any fall of its floor (:func:`~ddsgen.diagnose.acceptance.frame_falls`), and gets
-  nothing for making its own draws disagree more.
+  nothing for making its own draws disagree more. The floor is the mean over the same several units as the
+  reported one (at least four in all, :func:`~ddsgen.fit.simulate.twin_draws`): a model that changes the depth
+  changes its draws, and against one unit the floor's own scatter was charged to it (at a 10 m range a disparity
+  offset's floor fell 0.13 mm by chance and its credited fall tied with a depth scale's, 43.0 % each).
 * **Gaps are reported beyond the noise floor.** ``diagnosis.json``'s gaps are ``compare``'s
   ``excess``: held-out gap minus noise floor (mean over held-out frames), what a better
   model could still remove -- the true sensor scores about 0, so "the gap halves" means half
@@ -254,8 +257,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     sensor = DepthSensor(preset)
     fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
                seed=config.seed, batch_frames=config.batch_frames, tile_px=config.tile_px)  # fmt: skip
-    # Reported gaps beyond the floor average the floor over several units, as compare does (a split frame
-    # counts as one frame); the candidates are judged against one unit each (acceptance.frame_falls).
+    # Gaps beyond the floor average the floor over several units, as compare does (a split frame counts as one
+    # frame); the candidates are judged against the same units (acceptance.frame_falls).
     floor_draws = twin_draws(1 if len(frames) == 1 else len(held))
     held_now = replaned(sensor, held, held_seed, HELD_REPLANE_STEPS)  # the held-out planes under the current model
     current = evaluate(sensor, held_now, held_seed, floor_draws=floor_draws)
@@ -298,7 +301,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
             def judge(name, fitted, screened: str = ""):
                 cand_sensor, values, fit_score = fitted
                 judged_on = held_frames_for(name, cand_sensor, held, held_now, held_seed)
-                held_eval = evaluate(cand_sensor, judged_on, held_seed)
+                held_eval = evaluate(cand_sensor, judged_on, held_seed, floor_draws=floor_draws)
                 c = Candidate(name, values, fit_score, held_eval, sensor=cand_sensor, screened=bool(screened))
                 c.gain = relative_fall(current, held_eval)
                 c.gain_low = bootstrap_fall(current, held_eval, rng)
