@@ -25,7 +25,8 @@ UNEXPLAINED_MIN_MM = 1.0
 RULE = (
     f"Each round, the candidate with the largest credited fall of the held-out gap -- per frame, the fall of the "
     f"gap minus any fall of the model's own noise floor (noise it hides rather than explains; the floor averaged "
-    f"over the same several units as the reported one), same noise draws for every model -- is accepted only if (a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
+    f"over the same several units as the reported one), same noise draws for every model -- is accepted only if "
+    f"(a) the fall is at least {100 * MIN_RELATIVE_GAIN:.0f} % of the held-out gap "
     f"and (b) it is not carried by a few frames: over {BOOTSTRAP_RESAMPLES} bootstrap resamples of the held-out "
     f"frames (with replacement), the {100 * BOOTSTRAP_QUANTILE:.0f}th percentile of that relative fall stays above "
     f"zero; a validity effect (one that only removes pixels) must moreover not lower the held-out likelihood of the "

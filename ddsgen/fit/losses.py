@@ -64,8 +64,8 @@ ROUGHNESS_BIN_M = 0.25
 
 def resolved_depth_m(fb_px_m: float, step_px: float) -> float:
     """Depth (m) up to which one disparity quantum of the output (``step_px``, px) is a depth step of at most
-    :data:`CLIP_MM`: the step is z^2 step / (f b), so z = sqrt(CLIP_MM f b / step). Kinect V1 (f b = 43.5 px m):
-    4.17 m at 1/8 px, 2.95 m at 1/4 px. ``fb_px_m``: focal length (px) times baseline (m)."""
+    :data:`CLIP_MM`: the step is z^2 step / (f b), so z = sqrt(CLIP_MM f b / step). Kinect V1 (f b = 572.41 px x
+    0.075 m): 4.14 m at 1/8 px, 2.93 m at 1/4 px. ``fb_px_m``: focal length (px) times baseline (m)."""
     return math.sqrt(CLIP_MM / 1000.0 * fb_px_m / step_px)
 
 
