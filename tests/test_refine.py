@@ -59,6 +59,32 @@ def sensor_for(intr: Intrinsics) -> DepthSensor:
     return DepthSensor(load_preset("kinect_v1_paper"), intrinsics=intr)
 
 
+def test_the_depth_loss_counts_depth_only_where_the_sensor_resolves_it():
+    """A wall at 2 m beside one at 6 m, the simulation at the clean depth. Beyond the resolved depth (kinect_v1:
+    one 1/8-px quantum is 50 mm at 4.14 m, 105 mm at 6 m) the real depth is one quantum level or another whatever
+    the pose, so a 20 mm error there moves neither the loss nor the compared pixels; on the near wall it does."""
+    from ddsgen.fit.losses import resolved_depth_m
+    from ddsgen.scene_gradients.refine import robust_depth_loss
+
+    preset = load_preset("kinect_v1")
+    limit = resolved_depth_m(preset.focal_px * preset.baseline_m, preset.subpixel_step_px)
+    assert limit == pytest.approx(4.14, abs=0.01)
+    clean = torch.full((10, 20), 2.0)
+    clean[:, 10:] = 6.0
+    valid = torch.ones_like(clean, dtype=torch.bool)
+    far_error, near_error = clean.clone(), clean.clone()
+    far_error[:, 10:] += 0.02
+    near_error[:, :10] += 0.02
+    exact, mask = robust_depth_loss(clean, valid, clean, clean, 0.025, 0.003, limit)
+    far, far_mask = robust_depth_loss(clean, valid, clean, far_error, 0.025, 0.003, limit)
+    near, _ = robust_depth_loss(clean, valid, clean, near_error, 0.025, 0.003, limit)
+    unlimited, all_mask = robust_depth_loss(clean, valid, clean, far_error, 0.025, 0.003)
+    assert int(mask.sum()) == int(far_mask.sum()) == 100 and not bool(mask[:, 10:].any())
+    assert float(exact) == float(far) == 0.0
+    assert float(near) == pytest.approx(0.02 - 0.0015, rel=1e-4)  # Huber, linear beyond 3 mm: |r| - delta/2
+    assert int(all_mask.sum()) == 200 and float(unlimited) == pytest.approx(0.5 * (0.02 - 0.0015), rel=1e-4)
+
+
 # ------------------------------------------------------------------------------------------ ray cast ids
 
 

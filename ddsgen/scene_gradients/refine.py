@@ -9,7 +9,9 @@ mean of the last ``average_last`` share of the iterates (the fresh noise of each
 Robustness to what the scene does not model (clutter, hands, occluders, a wall): a pixel counts only
 where the real depth lies within ``band_m`` of the rendered clean depth (a far-off surface is not the
 modelled one), and the residual goes through a Huber loss of width ``huber_m`` (mixed pixels at edges
-and the sensor's outliers pull linearly, not quadratically).
+and the sensor's outliers pull linearly, not quadratically). Pixels whose rendered depth is beyond the depth the
+sensor resolves (:func:`ddsgen.fit.losses.resolved_depth_m`: one disparity quantum is a depth step of more than 50
+mm, 4.14 m for the Kinect V1) do not count, as in ``fit``: there the residual is 0 or a whole step, whatever the pose.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import math
 import numpy as np
 import torch
 
+from ddsgen.fit.losses import resolved_depth_m
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.scene import RefinableScene
@@ -95,19 +98,27 @@ class RefineResult:
     depth_after: np.ndarray
 
 
-def robust_depth_loss(depth, valid, clean_depth, real_depth, band_m: float, huber_m: float):
+def compared_pixels(valid, clean_depth, real_depth, band_m: float, max_depth_m: float = math.inf) -> torch.Tensor:
+    """(H, W) bool: where simulated (``valid``) and real depth are both valid, the real one lies within ``band_m`` of
+    the rendered clean depth (m, 0 = no hit) and that depth is at most ``max_depth_m``."""
+    clean = clean_depth.detach()
+    return valid & (real_depth > 0) & (clean > 0) & (clean <= max_depth_m) & ((real_depth - clean).abs() < band_m)
+
+
+def robust_depth_loss(depth, valid, clean_depth, real_depth, band_m: float, huber_m: float,
+                      max_depth_m: float = math.inf):  # fmt: skip
     """Huber loss (m) of simulated vs real depth where both are valid and the real one is within the band.
 
     Args:
         depth, valid: (H, W) simulated depth (m) and its validity.
         clean_depth: (H, W) rendered noise-free depth (m, 0 = no hit): decides the band (not differentiated).
         real_depth: (H, W) real depth (m, 0 = invalid).
+        max_depth_m: pixels whose clean depth is farther do not count (the resolved depth; inf: all count).
 
     Returns:
         (loss scalar (m), mask (H, W) bool of the pixels that counted).
     """
-    real_ok = real_depth > 0
-    mask = valid & real_ok & (clean_depth.detach() > 0) & ((real_depth - clean_depth.detach()).abs() < band_m)
+    mask = compared_pixels(valid, clean_depth, real_depth, band_m, max_depth_m)
     if not bool(mask.any()):
         return depth.sum() * 0.0, mask
     residual = depth[mask] - real_depth[mask]
@@ -136,8 +147,8 @@ def simulate_depth(sensor, tensors, rotations, translations, albedo, noise, grad
     return out.depth + (clean - clean.detach()) * out.valid, out.valid, geometry
 
 
-def _gap_mm(depth, valid, clean, real, instance, band_m) -> float:
-    mask = valid & (real > 0) & (instance > 0) & ((real - clean).abs() < band_m)
+def _gap_mm(depth, valid, clean, real, instance, band_m, max_depth_m) -> float:
+    mask = compared_pixels(valid, clean, real, band_m, max_depth_m) & (instance > 0)
     if not bool(mask.any()):
         return float("nan")
     return float((depth[mask] - real[mask]).abs().mean() * 1000.0)
@@ -216,6 +227,11 @@ class _View:
         self.meshes = [p.mesh for p in scene.parts]
         self.tensors, self.outline = None, None
 
+    def resolved_depth_m(self, sensor) -> float:
+        """The depth (m) beyond which this view's depth values do not count, for the sensor's current baseline."""
+        fb = self.scene.intrinsics.fx * float(sensor.baseline.detach())
+        return resolved_depth_m(fb, sensor.preset.subpixel_step_px)
+
     def recast(self) -> None:
         poses = self.scene.poses
         self.tensors = self.scene.cast()
@@ -233,7 +249,8 @@ class _View:
             R, t = poses()
             geometry = posed_geometry(self.tensors, R, t, poses.albedo)
             out = sensor(geometry, noise=sensor.draw_noise(_noise_seed(self.s, self.index)))
-        gap = _gap_mm(out.depth, out.valid, geometry.clean_depth, self.real, self.tensors.instance, self.s.band_m)
+        gap = _gap_mm(out.depth, out.valid, geometry.clean_depth, self.real, self.tensors.instance, self.s.band_m,
+                      self.resolved_depth_m(sensor))
         return out.depth.numpy().copy(), gap
 
     def loss(self, sensor, step: int):
@@ -244,7 +261,8 @@ class _View:
         # one noise draw (with one fixed draw the poses fit its speckle: 1.5 deg left instead of 1 deg, measured).
         depth, valid, geometry = simulate_depth(sensor, self.tensors, R, t, poses.albedo,
                                                 sensor.draw_noise(_noise_seed(s, self.index, step)), s.gradient)
-        loss, mask = robust_depth_loss(depth, valid, geometry.clean_depth, self.real, s.band_m, s.huber_m)
+        loss, mask = robust_depth_loss(depth, valid, geometry.clean_depth, self.real, s.band_m, s.huber_m,
+                                       self.resolved_depth_m(sensor))
         if self.outline is not None:
             loss = loss + s.edge_weight * edge_loss(self.outline, R, t, self.edge_distance, self.scene.intrinsics).float()
         return loss, int(mask.sum())
