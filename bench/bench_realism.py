@@ -32,14 +32,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data"
 
-from ddsgen.depth_jumps import wide_band_holes  # noqa: E402
+from ddsgen.depth_jumps import narrow_band_slits, wide_band_holes  # noqa: E402
 from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
         "isolated_dropout_share": "", "isolated_dropout_share_off_border": "", "isolated_dropout_mean_px": "px", "depth_step_at_1m_mm": "mm",
         "jump_holes_left": "", "jump_holes_right": "", "isolated_dropouts_per_1000_edge_px": "",
-        "isolated_one_surface_share": "", "wide_band_hole_share": "", "isolated_vertical_share": "",
+        "isolated_one_surface_share": "", "wide_band_hole_share": "", "narrow_band_slit_share": "", "isolated_vertical_share": "",
         "outline_jitter_px": "px", "flat_roughness_px": "px", "slanted_roughness_px": "px",
         "slant_roughness_ratio": "", "noise_correlation_row": "", "noise_correlation_column": ""}  # fmt: skip
 
@@ -111,6 +111,8 @@ def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
     """Pooled over frames (per frame the wide-band jumps and elongated dropouts are few, or none)."""
     kept, jumps = np.sum([wide_band_holes(d) for d in depths], axis=0)
     print(f"bench: {name}_wide_bands_kept_open {kept} of {jumps}", flush=True)
+    slits, narrow = np.sum([narrow_band_slits(d) for d in depths], axis=0)
+    print(f"bench: {name}_narrow_bands_left_as_a_slit {slits} of {narrow}", flush=True)
     vertical, horizontal = np.sum([isolated_dropout_orientation(d > 0) for d in depths], axis=0)
     print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
 

@@ -20,6 +20,12 @@ Two statistics of :func:`ddsgen.depth_statistics.realism_statistics` (definition
   least ``WIDE_BAND_PX`` = 6 px. The statistic is the share of those jumps with a hole between the surfaces. Real
   frames keep nearly all such bands open (IC-BIN 0.98 pooled, the cat 0.93; bands up to 3-4 px are closed nine times
   in ten): a simulation that closes them draws the far surface, or the near one, where the device shows nothing.
+
+* **narrow registration bands left as a slit**: the same jumps with a predicted band of 3-6 px
+  (``NARROW_BAND_PX``), and the share of them with 1-2 invalid pixels (``SLIT_PX``) between the surfaces. Three
+  real devices agree (session 48, the jump criteria of ``/work/exp/s48/junction.py``): a 3-4 px band closes in
+  66-90 % of the rows and leaves a slit in 8-12 %, a 4-6 px band a slit in 13-22 % (IC-BIN, the LineMOD cat, TUM).
+  Those slits are most of the real frames' 1-2 px holes right of near surfaces (6 a frame on each device).
 """
 
 from __future__ import annotations
@@ -33,6 +39,9 @@ JUMP_MAX_GAP_PX = 40
 #: f b_r of a registered Kinect V1 (px m): the IR camera sits b_r = 27 mm from the RGB camera (kinect_v1.yaml).
 KINECT_FOCAL_REGISTRATION_PX_M = 572.41 * 0.027
 WIDE_BAND_PX = 6.0
+#: The narrow bands of :func:`narrow_band_slits` (px, [lo, hi)) and the slit it counts (invalid px, inclusive).
+NARROW_BAND_PX = (3.0, 6.0)
+SLIT_PX = (1, 2)
 BAND_EDGE_COLUMNS = 3
 #: Flatness tolerance of the surfaces on either side of a jump (m).
 _JUMP_FLAT_M = 0.02
@@ -80,11 +89,11 @@ def holes_at_depth_jumps(depth_m: np.ndarray, region: np.ndarray | None = None) 
     return shares[0], shares[1]
 
 
-def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None, min_band_px: float = WIDE_BAND_PX,
-                    focal_registration_px_m: float = KINECT_FOCAL_REGISTRATION_PX_M) -> tuple[int, int]:
-    """(with_hole, jumps): the near-left depth jumps on near-vertical edges whose predicted registration band
-    f b_r (1/z_near - 1/z_far) is at least ``min_band_px``, and how many of them keep invalid pixels between the
-    two surfaces (see the module docstring).
+def registration_band_jumps(depth_m: np.ndarray, region: np.ndarray | None = None,
+                            focal_registration_px_m: float = KINECT_FOCAL_REGISTRATION_PX_M) -> tuple[np.ndarray, np.ndarray]:
+    """(bands, gaps), each (N,): the near-left depth jumps on near-vertical edges (see the module docstring), their
+    predicted registration band f b_r (1/z_near - 1/z_far) (px, >= 1) and the invalid pixels between the two
+    surfaces (px, 0 = closed).
 
     Args:
         depth_m: (H, W) metres, 0 = invalid.
@@ -106,8 +115,33 @@ def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None, min_b
     near_left = np.zeros((height, width), np.uint8)
     near_left[rows[bands > 0], centres[bands > 0]] = 1
     near_left = cv2.dilate(near_left, kernel).astype(bool)
-    wide = (bands >= min_band_px) & (rows >= 2) & (rows < height - 2)
-    rows, lefts, rights, centres = rows[wide], lefts[wide], rights[wide], centres[wide]
+    inner = (bands > 0) & (rows >= 2) & (rows < height - 2)
+    rows, lefts, rights, centres, bands = rows[inner], lefts[inner], rights[inner], centres[inner], bands[inner]
     vertical = near_left[rows - 2, centres] & near_left[rows + 2, centres]
     counted = vertical & region[rows, lefts] & region[rows, rights]
-    return int(((rights - lefts - 1) > 0)[counted].sum()), int(counted.sum())
+    return bands[counted], (rights - lefts - 1)[counted]
+
+
+def band_outcomes(bands: np.ndarray, gaps: np.ndarray) -> tuple[int, int, int, int]:
+    """(wide kept open, wide, narrow left as a slit, narrow) counts of :func:`registration_band_jumps`' jumps:
+    bands of at least ``WIDE_BAND_PX`` with any invalid pixel between the surfaces, and bands of ``NARROW_BAND_PX``
+    with ``SLIT_PX`` invalid pixels between them."""
+    wide = bands >= WIDE_BAND_PX
+    narrow = (bands >= NARROW_BAND_PX[0]) & (bands < NARROW_BAND_PX[1])
+    slit = (gaps >= SLIT_PX[0]) & (gaps <= SLIT_PX[1])
+    return int((gaps[wide] > 0).sum()), int(wide.sum()), int(slit[narrow].sum()), int(narrow.sum())
+
+
+def wide_band_holes(depth_m: np.ndarray, region: np.ndarray | None = None) -> tuple[int, int]:
+    """(with_hole, jumps): the near-left depth jumps on near-vertical edges whose predicted registration band
+    f b_r (1/z_near - 1/z_far) is at least ``WIDE_BAND_PX``, and how many of them keep invalid pixels between the
+    two surfaces (see the module docstring). ``depth_m``: (H, W) metres, 0 = invalid; ``region``: (H, W) bool or
+    None, a jump counts when both its ends lie in it."""
+    return band_outcomes(*registration_band_jumps(depth_m, region))[:2]
+
+
+def narrow_band_slits(depth_m: np.ndarray, region: np.ndarray | None = None) -> tuple[int, int]:
+    """(slits, jumps): the near-left depth jumps on near-vertical edges whose predicted registration band is
+    ``NARROW_BAND_PX`` (3-6 px), and how many of them leave a slit of ``SLIT_PX`` (1-2) invalid pixels between the
+    two surfaces (see the module docstring); arguments as :func:`wide_band_holes`."""
+    return band_outcomes(*registration_band_jumps(depth_m, region))[2:]

@@ -60,7 +60,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ddsgen.depth_jumps import holes_at_depth_jumps, region_or_all, wide_band_holes
+from ddsgen.depth_jumps import band_outcomes, holes_at_depth_jumps, region_or_all, registration_band_jumps
 
 #: The statistics of :func:`realism_statistics`, in reporting order, with their table labels.
 STATISTIC_LABELS = {
@@ -77,6 +77,7 @@ STATISTIC_LABELS = {
     "isolated_one_surface_share": "  their share inside one surface",
     "isolated_vertical_share": "  vertical share of elongated",
     "wide_band_hole_share": "wide registration bands kept open",
+    "narrow_band_slit_share": "narrow registration bands left as a slit",
     "outline_jitter_px": "outline jitter (px rms)",
     "flat_roughness_px": "roughness, flat surfaces (px)",
     "slanted_roughness_px": "roughness, slanted surfaces (px)",
@@ -295,7 +296,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     ``jump_holes_right`` (:func:`ddsgen.depth_jumps.holes_at_depth_jumps`), ``isolated_dropouts_per_1000_edge_px``
     (:func:`depth_edges`; None without edges), ``isolated_one_surface_share`` (:func:`isolated_dropouts_by_rim`;
     None without isolated dropouts), ``wide_band_hole_share`` (:func:`ddsgen.depth_jumps.wide_band_holes`; None
-    without such jumps),
+    without such jumps), ``narrow_band_slit_share`` (:func:`ddsgen.depth_jumps.narrow_band_slits`; None without such
+    jumps),
     ``isolated_vertical_share`` (:func:`isolated_dropout_orientation`; None without elongated ones),
     ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines),
     ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``, ``noise_correlation_row``,
@@ -316,7 +318,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     left, right = holes_at_depth_jumps(valid_depth, region)
     edge_px = int((depth_edges(valid_depth) & region).sum())
     one_surface, at_edge = isolated_dropouts_by_rim(valid_depth, region)
-    band_holes, band_jumps = wide_band_holes(valid_depth, region)
+    band_holes, band_jumps, slits, narrow_jumps = band_outcomes(*registration_band_jumps(valid_depth, region))
     vertical, horizontal = _orientation(*components[2:])
     return {
         "valid_share": whole,
@@ -331,6 +333,7 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "isolated_dropouts_per_1000_edge_px": 1000.0 * count / edge_px if edge_px else None,
         "isolated_one_surface_share": one_surface / (one_surface + at_edge) if one_surface + at_edge else None,
         "wide_band_hole_share": band_holes / band_jumps if band_jumps else None,
+        "narrow_band_slit_share": slits / narrow_jumps if narrow_jumps else None,
         "isolated_vertical_share": vertical / (vertical + horizontal) if vertical + horizontal else None,
         "outline_jitter_px": outline_jitter(valid_depth, region)["outline_jitter_px"],
         **(surface_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb
