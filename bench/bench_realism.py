@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data"
 
-from ddsgen.depth_jumps import narrow_band_slits, wide_band_holes  # noqa: E402
+from ddsgen.depth_jumps import band_outcomes, registration_band_jumps  # noqa: E402
 from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
 
@@ -109,9 +109,9 @@ def cat_frame(preset_name: str, pictures: Path | None) -> None:
 
 def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
     """Pooled over frames (per frame the wide-band jumps and elongated dropouts are few, or none)."""
-    kept, jumps = np.sum([wide_band_holes(d) for d in depths], axis=0)
+    # One pass of the jump finder per frame for both band statistics.
+    kept, jumps, slits, narrow = np.sum([band_outcomes(*registration_band_jumps(d)) for d in depths], axis=0)
     print(f"bench: {name}_wide_bands_kept_open {kept} of {jumps}", flush=True)
-    slits, narrow = np.sum([narrow_band_slits(d) for d in depths], axis=0)
     print(f"bench: {name}_narrow_bands_left_as_a_slit {slits} of {narrow}", flush=True)
     vertical, horizontal = np.sum([isolated_dropout_orientation(d > 0) for d in depths], axis=0)
     print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
