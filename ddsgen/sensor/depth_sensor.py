@@ -91,7 +91,7 @@ def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pa
 
 @functools.lru_cache(maxsize=8)
 def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int, speckle_contrast: float = 0.0):
+                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int, speckle_contrast: float):
     """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin), with the
     stored reference's own speckle of ``speckle_contrast`` (:mod:`ddsgen.sensor.reference_speckle`)."""
     field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px, unit)
