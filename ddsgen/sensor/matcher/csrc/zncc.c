@@ -309,47 +309,35 @@ void ddsgen_observed_stats(const float *restrict X, int H, int W, int b, float f
     }
 }
 
-/* acc[q] = sum_{i<b, j<b} O[v+i][u+j] * FX[v+i][xoff - j CS + q VS .. + 7], q < nq (FX: the
- * candidates of window column j start at xoff - j CS, vector q of them VS floats further;
- * row stride WX). NR window rows are accumulated side by side into separate
- * sums (independent dependency chains: an FMA's latency, not its throughput, would otherwise
- * bound the loop). */
-static inline __attribute__((always_inline)) void window_cross(
-    const float *restrict O, int Wo, const float *restrict FX, size_t WX, ptrdiff_t xoff, int CS, int VS, int v,
-    int u, int b, v8 *restrict out, const int nq, const int NR)
+/* One window column's share of the sub-pixel candidates' cross-correlations:
+ * out[q] = sum_{i<b} O[v+i][x] * FX[v+i][XB - c XCS + q XVS .. + 7], q < nq, where c = x + col_shift - k
+ * is the reference column that observed column x meets at integer disparity k (FX: the candidates of
+ * reference column c start at XB - c XCS, vector q of them XVS floats further; row stride WX). Even
+ * and odd rows go to separate sums (independent dependency chains: an FMA's latency, not its
+ * throughput, would otherwise bound the loop), added at the end. */
+static inline __attribute__((always_inline)) void column_cross(
+    const float *restrict O, int Wo, const float *restrict FX, size_t WX, ptrdiff_t XB, int XCS, int XVS, int v,
+    int x, int c, int b, v8 *restrict out, const int nq)
 {
-    v8 acc[4][8];
-    for (int r = 0; r < NR; r++)
-        for (int q = 0; q < nq; q++) acc[r][q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
+    v8 even[8], odd[8];
+    for (int q = 0; q < nq; q++) even[q] = odd[q] = (v8){0, 0, 0, 0, 0, 0, 0, 0};
+    const float *o = O + (size_t)v * Wo + x;
+    const float *f = FX + (size_t)v * WX + XB - (ptrdiff_t)c * XCS;
     int i = 0;
-    for (; i + NR <= b; i += NR) {
-        const float *restrict o[4];
-        const float *f[4];
-        for (int r = 0; r < NR; r++) {
-            o[r] = O + (size_t)(v + i + r) * Wo + u;
-            f[r] = FX + (size_t)(v + i + r) * WX + xoff;
-        }
-        for (int j = 0; j < b; j++)
-            for (int r = 0; r < NR; r++) {
-                const float oj = o[r][j];
-                const float *fj = f[r] - (ptrdiff_t)j * CS;
-                for (int q = 0; q < nq; q++) acc[r][q] += oj * LOADU(fj + (ptrdiff_t)q * VS);
-            }
-    }
-    for (; i < b; i++) {
-        const float *restrict o = O + (size_t)(v + i) * Wo + u;
-        const float *f = FX + (size_t)(v + i) * WX + xoff;
-        for (int j = 0; j < b; j++) {
-            const float oj = o[j];
-            const float *fj = f - (ptrdiff_t)j * CS;
-            for (int q = 0; q < nq; q++) acc[0][q] += oj * LOADU(fj + (ptrdiff_t)q * VS);
+    for (; i + 2 <= b; i += 2) {
+        const float o0 = o[(size_t)i * Wo], o1 = o[(size_t)(i + 1) * Wo];
+        const float *f0 = f + (size_t)i * WX, *f1 = f0 + WX;
+        for (int q = 0; q < nq; q++) {
+            even[q] += o0 * LOADU(f0 + (ptrdiff_t)q * XVS);
+            odd[q] += o1 * LOADU(f1 + (ptrdiff_t)q * XVS);
         }
     }
-    for (int q = 0; q < nq; q++) {
-        v8 s = acc[0][q];
-        for (int r = 1; r < NR; r++) s += acc[r][q];
-        out[q] = s;
+    if (i < b) {
+        const float oi = o[(size_t)i * Wo];
+        const float *fi = f + (size_t)i * WX;
+        for (int q = 0; q < nq; q++) even[q] += oi * LOADU(fi + (ptrdiff_t)q * XVS);
     }
+    for (int q = 0; q < nq; q++) out[q] = even[q] + odd[q];
 }
 
 static inline float hsum8(v8 x) {
@@ -367,20 +355,53 @@ typedef struct {
     v8 OFF[8]; vi8 PADL[8];  /* candidate offsets (t - T) / S; -1 in lanes t >= C */
 } refine_args;
 
-/* One row v of ddsgen_refine, with constant nq = CP / 8 (accumulators in registers). */
-static inline __attribute__((always_inline)) void refine_row(const refine_args *A, int v, const int nq, const int NR)
+/* One row v of ddsgen_refine, with constant nq = CP / 8 (accumulators in registers).
+ *
+ * A window's cross-correlations are the sum of its b columns' (column_cross). Those depend on the
+ * observed column and on k only, so along a run of pixels with the same k each new pixel adds one
+ * column, and only a change of k recomputes the window's b columns (k changes at 6-20 % of the
+ * pixels of a rendered frame; the work per pixel falls about 3-fold). The columns are kept in a ring
+ * (column x at slot x mod b) and always added in window order, so a pixel's result depends on
+ * (v, u, k) alone, never on its neighbours. */
+static inline __attribute__((always_inline)) void refine_row(const refine_args *A, int v, const int nq)
 {
     const v8 m3 = {-3.0f, -3.0f, -3.0f, -3.0f, -3.0f, -3.0f, -3.0f, -3.0f};
     const v8 zero = {0, 0, 0, 0, 0, 0, 0, 0};
     const v8 vlow = {-3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f, -3.4e38f};
-    const float nf = (float)(A->b * A->b), beta = A->beta;
-    for (int u = 0; u < A->W; u++) {
+    const int b = A->b;
+    const float nf = (float)(b * b), beta = A->beta;
+    v8 ring[b][8];
+    int ring_k = 0, ring_valid = 0;  /* the ring holds columns u .. u + b - 2 at ring_k (before pixel u) */
+    for (int u = 0, first = 0; u < A->W; u++, first = first + 1 == b ? 0 : first + 1) {  /* first = u mod b */
         const size_t p = (size_t)v * A->W + u;
         const int k = A->K[p];
         const int c0 = u + A->col_shift - k;
         v8 cr[8], z[8], e[8];
         vi8 ex[8];
-        window_cross(A->O, A->Wo, A->FX, A->WX, A->XB - (ptrdiff_t)c0 * A->XCS, A->XCS, A->XVS, v, u, A->b, cr, nq, NR);
+        if (!ring_valid || k != ring_k) {
+            for (int j = 0, slot = first; j < b - 1; j++, slot = slot + 1 == b ? 0 : slot + 1)
+                column_cross(A->O, A->Wo, A->FX, A->WX, A->XB, A->XCS, A->XVS, v, u + j, c0 + j, b, ring[slot], nq);
+            ring_k = k;
+            ring_valid = 1;
+        }
+        const int last = first == 0 ? b - 1 : first - 1;  /* (u + b - 1) mod b: the slot of column u - 1 */
+        column_cross(A->O, A->Wo, A->FX, A->WX, A->XB, A->XCS, A->XVS, v, u + b - 1, c0 + b - 1, b, ring[last], nq);
+        {
+            v8 even[8], odd[8];
+            for (int q = 0; q < nq; q++) even[q] = odd[q] = zero;
+            int slot = first, j = 0;
+            for (; j + 2 <= b; j += 2) {
+                const int next = slot + 1 == b ? 0 : slot + 1;
+                for (int q = 0; q < nq; q++) {
+                    even[q] += ring[slot][q];
+                    odd[q] += ring[next][q];
+                }
+                slot = next + 1 == b ? 0 : next + 1;
+            }
+            if (j < b)
+                for (int q = 0; q < nq; q++) even[q] += ring[slot][q];
+            for (int q = 0; q < nq; q++) cr[q] = even[q] + odd[q];
+        }
         const float a = A->OSUM[p] / nf, io = A->OINV[p];
         const size_t s = (size_t)v * A->WS + (size_t)(A->SB - (ptrdiff_t)c0 * A->S);
         const float *cs = A->CSUM + s, *ci = A->CINV + s;  /* read 8 nq floats: arrays have slack */
@@ -472,14 +493,14 @@ void ddsgen_refine(const float *restrict O, int Wo, const float *restrict FX, in
 #pragma omp parallel for schedule(dynamic, 4) num_threads(n_threads)
     for (int v = v0; v < v1; v++) {
         switch (nq) {  /* constant trip counts: the accumulators stay in registers */
-        case 1: if (b % 3 == 0) refine_row(&A, v, 1, 3); else refine_row(&A, v, 1, 4); break;
-        case 2: if (b % 3 == 0) refine_row(&A, v, 2, 3); else refine_row(&A, v, 2, 4); break;
-        case 3: refine_row(&A, v, 3, 2); break;
-        case 4: refine_row(&A, v, 4, 2); break;
-        case 5: refine_row(&A, v, 5, 1); break;
-        case 6: refine_row(&A, v, 6, 1); break;
-        case 7: refine_row(&A, v, 7, 1); break;
-        default: refine_row(&A, v, 8, 1); break;
+        case 1: refine_row(&A, v, 1); break;
+        case 2: refine_row(&A, v, 2); break;
+        case 3: refine_row(&A, v, 3); break;
+        case 4: refine_row(&A, v, 4); break;
+        case 5: refine_row(&A, v, 5); break;
+        case 6: refine_row(&A, v, 6); break;
+        case 7: refine_row(&A, v, 7); break;
+        default: refine_row(&A, v, 8); break;
         }
     }
 }
