@@ -310,17 +310,43 @@ def test_a_flat_board_object_casts_without_numpy_warnings():
 
 
 def test_a_cast_widened_by_the_ir_margin_splits_into_the_image_and_the_strip_cast_alone():
-    """A registered device's IR view is cast once, widened by the margin strip, and split (cast_with_margin):
+    """A registered device's IR view is cast once, widened by the margin strip (cast_widened): its columns are
     pixel for pixel what the image and the strip give when each is cast on its own."""
-    from ddsgen.sensor.ir_margin import cast_with_margin, margin_intrinsics
+    from ddsgen.sensor.ir_margin import cast_widened, margin_intrinsics
 
     K = Intrinsics(width=160, height=120, fx=143.1, fy=143.1, cx=79.5, cy=59.5)
     scene = sample_frame(load_scene_list(None), 2, seed=4)
-    image, strip = cast_with_margin(scene, K, 6, 0.075, 0.005)
+    wide = cast_widened(scene, K, 6, 0.075, 0.005)
+    image, strip = wide.columns(0, 160), wide.columns(160, 166)
     alone = {"image": cast(scene, K, 0.075, 0.005), "strip": cast(scene, margin_intrinsics(K, 6), 0.075, 0.005)}
     for name, part in (("image", image), ("strip", strip)):
         for field in ("depth", "points", "normals", "instance", "hit", "shadow", "albedo", "owner", "triangle",
                       "barycentric"):  # fmt: skip
             np.testing.assert_array_equal(getattr(part, field), getattr(alone[name], field), err_msg=f"{name} {field}")
     assert strip.hit.any() and strip.shadow.shape == (120, 6)
-    assert cast_with_margin(scene, K, 0, 0.075, 0.005)[1] is None
+    assert cast_widened(scene, K, 0, 0.075, 0.005).depth.shape == (120, 160)
+
+
+def test_a_widened_cast_becomes_the_sensor_geometry_and_its_margin_without_a_copy():
+    """SensorGeometry.from_hits(wide, width=W): the same tensors as the image and the strip handed over apart; the
+    whole IR image comes back without a concatenation, and a replaced field is never hidden by it."""
+    import dataclasses
+
+    import torch
+
+    from ddsgen.sensor.geometry import SensorGeometry
+    from ddsgen.sensor.ir_margin import cast_widened
+
+    K = Intrinsics(width=160, height=120, fx=143.1, fy=143.1, cx=79.5, cy=59.5)
+    wide = cast_widened(sample_frame(load_scene_list(None), 2, seed=4), K, 6, 0.075, 0.005)
+    viewed = SensorGeometry.from_hits(wide, width=160)
+    apart = SensorGeometry.from_hits(wide.columns(0, 160), ir_margin=wide.columns(160, 166))
+    whole, concatenated = viewed.with_ir_margin(), apart.with_ir_margin()
+    for name in SensorGeometry._FIELDS:
+        assert torch.equal(getattr(viewed, name), getattr(apart, name)), name
+        assert torch.equal(getattr(viewed.ir_margin, name), getattr(apart.ir_margin, name)), name
+        assert torch.equal(getattr(whole, name), getattr(concatenated, name)), name
+    assert whole.points.data_ptr() == viewed.points.data_ptr()  # views of one tensor: nothing copied
+    moved = dataclasses.replace(viewed, points=viewed.points + 1.0)
+    assert torch.equal(moved.with_ir_margin().points[:, :160], viewed.points + 1.0)
+    assert torch.equal(moved.with_ir_margin().points[:, 160:], viewed.ir_margin.points)

@@ -7,7 +7,7 @@ the sensor's parameters are fitted.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -45,29 +45,38 @@ class SensorGeometry:
     registration_shift_px: float = 0.0
     registration_offset_m: float = 0.0
     speckle_scene: "SensorGeometry | None" = None
+    # The (H, W + m) geometry whose columns this one and its margin are (views), or None: with_ir_margin() returns
+    # it instead of concatenating. Not an init field, so dataclasses.replace() drops it.
+    _whole: "SensorGeometry | None" = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_hits(cls, hits, device="cpu", ir_margin=None, registration=None, registration_shift_px: float = 0.0,
-                  registration_offset_m: float = 0.0) -> "SensorGeometry":  # fmt: skip
+                  registration_offset_m: float = 0.0, width: int | None = None) -> "SensorGeometry":  # fmt: skip
         """From a :class:`ddsgen.raycast.RayHits` (numpy arrays); ``ir_margin``: the RayHits of the strip
         beyond the right edge (:func:`ddsgen.sensor.ir_margin.cast_margin`), or None; ``registration``: the
-        (H, W) index map of :func:`ddsgen.sensor.registration.registration_index`, or None."""
+        (H, W) index map of :func:`ddsgen.sensor.registration.registration_index`, or None.
+
+        ``width``: ``hits`` is the image widened by its margin strip (:func:`ddsgen.sensor.ir_margin.cast_widened`,
+        (H, W + m) with W = ``width``): the geometry is its first W columns and the margin the rest, both views
+        of the same tensors (no copy; :meth:`with_ir_margin` returns the whole). Not with ``ir_margin``."""
 
         def t(a, dtype=torch.float32):
             return torch.as_tensor(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
 
-        return cls(
-            points=t(hits.points),
-            normals=t(hits.normals),
-            albedo=t(hits.albedo),
-            hit=t(hits.hit, torch.bool),
-            shadow=t(hits.shadow, torch.bool),
-            clean_depth=t(hits.depth),
-            ir_margin=None if ir_margin is None else cls.from_hits(ir_margin, device),
-            registration=None if registration is None else t(registration, torch.int64),
-            registration_shift_px=float(registration_shift_px),
-            registration_offset_m=float(registration_offset_m),
-        )
+        extra = dict(registration=None if registration is None else t(registration, torch.int64),
+                     registration_shift_px=float(registration_shift_px),
+                     registration_offset_m=float(registration_offset_m))  # fmt: skip
+        arrays = {"points": t(hits.points), "normals": t(hits.normals), "albedo": t(hits.albedo),
+                  "hit": t(hits.hit, torch.bool), "shadow": t(hits.shadow, torch.bool), "clean_depth": t(hits.depth)}
+        if width is None or width >= hits.depth.shape[1]:
+            return cls(**arrays, ir_margin=None if ir_margin is None else cls.from_hits(ir_margin, device), **extra)
+        if ir_margin is not None:
+            raise ValueError("from_hits: a widened cast carries its own margin; ir_margin must be None")
+        whole = cls(**arrays)
+        margin = cls(**{k: a[:, width:] for k, a in arrays.items()})
+        geometry = cls(**{k: a[:, :width] for k, a in arrays.items()}, ir_margin=margin, **extra)
+        geometry._whole = whole
+        return geometry
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -99,4 +108,6 @@ class SensorGeometry:
         m = self.ir_margin
         if m is None:
             return self
+        if self._whole is not None:
+            return self._whole
         return SensorGeometry(**{k: torch.cat([getattr(self, k), getattr(m, k)], dim=1) for k in self._FIELDS})

@@ -9,8 +9,8 @@ them (the ``output_left_border_px`` band: LineMOD cat columns 0-6 empty, the las
 valid, like the rest of the frame).
 
 Preset key ``ir_margin_right_px`` (m): the caller ray-casts an (H, m) strip beyond the right edge
-(:func:`cast_margin`; a registered device's IR view is cast widened by the strip and split,
-:func:`cast_with_margin`; both through :func:`ddsgen.sensor.sensor_cast.cast_for_sensor`) and hands it to
+(:func:`cast_margin`; a registered device's IR view is cast widened by the strip,
+:func:`cast_widened`; both through :func:`ddsgen.sensor.sensor_cast.cast_for_sensor`) and hands it to
 :meth:`SensorGeometry.from_hits`; the sensor renders and matches the (H, W + m) IR image and returns the
 (H, W) depth image. Where the cast image is the depth image, the strip is cast on its own, so the
 depth image's own hits (clean depth, masks, labels, and the coverage behind the visible fractions) are exactly
@@ -39,15 +39,14 @@ def cast_margin(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: float
     return cast(scene, margin_intrinsics(intrinsics, margin_px), baseline_m, shadow_bias_m)
 
 
-def cast_with_margin(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: float, shadow_bias_m: float):
-    """``(hits, strip)``: one cast of the image widened by the margin strip, split at column W. Every ray is
-    cast on its own, so both parts equal separate casts pixel for pixel, for one cast's fixed cost (~10 ms of a
-    640 x 480 frame); neither has a ``coverage``. For a view whose coverage nobody reads (a registered device's
-    IR camera). With ``margin_px`` 0: the plain cast and None."""
+def cast_widened(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: float, shadow_bias_m: float):
+    """One cast of the image widened by the margin strip: a :class:`~ddsgen.raycast.RayHits` of shape
+    (H, W + ``margin_px``), whose columns W.. are the strip. Every ray is cast on its own, so its first W columns
+    and the strip equal separate casts pixel for pixel, for one cast's fixed cost (~10 ms of a 640 x 480 frame);
+    its ``coverage`` counts the widened image. For a view whose coverage nobody reads (a registered device's IR
+    camera): :meth:`ddsgen.sensor.geometry.SensorGeometry.from_hits` with ``width=W`` takes it apart without a
+    copy. With ``margin_px`` 0: the plain cast."""
     from ddsgen.raycast import cast
 
-    width = int(intrinsics.width)
-    if margin_px <= 0:
-        return cast(scene, intrinsics, baseline_m, shadow_bias_m), None
-    wide = cast(scene, dataclasses.replace(intrinsics, width=width + int(margin_px)), baseline_m, shadow_bias_m)
-    return wide.columns(0, width), wide.columns(width, width + int(margin_px))
+    return cast(scene, dataclasses.replace(intrinsics, width=int(intrinsics.width) + max(int(margin_px), 0)),
+                baseline_m, shadow_bias_m)  # fmt: skip

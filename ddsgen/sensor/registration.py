@@ -90,12 +90,14 @@ def registration_index(hits, ir_hits, intrinsics: Intrinsics, preset) -> np.ndar
 
     Args:
         hits: the output (RGB) camera's :class:`~ddsgen.raycast.RayHits`, (H, W).
-        ir_hits: the IR camera's, (H, W), cast with :func:`ir_view`.
+        ir_hits: the IR camera's, (H, W), cast with :func:`ir_view`; or wider (widened by the IR margin strip,
+            :func:`ddsgen.sensor.ir_margin.cast_widened`): its first W columns are read.
         intrinsics: the output camera's.
     """
     height, width = hits.depth.shape
+    ir_depth_image, ir_hit_image = ir_hits.depth[:, :width], ir_hits.hit[:, :width]
     b_r, shift, fx = float(preset.registration_ir_offset_m), float(preset.registration_shift_px), intrinsics.fx
-    fast = registration_kernel.registration_index_c(hits.points, hits.normals, hits.hit, ir_hits.depth, ir_hits.hit, b_r,
+    fast = registration_kernel.registration_index_c(hits.points, hits.normals, hits.hit, ir_depth_image, ir_hit_image, b_r,
                                                     fx, intrinsics.cx - shift, _SLOPE_CAP, _SAME_SURFACE_REL,
                                                     _SAME_SURFACE_ABS)  # fmt: skip
     if fast is not None:  # the same map, in one pass (csrc/registration.c)
@@ -105,7 +107,7 @@ def registration_index(hits, ir_hits, intrinsics: Intrinsics, preset) -> np.ndar
     column = np.rint(np.float32(fx) * x / z + np.float32(intrinsics.cx - shift)).astype(np.int64)
     inside = hits.hit & (column >= 0) & (column < width)
     flat = (np.arange(height, dtype=np.int64) * width)[:, None] + np.clip(column, 0, width - 1)
-    ir_depth, ir_hit = np.take(ir_hits.depth.ravel(), flat), np.take(ir_hits.hit.ravel(), flat)
+    ir_depth, ir_hit = np.take(ir_depth_image.ravel(), flat), np.take(ir_hit_image.ravel(), flat)
     # Half a pixel along the surface changes the depth by |dZ/du| / 2 = Z^2 |n_x| / (2 fx |n . P_ir|), capped (a
     # surface seen edge-on is no reason to accept whatever the IR pixel shows; fmin also takes the cap for 0/0).
     n = hits.normals

@@ -8,7 +8,7 @@ Every command that simulates scenes goes through here (render, the noise study a
 from __future__ import annotations
 
 from ddsgen.preset import Intrinsics
-from ddsgen.sensor.ir_margin import cast_margin, cast_with_margin
+from ddsgen.sensor.ir_margin import cast_margin, cast_widened
 
 
 def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool = True):
@@ -37,9 +37,9 @@ def sensor_geometry(scene, intrinsics: Intrinsics, preset, hits):
         margin = cast_margin(scene, intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
         return SensorGeometry.from_hits(hits, ir_margin=margin)
     ir_scene, ir_intrinsics = ir_view(scene, intrinsics, preset)
-    ir_hits, margin = cast_with_margin(ir_scene, ir_intrinsics, preset.ir_margin_right_px, preset.baseline_m,
-                                       preset.shadow_bias_m)  # fmt: skip
+    ir_hits = cast_widened(ir_scene, ir_intrinsics, preset.ir_margin_right_px, preset.baseline_m,
+                           preset.shadow_bias_m)  # (H, W + margin): one cast, taken apart without a copy
     index = registration_index(hits, ir_hits, intrinsics, preset)
-    return SensorGeometry.from_hits(ir_hits, ir_margin=margin, registration=index,
+    return SensorGeometry.from_hits(ir_hits, width=int(ir_intrinsics.width), registration=index,
                                     registration_shift_px=preset.registration_shift_px,
                                     registration_offset_m=preset.registration_ir_offset_m)  # fmt: skip
