@@ -79,6 +79,8 @@ static inline vis vselI(vis mask, vis a, vis b) { return (mask & a) | (~mask & b
 
 static inline vs vmaxS(vs a, vs b) { return vselS(a > b, a, b); }
 
+static inline vs vminS(vs a, vs b) { return vselS(a < b, a, b); }
+
 /* Horizontal max / min by halving (4 steps instead of a 16-long dependency chain). Exact for the finite scores
  * here; of equal lanes of opposite zero sign either may come out (the outputs compare them as equal). */
 #define HALVES(x, op)                                                                                         \
@@ -175,12 +177,14 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                 const float io = invO[(size_t)v * W + u];
                 const size_t base = (size_t)v * Ws + u + r0;
                 vs m = NEG_BIG - (vs){0};
+                vs m2 = NEG_BIG - (vs){0}; /* per lane, the second-best score (of candidates c = lane mod SL) */
                 vis mi = {0};
                 vis ci = LANE_INDEX;
                 for (int q = 0; q < nb; q++) {
                     vs sc = (S[q] - os * LOADS(RS + base + SL * q)) * (io * LOADS(invR + base + SL * q))
                             + LOADS(PEN + base + SL * q) + TAIL[q];
                     SC[q] = sc;
+                    m2 = vmaxS(m2, vminS(m, sc));
                     vis gt = sc > m;
                     m = vselS(gt, sc, m);
                     mi = (gt & ci) | (~gt & mi);
@@ -193,23 +197,23 @@ void ddsgen_zncc_search(const float *restrict O, int Wo,
                 float second = -2.0f;
                 int arg2 = -1;
                 if (arg >= 0) {
-                    /* the best score at least 2 candidates from the best peak (its +-1 left out by a lane mask:
-                       no scalar stores into SC, whose vector reloads would then stall) */
-                    vs m2 = NEG_BIG - (vs){0};
-                    vis cq = LANE_INDEX;
-                    for (int q = 0; q < nb; q++, cq += SL) {
-                        const vis near_peak = (cq >= arg - 1) & (cq <= arg + 1);
-                        m2 = vmaxS(m2, vselS(near_peak, NEG_BIG - (vs){0}, SC[q]));
-                    }
-                    const float s2 = hmaxS(m2);
+                    /* The best score at least 2 candidates from the best peak. A lane holds at most one of the
+                       peak's three candidates (SL > 3): where it is the lane's best, the lane's second best is
+                       the lane's best without it; elsewhere the lane's best is. (No second pass over SC.) */
+                    const vis beside_peak = (mi >= arg - 1) & (mi <= arg + 1);
+                    const float s2 = hmaxS(vselS(beside_peak, m2, m));
                     if (s2 > second) second = s2;
                     /* Its index only where the confirmed-match rule may ask for it: a peak above
-                       second_floor at a match failing the uniqueness test (clipped scores, as in Python). */
-                    if (s2 > second_floor && !unique_match(best, s2, min_confidence)) {  /* lowest index among ties */
-                        const float *scw = (const float *)SC;
-                        for (int c = 0; c < Dp; c++) {
-                            if ((c < arg - 1 || c > arg + 1) && scw[c] == s2) { arg2 = c; break; }
+                       second_floor at a match failing the uniqueness test (clipped scores, as in Python);
+                       the lowest index among ties. */
+                    if (s2 > second_floor && !unique_match(best, s2, min_confidence)) {
+                        vis lowest = INT32_MAX - (vis){0};
+                        vis cq = LANE_INDEX;
+                        for (int q = 0; q < nb; q++, cq += SL) {
+                            const vis near_peak = (cq >= arg - 1) & (cq <= arg + 1);
+                            lowest = vminI(lowest, vselI((SC[q] == s2) & ~near_peak, cq, INT32_MAX - (vis){0}));
                         }
+                        arg2 = hminS(lowest);
                     }
                 }
                 best_out[(size_t)v * W + u] = arg >= 0 ? best : -2.0f;
