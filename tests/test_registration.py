@@ -468,13 +468,14 @@ def test_the_registered_output_view_can_skip_its_shadow_rays_without_changing_th
 
 
 def test_the_c_registration_maps_equal_the_numpy_definition(monkeypatch):
-    """csrc/registration.c gives registration.py's numpy maps bit for bit: the forward map (z-buffer with ties, the
-    fill along rows and the one across them) on random depths, and the ray-cast index on rendered frames."""
+    """csrc/registration.c gives registration.py's numpy and torch maps bit for bit: the forward map (z-buffer with
+    ties, the fill along rows and the one across them) on random depths, the dense splat composed with it and with
+    random indices (sources valid or not, -1, borders), and the ray-cast index on rendered frames."""
     from ddsgen.raycast import cast
     from ddsgen.scene.sampling import sample_frame
     from ddsgen.scene.scenelist import load_scene_list
     from ddsgen.sensor import registration_kernel
-    from ddsgen.sensor.registration import ir_view, registration_index
+    from ddsgen.sensor.registration import dense_splat_index, ir_view, registration_index
 
     if registration_kernel._library() is None:
         pytest.skip("no C compiler: the numpy definition is the only path")
@@ -500,7 +501,9 @@ def test_the_c_registration_maps_equal_the_numpy_definition(monkeypatch):
     def maps():
         forward = [forward_registration_index(v, d, s, f, gap_px=g, fill_rows=r, seen=seen).numpy()
                    for v, d, s, f, g, r, seen in forward_cases]  # fmt: skip
-        return forward, [registration_index(h, ir, preset.intrinsics, preset) for h, ir in views]
+        splat = [dense_splat_index(torch.from_numpy(index), case[0]).numpy() for index, case in zip(forward, forward_cases)]
+        splat += [dense_splat_index(seen, valid).numpy() for valid, *_, seen in forward_cases]
+        return forward + splat, [registration_index(h, ir, preset.intrinsics, preset) for h, ir in views]
 
     c_forward, c_index = maps()
     monkeypatch.setattr(registration_kernel, "_library", lambda: None)

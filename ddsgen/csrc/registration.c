@@ -43,10 +43,12 @@ void ddsgen_registration_index(const float *points, const float *normals, const 
 /* In place on `lines` lines of `length` entries, entry j of line i at flat[i * stride_line + j * stride_entry]
  * (IR flat indices, -1 = empty): a run of at most max_run empty entries between two written ones of its line
  * takes the nearer one's source (depth: flat IR depth; ties take the first); with `one_row`, only where the two
- * sources are neighbours in one IR row of `width` pixels. With `fillable` (same layout as flat), only its
- * entries are written. Runs are bounded by written entries, so filling one never changes another. */
+ * sources are neighbours in one IR row of `width` pixels. With `seen` (the ray-cast index, same layout as flat),
+ * only entries whose `seen` is -1 or a `valid` IR pixel are written. Runs are bounded by written entries, so
+ * filling one never changes another. */
 static void fill_short_runs(int64_t *flat, int64_t lines, int64_t length, int64_t stride_line, int64_t stride_entry,
-                            const float *depth, int64_t max_run, int one_row, int64_t width, const uint8_t *fillable)
+                            const float *depth, int64_t max_run, int one_row, int64_t width, const int64_t *seen,
+                            const uint8_t *valid)
 {
     for (int64_t i = 0; i < lines; i++) {
         int64_t *line = flat + i * stride_line;
@@ -65,7 +67,7 @@ static void fill_short_runs(int64_t *flat, int64_t lines, int64_t length, int64_
                     const int64_t chosen = depth[a] <= depth[b] ? a : b;
                     for (int64_t k = j; k < end; k++) {
                         const int64_t e = i * stride_line + k * stride_entry;
-                        if (!fillable || fillable[e]) flat[e] = chosen;
+                        if (!seen || seen[e] < 0 || valid[seen[e]]) flat[e] = chosen;
                     }
                 }
             }
@@ -77,11 +79,11 @@ static void fill_short_runs(int64_t *flat, int64_t lines, int64_t length, int64_
 /* forward_registration_index: each valid IR pixel (depth > 0) goes to column rint((u + shift) - f b_r / Z) of
  * its row ((u + shift) in double, f b_r / Z in float32, as numpy mixes a Python float, int64 columns and float32
  * depths); of several on one output pixel the nearest wins, of equal depths the first in row-major order. Then
- * the row fill (gap_px, sources neighbours in one IR row) and, where `fillable` (H*W, or NULL for none), the
- * column fill (fill_rows). out (H*W) int64. */
+ * the row fill (gap_px, sources neighbours in one IR row) and, with `seen` (H*W, the ray-cast index; NULL for
+ * none), the column fill (fill_rows) where `seen` is -1 or a valid IR pixel. out (H*W) int64. */
 void ddsgen_forward_registration_index(const uint8_t *valid, const float *depth, int64_t height, int64_t width,
                                        double shift_px, float focal_offset, int64_t gap_px, int64_t fill_rows,
-                                       const uint8_t *fillable, int64_t *out)
+                                       const int64_t *seen, int64_t *out)
 {
     const int64_t n = height * width;
     for (int64_t p = 0; p < n; p++) out[p] = -1;
@@ -94,6 +96,36 @@ void ddsgen_forward_registration_index(const uint8_t *valid, const float *depth,
         const int64_t key = row * width + (int64_t)target;
         if (out[key] < 0 || z < depth[out[key]]) out[key] = p;
     }
-    if (gap_px > 0) fill_short_runs(out, height, width, width, 1, depth, gap_px, 1, width, NULL);
-    if (fill_rows > 0 && fillable) fill_short_runs(out, width, height, 1, width, depth, fill_rows, 0, width, fillable);
+    if (gap_px > 0) fill_short_runs(out, height, width, width, 1, depth, gap_px, 1, width, NULL, NULL);
+    if (fill_rows > 0 && seen) fill_short_runs(out, width, height, 1, width, depth, fill_rows, 0, width, seen, valid);
+}
+
+/* dense_splat_index: a registration index after the device's dense splat, composed (registration.py
+ * splat_fill_index, then index read through it). A pixel p is valid where index[p] >= 0 and valid[index[p]];
+ * a pixel that is not takes the index of its lower-right, else lower, else right neighbour, the first of them
+ * that is valid (the later writers of the 2x2 splat win); -1 where none is. index, out (H*W) int64 (distinct
+ * arrays); valid (H*W) uint8, the IR image's validity. */
+void ddsgen_dense_splat_index(const int64_t *index, const uint8_t *valid, int64_t height, int64_t width,
+                              int64_t *out)
+{
+    static const int64_t dy[3] = {1, 1, 0}, dx[3] = {1, 0, 1}; /* highest priority first */
+    for (int64_t row = 0; row < height; row++) {
+        for (int64_t col = 0; col < width; col++) {
+            const int64_t p = row * width + col;
+            if (index[p] >= 0 && valid[index[p]]) {
+                out[p] = index[p];
+                continue;
+            }
+            out[p] = -1;
+            for (int k = 0; k < 3; k++) {
+                const int64_t r = row + dy[k], c = col + dx[k];
+                if (r >= height || c >= width) continue;
+                const int64_t q = index[r * width + c];
+                if (q >= 0 && valid[q]) {
+                    out[p] = q;
+                    break;
+                }
+            }
+        }
+    }
 }

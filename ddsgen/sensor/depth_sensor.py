@@ -29,8 +29,7 @@ from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
 from ddsgen.sensor.registration import (
-    band_hole_fill_index, forward_registration_index, gather_flat, register, register_images,
-    splat_fill_index,
+    band_hole_fill_index, dense_splat_index, forward_registration_index, gather_flat, register, register_images,
 )
 from ddsgen.sensor.reference_speckle import reference_speckle_factor
 from ddsgen.sensor.row_smoothing import smooth_along_rows
@@ -375,9 +374,8 @@ class DepthSensor(nn.Module):
                 index = forward_registration_index(valid, depth, p.registration_shift_px,
                                                    intr.fx * p.registration_ir_offset_m, p.registration_forward_gap_px,
                                                    p.registration_forward_fill_rows, geometry.registration)  # fmt: skip
-            if p.registration_dense:  # the device's 2x2 splat closes 1-px holes: one composed gather
-                fill = splat_fill_index(register(valid, index))
-                index = torch.where(fill >= 0, gather_flat(index, fill.clamp(min=0)), -1)
+            if p.registration_dense:  # the device's 2x2 splat closes 1-px holes
+                index = dense_splat_index(index, valid)
             if p.registration_fill_band_holes and p.cleanup_hole_px:  # as the device's forward map would
                 index = band_hole_fill_index(index, geometry.registration < 0, register(valid, index),
                                              register(disparity, index), p.cleanup_hole_px, p.cleanup_max_diff_px)

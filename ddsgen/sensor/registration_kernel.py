@@ -28,6 +28,8 @@ def _library():
         lib.ddsgen_registration_index.restype = None
         lib.ddsgen_forward_registration_index.argtypes = [p, p, q, q, d, f, q, q, p, p]
         lib.ddsgen_forward_registration_index.restype = None
+        lib.ddsgen_dense_splat_index.argtypes = [p, p, q, q, p]
+        lib.ddsgen_dense_splat_index.restype = None
     return lib
 
 
@@ -58,18 +60,31 @@ def registration_index_c(points: np.ndarray, normals: np.ndarray, hit: np.ndarra
 
 
 def forward_index_c(valid: np.ndarray, depth: np.ndarray, shift_px: float, focal_offset_px_m: float, gap_px: int,
-                    fill_rows: int, fillable: np.ndarray | None) -> np.ndarray | None:  # fmt: skip
+                    fill_rows: int, seen: np.ndarray | None) -> np.ndarray | None:  # fmt: skip
     """:func:`ddsgen.sensor.registration.forward_registration_index` from numpy arrays (``valid`` (H, W) bool,
-    ``depth`` float32 (H, W) m, ``fillable`` (H, W) bool where the fill across rows may write, or None when
-    ``fill_rows`` is 0). (H, W) int64, or None without the C library."""
+    ``depth`` float32 (H, W) m, ``seen`` (H, W) int64 the ray-cast index, or None when ``fill_rows`` is 0).
+    (H, W) int64, or None without the C library."""
     lib = _library()
     if lib is None:
         return None
     height, width = valid.shape
     valid_u8, depth_f = _contiguous(valid, np.uint8), _contiguous(depth, np.float32)
-    fill = None if fillable is None else _contiguous(fillable, np.uint8)
+    seen_c = None if seen is None else _contiguous(seen, np.int64)
     out = np.empty((height, width), dtype=np.int64)
     lib.ddsgen_forward_registration_index(valid_u8.ctypes.data, depth_f.ctypes.data, height, width, float(shift_px),
                                           float(focal_offset_px_m), int(gap_px), int(fill_rows),
-                                          None if fill is None else fill.ctypes.data, out.ctypes.data)  # fmt: skip
+                                          None if seen_c is None else seen_c.ctypes.data, out.ctypes.data)  # fmt: skip
+    return out
+
+
+def dense_splat_index_c(index: np.ndarray, valid: np.ndarray) -> np.ndarray | None:
+    """:func:`ddsgen.sensor.registration.dense_splat_index` from numpy arrays (``index`` (H, W) int64, ``valid``
+    (H, W) bool, the IR image's). (H, W) int64, or None without the C library."""
+    lib = _library()
+    if lib is None:
+        return None
+    height, width = index.shape
+    index_c, valid_u8 = _contiguous(index, np.int64), _contiguous(valid, np.uint8)
+    out = np.empty((height, width), dtype=np.int64)
+    lib.ddsgen_dense_splat_index(index_c.ctypes.data, valid_u8.ctypes.data, height, width, out.ctypes.data)
     return out
