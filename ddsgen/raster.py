@@ -29,7 +29,7 @@ def _library():
         p, i, d, q = ctypes.c_void_p, ctypes.c_int, ctypes.c_double, ctypes.c_int64
         lib.ddsgen_raster_hits.argtypes = [p, p, p, p, i, i, i, d, d, d, d, p, p, p, p, p, p, p]
         lib.ddsgen_raster_hits.restype = None
-        lib.ddsgen_raster_shadow.argtypes = [p, p, q, p, q, d, d, d, d, d, p, p]
+        lib.ddsgen_raster_shadow.argtypes = [p, p, q, p, p, q, d, d, d, d, d, p, p]
         lib.ddsgen_raster_shadow.restype = ctypes.c_int
     return lib
 
@@ -114,19 +114,35 @@ def raster_hits(meshes: RasterMeshes, intrinsics: Intrinsics, depth: np.ndarray,
     return dict(zip(m.owners.tolist(), coverage.tolist()))
 
 
-def raster_shadow(meshes: RasterMeshes, starts: np.ndarray, projector_x_m: float,
-                  intrinsics: Intrinsics) -> np.ndarray:
+def raster_shadow(meshes: RasterMeshes, starts: np.ndarray, projector_x_m: float, intrinsics: Intrinsics,
+                  rays: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """(M,) bool: the segments from ``starts`` to the projector at (``projector_x_m``, 0, 0) that cross a mesh.
 
     ``meshes`` as for :func:`raster_hits`; ``starts``: float32 (M, 3), camera frame, every z >= NEAR_CLIP_M.
-    Exact: the segments are bucketed by where they project in the projector's image (a camera at the projector
-    with the camera's orientation and intrinsics) and each triangle tests the buckets its projection covers.
+    ``rays``: int64 indices into ``starts`` of the only segments to test (the others come out False; no copy of
+    their starts is made), or None for all. Exact: the segments are bucketed by where they project in the
+    projector's image (a camera at the projector with the camera's orientation and intrinsics) and each triangle
+    tests the buckets its projection covers.
     """
     lib = _required_library()
     starts = np.ascontiguousarray(starts, dtype=np.float32)
     blocked = np.zeros(len(starts), dtype=np.uint8)
-    if not len(meshes.faces) or not len(starts):
-        return blocked.astype(bool)
+    if rays is not None:
+        rays = np.ascontiguousarray(rays, dtype=np.int64)
+    n_rays = len(starts) if rays is None else len(rays)
+    if not len(meshes.faces) or not n_rays:
+        return blocked.view(bool)
+    scratch = np.empty((2 + _CELLS_PER_POINT) * n_rays + 2, dtype=np.int64)
+    i = intrinsics
+    status = lib.ddsgen_raster_shadow(meshes.vertices.ctypes.data, meshes.faces.ctypes.data, len(meshes.faces),
+                                      starts.ctypes.data, None if rays is None else rays.ctypes.data,
+                                      n_rays, float(projector_x_m), float(i.fx), float(i.fy), float(i.cx),
+                                      float(i.cy), blocked.ctypes.data, scratch.ctypes.data)  # fmt: skip
+    if status == -2:
+        raise MemoryError("raster_shadow: out of memory")
+    if status != 0:
+        raise ValueError(f"raster_shadow: a segment starts nearer than {NEAR_CLIP_M} m to the camera plane")
+    return blocked.view(bool)
     scratch = np.empty((2 + _CELLS_PER_POINT) * len(starts) + 2, dtype=np.int64)
     i = intrinsics
     status = lib.ddsgen_raster_shadow(meshes.vertices.ctypes.data, meshes.faces.ctypes.data, len(meshes.faces),
@@ -137,4 +153,4 @@ def raster_shadow(meshes: RasterMeshes, starts: np.ndarray, projector_x_m: float
         raise MemoryError("raster_shadow: out of memory")
     if status != 0:
         raise ValueError(f"raster_shadow: a segment starts nearer than {NEAR_CLIP_M} m to the camera plane")
-    return blocked.astype(bool)
+    return blocked.view(bool)

@@ -207,7 +207,7 @@ def _shadow_rays(points, normals, hit, polygons, meshes, camera_meshes, intrinsi
         # The raster takes the segments that start in front of the camera plane; Embree any others (or nan).
         near = open_rays & ~(start[:, 2] >= np.float32(NEAR_CLIP_M))
         ahead = np.flatnonzero(open_rays & ~near)
-        blocked[ahead] |= raster_shadow(camera_meshes, start[ahead], baseline_m, intrinsics)
+        blocked |= raster_shadow(camera_meshes, start, baseline_m, intrinsics, rays=ahead)
         open_rays = near
     if open_rays.any():
         blocked |= shadow_blocked_embree(start, open_rays, meshes, intrinsics, projector)

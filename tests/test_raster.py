@@ -130,6 +130,10 @@ def test_shadow_segments_spread_far_apart_match_embree():
                           query="OCCLUDED") >= 0  # fmt: skip
     assert 300 < blocked.sum() < len(starts) - 300  # both kinds are there
     assert (blocked != occluded).sum() <= 2  # float32 (Embree) against double (raster) at the sphere's rim
+    some = np.flatnonzero(rng.random(len(starts)) < 0.5)  # only these segments, read in place from all the starts
+    part = raster.raster_shadow(raster.raster_meshes([(0, vertices, faces)]), starts, 0.075, K, rays=some)
+    assert part.shape == blocked.shape and np.array_equal(part[some], blocked[some])
+    assert not np.delete(part, some).any() and part.sum() > 100
 
 
 def test_without_a_compiler_the_embree_path_casts_everything(embree_only):

@@ -200,14 +200,15 @@ static int segment_crosses(const Triangle *tri, double projector_x, const float 
 /* Largest grid of projector-image cells, per start point: bounds the memory when the points project far apart. */
 #define CELLS_PER_POINT 4
 
-int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_faces, const float *starts,
-                         int64_t n_starts, double projector_x, double fx, double fy, double cx, double cy,
-                         uint8_t *blocked, int64_t *scratch)
+int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_faces, const float *all_starts,
+                         const int64_t *rays, int64_t n_starts, double projector_x, double fx, double fy, double cx,
+                         double cy, uint8_t *blocked, int64_t *scratch)
 {
     /* Which segments S -> projector cross a triangle. vertices (V, 3) float32 and faces (F, 3) int32 as
-     * above; starts (N, 3) float32, every z >= NEAR_CLIP_M (the caller tests the others itself);
-     * blocked (N,) uint8 set to 1 where a triangle blocks the segment (never cleared). scratch: int64,
-     * 2 N + 1 + CELLS_PER_POINT N + 2.
+     * above; the segments start at all_starts[rays[i]] (all_starts (M, 3) float32, rays (N,) int64 indices
+     * into it; NULL: the first N), every z >= NEAR_CLIP_M (the caller tests the others itself);
+     * blocked (M,) uint8 set to 1 at rays[i] where a triangle blocks segment i (never cleared). scratch:
+     * int64, 2 N + 1 + CELLS_PER_POINT N + 2.
      *
      * Every point of a segment S -> P lies on one projector ray, so the segment can only meet a triangle
      * whose projection into the projector's image (a camera at P with the camera's orientation and
@@ -219,8 +220,9 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
     double *uv = malloc(sizeof(double) * 2 * (size_t)n_starts); /* each start's projector-image point */
     if (!uv) return -2;
     double u_min = INFINITY, u_max = -INFINITY, v_min = INFINITY, v_max = -INFINITY;
+#define RAY(i) (rays ? rays[i] : (i))
     for (int64_t i = 0; i < n_starts; i++) {
-        const float *s = starts + 3 * i;
+        const float *s = all_starts + 3 * RAY(i);
         if (!(s[2] >= NEAR_CLIP_M)) {
             free(uv);
             return -1;
@@ -269,12 +271,13 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
             for (int64_t gu = gu0; gu <= gu1; gu++) {
                 int64_t cell_index = gv * grid_w + gu;
                 for (int64_t j = first[cell_index]; j < first[cell_index + 1]; j++) {
-                    int64_t i = order[j];
-                    if (!blocked[i] && segment_crosses(&tri, projector_x, starts + 3 * i)) blocked[i] = 1;
+                    int64_t i = RAY(order[j]);
+                    if (!blocked[i] && segment_crosses(&tri, projector_x, all_starts + 3 * i)) blocked[i] = 1;
                 }
             }
         }
     }
     free(uv);
     return 0;
+#undef RAY
 }
