@@ -326,7 +326,9 @@ class PatternField:
         # for grid_sample with align_corners=False.
         x = (u_p - self.origin_u) * self.sx
         y = (v_p - self.origin_v) * self.sy
-        grid = torch.stack([2.0 * x / ws - 1.0, 2.0 * y / hs - 1.0], dim=-1)
+        # 2 x / ws - 1 and 2 y / hs - 1, in place on the stacked pair (the same operations in the same order)
+        grid = torch.stack([x, y], dim=-1).mul_(2.0).div_(torch.tensor([float(ws), float(hs)], dtype=x.dtype,
+                                                                          device=x.device)).sub_(1.0)  # fmt: skip
         flat = grid.reshape(1, 1, -1, 2)
         out = F.grid_sample(raster[None, None], flat, mode="bilinear", padding_mode="zeros", align_corners=False)
         return out.reshape(u_p.shape)
