@@ -143,14 +143,3 @@ def raster_shadow(meshes: RasterMeshes, starts: np.ndarray, projector_x_m: float
     if status != 0:
         raise ValueError(f"raster_shadow: a segment starts nearer than {NEAR_CLIP_M} m to the camera plane")
     return blocked.view(bool)
-    scratch = np.empty((2 + _CELLS_PER_POINT) * len(starts) + 2, dtype=np.int64)
-    i = intrinsics
-    status = lib.ddsgen_raster_shadow(meshes.vertices.ctypes.data, meshes.faces.ctypes.data, len(meshes.faces),
-                                      starts.ctypes.data,
-                                      len(starts), float(projector_x_m), float(i.fx), float(i.fy), float(i.cx),
-                                      float(i.cy), blocked.ctypes.data, scratch.ctypes.data)  # fmt: skip
-    if status == -2:
-        raise MemoryError("raster_shadow: out of memory")
-    if status != 0:
-        raise ValueError(f"raster_shadow: a segment starts nearer than {NEAR_CLIP_M} m to the camera plane")
-    return blocked.view(bool)
