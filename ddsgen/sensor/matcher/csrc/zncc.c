@@ -378,18 +378,17 @@ static inline __attribute__((always_inline)) void refine_row(const refine_args *
     const int b = A->b;
     const float nf = (float)(b * b), beta = A->beta;
     v8 ring[b][8];
-    int ring_k = 0, ring_valid = 0;  /* the ring holds columns u .. u + b - 2 at ring_k (before pixel u) */
+    int ring_k = INT32_MIN;  /* the ring holds columns u .. u + b - 2 at ring_k (before pixel u); none yet */
     for (int u = 0, first = 0; u < A->W; u++, first = first + 1 == b ? 0 : first + 1) {  /* first = u mod b */
         const size_t p = (size_t)v * A->W + u;
         const int k = A->K[p];
         const int c0 = u + A->col_shift - k;
         v8 cr[8], z[8], e[8];
         vi8 ex[8];
-        if (!ring_valid || k != ring_k) {
+        if (k != ring_k) {  /* disparities are >= 0: the first pixel always fills the ring */
             for (int j = 0, slot = first; j < b - 1; j++, slot = slot + 1 == b ? 0 : slot + 1)
                 column_cross(A->O, A->Wo, A->FX, A->WX, A->XB, A->XCS, A->XVS, v, u + j, c0 + j, b, ring[slot], nq);
             ring_k = k;
-            ring_valid = 1;
         }
         const int last = first == 0 ? b - 1 : first - 1;  /* (u + b - 1) mod b: the slot of column u - 1 */
         column_cross(A->O, A->Wo, A->FX, A->WX, A->XB, A->XCS, A->XVS, v, u + b - 1, c0 + b - 1, b, ring[last], nq);
