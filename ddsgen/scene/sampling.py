@@ -167,20 +167,40 @@ def _polygon_axes(polygon: np.ndarray) -> np.ndarray:
     return normals[length[:, 0] > 1e-12] / length[length[:, 0] > 1e-12]
 
 
-def polygons_separated(a: np.ndarray, b: np.ndarray, gap: float = 0.0) -> bool:
-    """True if convex polygons ``a`` (K, 2) and ``b`` (M, 2) are at least ``gap`` apart along some edge normal.
+@dataclasses.dataclass(frozen=True)
+class Footprint:
+    """A convex (K, 2) world polygon with what the separation test needs of it, computed once: a layout tests
+    every try against every placed footprint, and recomputing these per pair was most of a layout's time."""
+
+    polygon: np.ndarray  # (K, 2) m
+    centre: np.ndarray  # (2,) mean of the vertices
+    radius: float  # distance of the farthest vertex from the centre
+    axes: np.ndarray  # (A, 2) unit edge normals
+
+    @classmethod
+    def of(cls, polygon) -> "Footprint":
+        polygon = np.asarray(polygon, dtype=np.float64)
+        centre = polygon.mean(axis=0)
+        radius = np.sqrt(((polygon - centre) ** 2).sum(axis=1).max())
+        return cls(polygon, centre, radius, _polygon_axes(polygon))
+
+
+def footprints_separated(a: Footprint, b: Footprint, gap: float = 0.0) -> bool:
+    """True if footprints ``a`` and ``b`` are at least ``gap`` apart along some edge normal.
 
     (Separating-axis theorem; a separation of ``gap`` along an axis implies a distance >= ``gap``.)
     """
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    ra = np.sqrt(((a - ca) ** 2).sum(axis=1).max())
-    rb = np.sqrt(((b - cb) ** 2).sum(axis=1).max())
-    if np.hypot(*(ca - cb)) >= ra + rb + gap:
+    if np.hypot(*(a.centre - b.centre)) >= a.radius + b.radius + gap:
         return True  # bounding circles apart: separated along the line of centres
-    axes = np.concatenate([_polygon_axes(a), _polygon_axes(b)])
-    pa, pb = a @ axes.T, b @ axes.T  # (K, A), (M, A)
+    axes = np.concatenate([a.axes, b.axes])
+    pa, pb = a.polygon @ axes.T, b.polygon @ axes.T  # (K, A), (M, A)
     separation = np.maximum(pb.min(axis=0) - pa.max(axis=0), pa.min(axis=0) - pb.max(axis=0))
     return bool(np.any(separation >= gap))
+
+
+def polygons_separated(a: np.ndarray, b: np.ndarray, gap: float = 0.0) -> bool:
+    """True if convex polygons ``a`` (K, 2) and ``b`` (M, 2) are at least ``gap`` apart along some edge normal."""
+    return footprints_separated(Footprint.of(a), Footprint.of(b), gap)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -214,8 +234,8 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     placed: list[tuple[PlacedObject, np.ndarray]] = []
     used: set[int] = set()
 
-    def fits(world_polygon: np.ndarray) -> bool:
-        return _footprint_fits(world_polygon, wall_y, ground_half, [other for _, other in placed], clutter.min_gap)
+    def fits(footprint: Footprint) -> bool:
+        return _footprint_fits(footprint, wall_y, ground_half, [other for _, other in placed], clutter.min_gap)
 
     for _ in range(count):
         index = _pick(rng, scene.objects, clutter.unique, used)
@@ -226,7 +246,7 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
         if dropped is None:
             continue  # no room: leave this one out
         used.add(index)
-        world_T_obj, albedo, world_polygon = dropped
+        world_T_obj, albedo, world_footprint = dropped
         obj = PlacedObject(
             id=len(placed) + 1,
             class_name=spec.class_name,
@@ -236,7 +256,7 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
             albedo=albedo,
             mesh_scale=spec.scale,
         )
-        placed.append((obj, world_polygon))
+        placed.append((obj, world_footprint))
 
     # Albedos drawn in this order (ground, wall, floor): scene lists without a floor keep their random streams.
     background = []
@@ -256,7 +276,7 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
 
     for group_index, group in enumerate(scene.distractors):
         background.extend(_distractors(scene, group, np.random.default_rng([seed, block_start, 2, group_index]),
-                                       [polygon for _, polygon in placed]))  # fmt: skip
+                                       [footprint for _, footprint in placed]))  # fmt: skip
 
     objects = [obj for obj, _ in placed]
     if objects:
@@ -268,17 +288,18 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     return tuple(objects), tuple(background), target
 
 
-def _footprint_fits(world_polygon: np.ndarray, wall_y: float, half_extent: np.ndarray, others, gap: float) -> bool:
-    """True where a (K, 2) world footprint keeps ``gap`` from the wall at y = ``wall_y``, lies within
-    +-``half_extent`` (x, y; the surface's half size less the gap) and keeps ``gap`` from every polygon of ``others``."""
-    return (world_polygon[:, 1].max() <= wall_y - gap and not np.any(np.abs(world_polygon) > half_extent)
-            and all(polygons_separated(world_polygon, other, gap) for other in others))  # fmt: skip
+def _footprint_fits(footprint: Footprint, wall_y: float, half_extent: np.ndarray, others, gap: float) -> bool:
+    """True where a world footprint keeps ``gap`` from the wall at y = ``wall_y``, lies within ``+-half_extent``
+    (x, y; the surface's half size less the gap) and keeps ``gap`` from every footprint of ``others``."""
+    polygon = footprint.polygon
+    return (polygon[:, 1].max() <= wall_y - gap and not np.any(np.abs(polygon) > half_extent)
+            and all(footprints_separated(footprint, other, gap) for other in others))  # fmt: skip
 
 
 def _drop(rng: np.random.Generator, spec: ObjectSpec, centre: np.ndarray, half: np.ndarray, max_tries: int, fits,
           base_z: float = 0.0, max_height: float = math.inf):  # fmt: skip
     """Drop one object of ``spec``: a resting pose, a yaw and an albedo, then positions uniform in ``centre`` +-
-    ``half`` (x, y; m) until ``fits(footprint)`` ((K, 2) world polygon). Returns ``(world_T_obj, albedo,
+    ``half`` (x, y; m) until ``fits(footprint)`` (a world :class:`Footprint`). Returns ``(world_T_obj, albedo,
     footprint)`` with the object's lowest point at ``base_z``, or None (no room in ``max_tries``, or the drawn
     pose is taller than ``max_height``)."""
     poses, probs = _rest_poses(spec.mesh_ref, spec.scale, spec.rest)
@@ -291,17 +312,17 @@ def _drop(rng: np.random.Generator, spec: ObjectSpec, centre: np.ndarray, half: 
         return None
     for _try in range(max_tries):
         xy = centre + rng.uniform(-half, half)
-        world_polygon = footprint + xy
-        if fits(world_polygon):
+        world_footprint = Footprint.of(footprint + xy)
+        if fits(world_footprint):
             world_T_obj = _translation([xy[0], xy[1], base_z]) @ _rot_z(yaw) @ _translation(-pose.offset) @ pose.rotation
-            return world_T_obj, albedo, world_polygon
+            return world_T_obj, albedo, world_footprint
     return None
 
 
 def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generator,
-                 clutter: list[np.ndarray]) -> list[PlacedObject]:  # fmt: skip
+                 clutter: list[Footprint]) -> list[PlacedObject]:  # fmt: skip
     """One distractor group's objects (background, id 0): footprints apart from each other and from the clutter's
-    (``clutter``: (K, 2) world polygons), inside the surface they stand on and in front of the wall. On the floor
+    (``clutter``: world footprints), inside the surface they stand on and in front of the wall. On the floor
     they stay off the table's footprint and below its top (taller poses are left out), so they never hide the
     table top from a camera above it."""
     wall_y = scene.wall.distance if scene.wall is not None else math.inf
@@ -312,13 +333,13 @@ def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generat
         bounds = np.asarray(scene.floor.size) / 2.0 - gap
         if scene.ground is not None:
             gx, gy = np.asarray(scene.ground.size) / 2.0
-            taken.append(np.array([[-gx, -gy], [gx, -gy], [gx, gy], [-gx, gy]]))  # the table's footprint
+            taken.append(Footprint.of(np.array([[-gx, -gy], [gx, -gy], [gx, gy], [-gx, gy]])))  # the table's
     else:
         base_z, max_height = 0.0, math.inf
         bounds = np.asarray(scene.ground.size) / 2.0 - gap
 
-    def fits(world_polygon: np.ndarray) -> bool:
-        return _footprint_fits(world_polygon, wall_y, bounds, taken, gap)
+    def fits(footprint: Footprint) -> bool:
+        return _footprint_fits(footprint, wall_y, bounds, taken, gap)
 
     centre, half = np.asarray(group.centre), np.asarray(group.area) / 2.0
     placed = []
@@ -327,8 +348,8 @@ def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generat
         dropped = _drop(rng, spec, centre, half, group.max_tries, fits, base_z, max_height)
         if dropped is None:
             continue
-        world_T_obj, albedo, world_polygon = dropped
-        taken.append(world_polygon)
+        world_T_obj, albedo, world_footprint = dropped
+        taken.append(world_footprint)
         placed.append(PlacedObject(0, spec.class_name, spec.mesh_ref, spec.mesh(), world_T_obj, albedo, spec.scale))
     return placed
 
