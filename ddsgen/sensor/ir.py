@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ddsgen.sensor.ir_kernel import render_ir_c
 from ddsgen.sensor.optics import defocus_blur, defocus_sigma_px
 from ddsgen.sensor.pattern import PatternField
 from ddsgen.sensor.speckle import speckle_field
@@ -180,6 +181,12 @@ def render_ir(
         clean_signal: (H, W) the noise-free projector signal (counts, before ambient), for
             effects and diagnostics.
     """
+    fast = render_ir_c(points, normals, albedo, lit, field, fx, fy, cx, cy, baseline, emitted_intensity, ambient,
+                       speckle_scale, read_noise_mean, read_noise_std, noise, ir_bits, quantise,
+                       projector_falloff_exponent, vignetting_exponent, electrons_per_count, lens_aperture_m,
+                       PATTERN_UNIT)  # fmt: skip
+    if fast is not None:  # the same image in C where no gradient is taken
+        return fast
     u_p, v_p = projector_coordinates(points, fx, fy, cx, cy, baseline)
     pattern = field.sample(u_p, v_p) * PATTERN_UNIT
     # The ray to the projector (b - x, -y, -z), by components: no (H, W, 3) temporaries.
