@@ -52,3 +52,25 @@ def test_zero_weight_is_the_identity_and_the_gradient_is_the_transposed_filter()
     assert smooth_along_rows(disparity, valid, 0.0, 0.125) is disparity
     x = disparity.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda d: smooth_along_rows(d, valid, 0.3, None), (x,))
+
+
+@pytest.mark.parametrize("weight, quantum", [(0.16, 0.125), (0.25, 0.25), (0.5, None), (torch.tensor(0.37), 0.125)])
+def test_the_c_smoothing_is_the_torch_definition_bit_for_bit(monkeypatch, weight, quantum):
+    """ddsgen/csrc/row_smoothing.c gives the torch definition's float32 disparities bit for bit: surfaces 0.9-1.1 px
+    apart (both sides of the same-surface test), holes, rows' first and last pixels, values on and off the quantum's
+    half steps."""
+    from ddsgen.sensor import row_smoothing
+
+    if row_smoothing._library() is None:
+        pytest.skip("no C compiler: the torch definition is the only path")
+    rng = np.random.default_rng(3)
+    steps = rng.choice([0.0, 0.9, 1.0, 1.1, 20.0], size=(60, 80)).cumsum(axis=1) % 90
+    disparity = torch.from_numpy((5.0 + steps + rng.normal(0.0, 0.2, steps.shape)).astype(np.float32))
+    disparity[:, ::7] = torch.round(disparity[:, ::7] * 16) / 16  # exact half and whole quantum steps
+    valid = torch.from_numpy(rng.random(steps.shape) > 0.15)
+    with torch.no_grad():
+        fast = smooth_along_rows(disparity, valid, weight, quantum)
+        monkeypatch.setattr(row_smoothing, "_library", lambda: None)
+        definition = smooth_along_rows(disparity, valid, weight, quantum)
+    assert not torch.equal(fast, disparity)
+    assert torch.equal(fast, definition)

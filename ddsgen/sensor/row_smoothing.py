@@ -17,8 +17,12 @@ differentiable; the quantum keeps its straight-through gradient.
 
 from __future__ import annotations
 
+import ctypes
+import functools
+
 import torch
 
+from ddsgen.ckernel import c_source, load_c_library
 from ddsgen.sensor.ir import straight_through_round
 
 #: Neighbours whose disparity differs by more than this (px) are another surface and are not averaged in.
@@ -40,6 +44,9 @@ def smooth_along_rows(disparity: torch.Tensor, valid: torch.Tensor, weight: floa
     """
     if weight <= 0:
         return disparity
+    fast = _smooth_along_rows_c(disparity, valid, weight, quantum_px)
+    if fast is not None:  # the same disparities in C where no gradient is taken
+        return fast
     same = valid[:, 1:] & valid[:, :-1] & ((disparity[:, 1:] - disparity[:, :-1]).abs() <= SAME_SURFACE_PX)
     # Each pixel's left and right neighbours, or the pixel itself where that neighbour is not on its surface.
     left = disparity.clone()
@@ -50,3 +57,40 @@ def smooth_along_rows(disparity: torch.Tensor, valid: torch.Tensor, weight: floa
     if quantum_px is not None:
         smoothed = straight_through_round(smoothed / quantum_px) * quantum_px
     return smoothed
+
+
+@functools.cache
+def _library():
+    # No FMA contraction: torch's float32 operations, one by one.
+    flags = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=gnu11"]
+    lib = load_c_library(c_source("ddsgen", "csrc", "row_smoothing.c"), "row_smoothing", flags, "row smoothing",
+                         "torch path")  # fmt: skip
+    if lib is not None:
+        p, q, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+        lib.ddsgen_smooth_along_rows.argtypes = [p, p, q, q, f, f, f, f, p]
+        lib.ddsgen_smooth_along_rows.restype = None
+    return lib
+
+
+def _float32(value) -> float:
+    """A scalar as the float32 the torch definition multiplies by (Python numbers rounded once, tensors as they are)."""
+    return float(torch.as_tensor(value, dtype=torch.float32))
+
+
+def _smooth_along_rows_c(disparity: torch.Tensor, valid: torch.Tensor, weight, quantum_px) -> torch.Tensor | None:
+    """:func:`smooth_along_rows` in ddsgen/csrc/row_smoothing.c, or None where the torch definition runs: a gradient
+    wanted, another device or dtype, no C compiler (or ``DDSGEN_NO_C_KERNEL``)."""
+    wants_grad = torch.is_grad_enabled() and (disparity.requires_grad or getattr(weight, "requires_grad", False))
+    if wants_grad or disparity.device.type != "cpu" or disparity.dtype != torch.float32 or disparity.dim() != 2:
+        return None
+    lib = _library()
+    if lib is None:
+        return None
+    height, width = disparity.shape
+    source = disparity.contiguous()
+    mask = valid.to(device="cpu", dtype=torch.bool).contiguous()  # one byte per pixel, 0 or 1
+    out = torch.empty_like(source)
+    lib.ddsgen_smooth_along_rows(source.data_ptr(), mask.data_ptr(), height, width, _float32(1.0 - 2.0 * weight),
+                                 _float32(weight), _float32(SAME_SURFACE_PX),
+                                 0.0 if quantum_px is None else _float32(quantum_px), out.data_ptr())  # fmt: skip
+    return out
