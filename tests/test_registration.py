@@ -511,3 +511,29 @@ def test_the_c_registration_maps_equal_the_numpy_definition(monkeypatch):
     for got, expected in zip(c_forward + c_index, numpy_forward + numpy_index):
         np.testing.assert_array_equal(got, expected)
     assert all((m >= 0).mean() > 0.5 for m in c_index) and any((m < 0).any() for m in c_index)
+
+
+def test_the_c_gather_registers_every_map_as_the_torch_definition(monkeypatch):
+    """register_images in one C pass gives the definition's maps bit for bit (float32, float64, bool, int64; -1 ->
+    zero), keeps the gradient path in torch, and refuses an index outside the IR image."""
+    from ddsgen.sensor import registration_kernel
+    from ddsgen.sensor.registration import register_images
+
+    if registration_kernel._library() is None:
+        pytest.skip("no C compiler: the torch definition is the only path")
+    rng = np.random.default_rng(4)
+    index = torch.from_numpy(np.where(rng.random((30, 50)) < 0.2, -1, rng.integers(0, 30 * 50, (30, 50))))
+    images = (torch.from_numpy(rng.normal(size=(30, 50)).astype(np.float32)), torch.from_numpy(rng.normal(size=(30, 50))),
+              torch.from_numpy(rng.random((30, 50)) > 0.5), torch.from_numpy(rng.integers(-9, 9, (30, 50))))
+    with torch.no_grad():
+        fast = register_images(images, index)
+        monkeypatch.setattr(registration_kernel, "_library", lambda: None)
+        definition = register_images(images, index)
+    for got, expected in zip(fast, definition):
+        assert got.dtype == expected.dtype and torch.equal(got, expected)
+    assert (fast[0][index < 0] == 0).all() and not fast[2][index < 0].any()
+    monkeypatch.undo()
+    wanting = images[0].clone().requires_grad_(True)
+    assert registration_kernel.register_images_c((wanting,), index) is None
+    with pytest.raises(IndexError):
+        registration_kernel.register_images_c(images, torch.full((30, 50), 30 * 50))

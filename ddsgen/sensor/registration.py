@@ -136,7 +136,10 @@ def register(image: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 def register_images(images, index: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """:func:`register` for several (H, W) images through the same ``index``, which is prepared once (a frame
-    registers six maps: the clamp and the mask cost as much as a gather each)."""
+    registers six maps: the clamp and the mask cost as much as a gather each). Without gradients, one C pass."""
+    fast = registration_kernel.register_images_c(images, index)
+    if fast is not None:
+        return fast
     safe, inside = index.clamp(min=0), index >= 0
     return tuple(torch.where(inside, gather_flat(image, safe), torch.zeros((), dtype=image.dtype, device=image.device))
                  for image in images)  # fmt: skip

@@ -12,6 +12,7 @@ import ctypes
 import functools
 
 import numpy as np
+import torch
 
 from ddsgen.ckernel import c_source, load_c_library
 
@@ -30,6 +31,8 @@ def _library():
         lib.ddsgen_forward_registration_index.restype = None
         lib.ddsgen_dense_splat_index.argtypes = [p, p, q, q, p]
         lib.ddsgen_dense_splat_index.restype = None
+        lib.ddsgen_register_images.argtypes = [p, q, q, p, p, p]
+        lib.ddsgen_register_images.restype = None
     return lib
 
 
@@ -88,3 +91,26 @@ def dense_splat_index_c(index: np.ndarray, valid: np.ndarray) -> np.ndarray | No
     out = np.empty((height, width), dtype=np.int64)
     lib.ddsgen_dense_splat_index(index_c.ctypes.data, valid_u8.ctypes.data, height, width, out.ctypes.data)
     return out
+
+
+def register_images_c(images, index: torch.Tensor) -> tuple[torch.Tensor, ...] | None:
+    """:func:`ddsgen.sensor.registration.register_images` in one C pass (each image at ``index``, zero where it is
+    -1), or None where the torch definition runs: a gradient wanted, a tensor off the CPU or of another element
+    size than 1, 4 or 8 bytes, no C library."""
+    wants_grad = torch.is_grad_enabled() and any(image.requires_grad for image in images)
+    if (wants_grad or index.device.type != "cpu" or index.dtype != torch.int64
+            or any(image.device.type != "cpu" or image.element_size() not in (1, 4, 8) for image in images)):  # fmt: skip
+        return None
+    lib = _library()
+    if lib is None:
+        return None
+    flat = index.contiguous()
+    if flat.numel() and int(flat.max()) >= min(image.numel() for image in images):
+        raise IndexError("register_images: an index lies outside the IR image")
+    sources = [image.detach().contiguous() for image in images]
+    outs = [torch.empty(index.shape, dtype=image.dtype) for image in images]
+    pointers = ctypes.c_void_p * len(images)
+    lib.ddsgen_register_images(flat.data_ptr(), flat.numel(), len(images), pointers(*(s.data_ptr() for s in sources)),
+                               (ctypes.c_int64 * len(images))(*(s.element_size() for s in sources)),
+                               pointers(*(o.data_ptr() for o in outs)))  # fmt: skip
+    return tuple(outs)
