@@ -652,3 +652,59 @@ def test_c_and_torch_confirmations_agree_on_surfaces_with_edges_and_noise():
                                                   backend=backend)  # fmt: skip
         assert [bool(p[30, 44]) for p in near] == [True, True, False]  # 4 px away: within the 9-px window
         assert not any(bool(p[30, 45]) for p in near)  # 5 px away: outside it
+
+
+@pytest.mark.parametrize("block, min_confidence, confirmed", [(9, 0.05, 0.35), (7, 0.1, 0.5), (9, 0.05, 1.0)])
+def test_the_c_validity_is_the_torch_definition_bit_for_bit(block, min_confidence, confirmed):
+    """csrc/validity.c gives :func:`M._validity_of_peaks`' maps bit for bit: ZNCCs beyond [0, 1], no peak found,
+    no second peak, two surfaces with +-1 px of noise (confirmations by the best and by the second peak), the
+    blind border columns, confidences on the thresholds; and on a rendered-like IR pair's real search output."""
+    from ddsgen.sensor.matcher.validity_kernel import match_validity_c
+
+    if match_validity_c(*(torch.zeros(3, 3),) * 2, torch.zeros(3, 3, dtype=torch.int64),
+                        torch.zeros(3, 3, dtype=torch.int32), 5, 0, 1, 0.05, 1.0) is None:  # fmt: skip
+        pytest.skip("no C compiler")
+    g = torch.Generator().manual_seed(5)
+    height, width, k_hi, k_lo = 50, 80, 60, 3
+    base = torch.where(torch.arange(width) < 40, 20, 35).expand(height, width)
+    arg = (k_hi - base - torch.randint(-1, 2, (height, width), generator=g)).to(torch.int64)
+    arg[torch.rand(height, width, generator=g) < 0.05] = -1
+    arg2 = torch.where(torch.rand(height, width, generator=g) < 0.5, k_hi - (55 - base), -1).to(torch.int32)
+    wrong = torch.rand(height, width, generator=g) < 0.15  # a wrong best peak; the surface's is the second
+    arg2 = torch.where(wrong, k_hi - base - torch.randint(-3, 4, (height, width), generator=g), arg2).to(torch.int32)
+    arg = torch.where(wrong, k_hi - torch.randint(42, 56, (height, width), generator=g), arg)
+    best = torch.rand(height, width, generator=g) * 1.3 - 0.1
+    second = best - torch.rand(height, width, generator=g) * 0.2
+    second[:, ::9] = best[:, ::9] - min_confidence  # confidences on the threshold (in float32 arithmetic)
+    best[::7] = confirmed  # ZNCCs on the confirmation threshold
+    cases = [(best, second, arg, arg2)]
+    # A real search: a slanted IR-like random texture against itself shifted by 20 px.
+    texture = torch.rand(40, 140, generator=g)
+    observed = texture[:, 20:120].contiguous()
+    phases = texture[None, :, :].expand(8, 40, 140).contiguous()
+    pad = 40
+    reference_phases = torch.nn.functional.pad(phases[:, :, :120], (pad - 20, 0))
+    with torch.no_grad():
+        ref = M._prepare_reference(reference_phases, pad, block, 3, block // 2 + SEARCH_LANES, 3)
+        x = (observed - observed.mean()) / observed.std()
+        o_pad, osum, oinv = M._ObservedStatsC.apply(x, block)
+        r0 = pad + ref.offset - block // 2 - 30
+        cases.append(kernel._integer_search_c(kernel._load_kernel(), o_pad, ref, osum, oinv, block, r0, 28, confirmed,
+                                              min_confidence))  # fmt: skip
+    results = []
+    for i, (b, s, a, a2) in enumerate(cases):
+        hi, lo = (k_hi, k_lo) if i == 0 else (30, 3)
+        fast = match_validity_c(b, s, a, a2, hi, lo, block, min_confidence, confirmed)
+        definition = M._validity_of_peaks(b, s, a, a2, hi, lo, block, min_confidence, confirmed)
+        for got, expected in zip(fast, definition):
+            assert got.dtype == expected.dtype and torch.equal(got, expected)
+        assert fast[3].any() and not fast[3].all()
+        results.append(fast)
+    _, _, confidence, valid, k_int, _ = results[0]
+    clipped = best.clamp(0, 1) - second.clamp(0, 1)
+    by_rule = valid & (clipped < min_confidence)  # valid only by a confirmation
+    took_second = k_int != torch.where(arg >= 0, k_hi - arg, k_lo)
+    if confirmed < 1.0:
+        assert by_rule.sum() > 50 and took_second.sum() > 5 and (took_second <= by_rule).all()
+    else:
+        assert not by_rule.any() and not took_second.any()

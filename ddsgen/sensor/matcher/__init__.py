@@ -81,6 +81,7 @@ from ddsgen.sensor.matcher.kernel import (SEARCH_LANES, _integer_search_c, _load
 from ddsgen.sensor.matcher.reference import RefineGeometry, _prepare_reference
 from ddsgen.sensor.matcher.stereo import stereo_reference_phases
 from ddsgen.sensor.matcher.torch_path import _integer_search_torch, _refine_torch, _want_compile
+from ddsgen.sensor.matcher.validity_kernel import match_validity_c
 from ddsgen.sensor.matcher.windows import VARIANCE_FLOOR, _observed_stats
 
 __all__ = ["MatchResult", "match", "stereo_reference_phases", "integer_search_backend", "VARIANCE_FLOOR", "REFINE_LEVEL"]
@@ -203,6 +204,21 @@ def _validity(best: torch.Tensor, second: torch.Tensor, found: torch.Tensor, k_i
     return confidence, valid, k_int
 
 
+def _validity_of_peaks(best: torch.Tensor, second: torch.Tensor, arg: torch.Tensor, arg2: torch.Tensor, k_hi: int,
+                       k_lo: int, block: int, min_confidence: float, confirmed_match_zncc: float):  # fmt: skip
+    """``(best, second, confidence, valid, k_int, k_second)`` from the integer search's (H, W) peaks (ZNCC ``best``,
+    ``second``; candidate indices ``arg``, ``arg2``, -1 for none, disparity k_hi - index): the ZNCCs clipped to
+    [0, 1], then :func:`_validity`; ``k_int`` is k_lo where nothing was found, ``k_second`` int32 (-1 for none).
+    The definition that :func:`ddsgen.sensor.matcher.validity_kernel.match_validity_c` computes in C."""
+    found = arg >= 0
+    k_int = torch.where(found, k_hi - arg, torch.full_like(arg, k_lo))
+    k_second = torch.where(arg2 >= 0, k_hi - arg2, torch.full_like(arg2, -1)).to(torch.int32)
+    best, second = best.clamp(0, 1), second.clamp(0, 1)
+    confidence, valid, k_int = _validity(best, second, found.to(best.device), k_int, k_second, block, min_confidence,
+                                         confirmed_match_zncc)  # fmt: skip
+    return best, second, confidence, valid, k_int, k_second
+
+
 def match(
     observed: torch.Tensor,
     reference_phases: torch.Tensor,
@@ -308,16 +324,16 @@ def match(
         else:
             best, second, arg, arg2 = _integer_search_torch(o_pad, ref, osum, oinv, block, r0, n_disp, band_rows,
                                                             confirmed_match_zncc, min_confidence)  # fmt: skip
-        found = arg >= 0
-        k_int = torch.where(found, k_hi - arg, torch.full_like(arg, k_lo))
-        k_second = torch.where(arg2 >= 0, k_hi - arg2, torch.full_like(arg2, -1)).to(torch.int32)
-        del arg, arg2
-        best, second = best.clamp(0, 1).to(dev), second.clamp(0, 1).to(dev)
         # Validity is decided on the integer peaks, so before the refinement (which centres on the peak it keeps).
-        confidence, valid, k_int = _validity(best, second, found.to(dev), k_int, k_second, block, min_confidence,
-                                             confirmed_match_zncc)  # fmt: skip
+        peaks = None
+        if kernel is not None and dev.type == "cpu":  # the same maps in C
+            peaks = match_validity_c(best, second, arg, arg2, k_hi, k_lo, block, min_confidence, confirmed_match_zncc)
+        if peaks is None:
+            peaks = _validity_of_peaks(best.to(dev), second.to(dev), arg, arg2, k_hi, k_lo, block, min_confidence,
+                                      confirmed_match_zncc)  # fmt: skip
+        best, second, confidence, valid, k_int, k_second = peaks
+        del arg, arg2, peaks
         confidence = confidence.to(dtype)
-        del found
 
     # Stage 2: sub-pixel refinement.
     grad = torch.is_grad_enabled() and (observed.requires_grad or beta.requires_grad or reference_phases.requires_grad)
