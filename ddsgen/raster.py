@@ -31,6 +31,12 @@ def _library():
         lib.ddsgen_raster_hits.restype = None
         lib.ddsgen_raster_shadow.argtypes = [p, p, q, p, p, q, d, d, d, d, d, p, p]
         lib.ddsgen_raster_shadow.restype = ctypes.c_int
+        lib.ddsgen_take_rows.argtypes = [p, q, q, p, q, p]
+        lib.ddsgen_take_rows.restype = None
+        lib.ddsgen_hit_attributes.argtypes = [p, p, p, q, p, p, p, q, p, p, p, p, p, p]
+        lib.ddsgen_hit_attributes.restype = None
+        lib.ddsgen_plane_zbuffer.argtypes = [ctypes.c_float, p, p, p, p, q, q, q, ctypes.c_int32, p, p]
+        lib.ddsgen_plane_zbuffer.restype = None
     return lib
 
 
@@ -143,3 +149,63 @@ def raster_shadow(meshes: RasterMeshes, starts: np.ndarray, projector_x_m: float
     if status != 0:
         raise ValueError(f"raster_shadow: a segment starts nearer than {NEAR_CLIP_M} m to the camera plane")
     return blocked.view(bool)
+
+
+def take_rows(table: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """``np.take(table, owner, axis=0)`` for a float32 (R, C) table and int32 owners (-1 reads the last row), in one
+    C pass where the raster is compiled (same values)."""
+    lib = _library()
+    table = np.ascontiguousarray(table, dtype=np.float32)
+    if lib is None or owner.dtype != np.int32:
+        return np.take(table, owner, axis=0)
+    owner = np.ascontiguousarray(owner)
+    out = np.empty((len(owner), table.shape[1]), dtype=np.float32)
+    lib.ddsgen_take_rows(table.ctypes.data, table.shape[0], table.shape[1], owner.ctypes.data, len(owner),
+                         out.ctypes.data)  # fmt: skip
+    return out
+
+
+def hit_attributes(owner: np.ndarray, best_t: np.ndarray, directions: np.ndarray, triangle: np.ndarray,
+                   ids: np.ndarray, albedos: np.ndarray, is_polygon: np.ndarray):  # fmt: skip
+    """``(hit, depth, points, instance, albedo)`` of the primary hits (N,) from their owners (int32, -1: none), ray
+    parameters ``best_t`` (float32) and ``directions`` (float32 (N, 3), z = 1); ``triangle`` (int32) is set to 0 in
+    place where the owner is a polygon. ``ids`` (uint16), ``albedos`` (float32), ``is_polygon`` (bool): per owner,
+    plus a last entry for no hit. One C pass where the raster is compiled, numpy otherwise (same values)."""
+    lib = _library()
+    if lib is None:
+        hit = owner >= 0
+        depth = np.where(hit, best_t, np.float32(0.0))
+        triangle[np.take(is_polygon, owner)] = 0
+        return hit, depth, directions * depth[:, None], np.take(ids, owner), np.take(albedos, owner)
+    n = len(owner)
+    hit, depth = np.empty(n, dtype=bool), np.empty(n, dtype=np.float32)
+    points, instance, albedo = np.empty((n, 3), np.float32), np.empty(n, np.uint16), np.empty(n, np.float32)
+    arrays = [np.ascontiguousarray(a, dtype=t) for a, t in ((owner, np.int32), (best_t, np.float32),
+                                                             (directions, np.float32))]  # fmt: skip
+    tables = [np.ascontiguousarray(ids, np.uint16), np.ascontiguousarray(albedos, np.float32),
+              np.ascontiguousarray(is_polygon, bool)]  # fmt: skip
+    if not triangle.flags.c_contiguous or triangle.dtype != np.int32:
+        raise ValueError("hit_attributes: triangle must be a C-contiguous int32 array")
+    lib.ddsgen_hit_attributes(*(a.ctypes.data for a in arrays), n, *(t.ctypes.data for t in tables), len(ids),
+                              hit.ctypes.data, depth.ctypes.data, points.ctypes.data, triangle.ctypes.data,
+                              instance.ctypes.data, albedo.ctypes.data)  # fmt: skip
+    return hit, depth, points, instance, albedo
+
+
+def plane_zbuffer(offset: float, row_term: np.ndarray, col_term: np.ndarray, lo: np.ndarray, hi: np.ndarray, v0: int,
+                  index: int, best_t: np.ndarray, owner: np.ndarray) -> bool:  # fmt: skip
+    """A planar polygon's primary hits into the z-buffer ``best_t`` / ``owner`` ((H, W) float32 / int32, in place)
+    in one C pass (:func:`ddsgen.raycast_planes.write_primary_depth` describes the terms). False, with nothing
+    written, where the raster is not compiled."""
+    lib = _library()
+    if lib is None:
+        return False
+    if not (best_t.flags.c_contiguous and owner.flags.c_contiguous and best_t.dtype == np.float32
+            and owner.dtype == np.int32 and best_t.shape == owner.shape):  # fmt: skip
+        raise ValueError("plane_zbuffer: best_t and owner must be C-contiguous (H, W) float32 and int32 arrays")
+    row_term, col_term = np.ascontiguousarray(row_term, np.float32), np.ascontiguousarray(col_term, np.float32)
+    lo, hi = np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64)
+    lib.ddsgen_plane_zbuffer(float(np.float32(offset)), row_term.ctypes.data, col_term.ctypes.data, lo.ctypes.data,
+                             hi.ctypes.data, int(v0), len(row_term), best_t.shape[1], int(index), best_t.ctypes.data,
+                             owner.ctypes.data)  # fmt: skip
+    return True

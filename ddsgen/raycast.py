@@ -23,9 +23,10 @@ import functools
 import numpy as np
 
 from ddsgen.preset import Intrinsics
-from ddsgen.raster import NEAR_CLIP_M, raster_available, raster_hits, raster_meshes, raster_shadow
+from ddsgen.raster import (NEAR_CLIP_M, hit_attributes, raster_available, raster_hits, raster_meshes, raster_shadow,
+                           take_rows)
 from ddsgen.raycast_embree import MeshBVH, image_box, mesh_bvh, primary_hits_embree, rays_in_box, shadow_blocked_embree
-from ddsgen.raycast_planes import Polygon, as_polygon, primary_depth_band, segments_blocked
+from ddsgen.raycast_planes import Polygon, as_polygon, segments_blocked, write_primary_depth
 
 
 @dataclasses.dataclass
@@ -128,19 +129,14 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
     best_t = np.full((height, width), np.inf, dtype=np.float32)
     owner = np.full((height, width), -1, dtype=np.int32)
     for k, polygon in polygons:  # on the rows each spans (the others miss it)
-        v0, band = primary_depth_band(polygon, intrinsics)
-        rows = slice(v0, v0 + len(band))
-        nearer = band < best_t[rows]
-        owner[rows][nearer] = k
-        best_t[rows][nearer] = band[nearer]
+        write_primary_depth(polygon, intrinsics, k, best_t, owner)
     best_t, owner = best_t.reshape(-1), owner.reshape(-1)
     # Normals: a plane seen from the origin shows one side (n . x = c, t > 0 -> sign(n . d) = sign(c)).
     table = np.zeros((len(placed) + 1, 3), dtype=np.float32)  # last row: no hit (owner -1)
     for k, polygon in polygons:
         table[k] = -polygon.normal if polygon.offset > 0 else polygon.normal
-    # The polygons' normals (no hit: 0); a mesh writes its own where it is nearer.
-    # np.take, not table[owner]: several times faster for these small tables (owner -1 takes the last row)
-    normals = np.take(table, owner, axis=0)
+    # The polygons' normals (no hit: 0, the last row); a mesh writes its own where it is nearer.
+    normals = take_rows(table, owner)
     triangle = np.full(n_rays, -1, dtype=np.int32)
     barycentric = np.zeros((n_rays, 2), dtype=np.float32)
     camera_meshes = None  # the meshes in the camera frame (RasterMeshes) when the C raster casts them
@@ -152,17 +148,13 @@ def cast(scene, intrinsics: Intrinsics, baseline_m: float, shadow_bias_m: float,
         coverage = primary_hits_embree(meshes, placed, directions, width, height, best_t, owner, triangle, barycentric,
                                        normals)  # fmt: skip
 
-    hit = owner >= 0
-    depth = np.where(hit, best_t, np.float32(0.0))
-    points = directions * depth[:, None]
-    if polygons:  # coplanar faces: face 0's plane is the hit's plane (barycentrics left 0: not needed, not cheap)
-        is_polygon = np.zeros(len(placed) + 1, dtype=bool)
-        is_polygon[[k for k, _ in polygons]] = True
-        triangle = np.where(np.take(is_polygon, owner), np.int32(0), triangle)
+    # Per-owner tables, the last entry for no hit. A polygon's hits name face 0 (coplanar faces: face 0's plane is
+    # the hit's plane; barycentrics left 0: not needed, not cheap).
+    is_polygon = np.zeros(len(placed) + 1, dtype=bool)
+    is_polygon[[k for k, _ in polygons]] = True
     ids = np.append(np.array([o.id for o in placed], dtype=np.uint16), np.uint16(0))
     albedos = np.append(np.array([o.albedo for o in placed], dtype=np.float32), np.float32(0.0))
-    instance = np.take(ids, owner)
-    albedo = np.take(albedos, owner)
+    hit, depth, points, instance, albedo = hit_attributes(owner, best_t, directions, triangle, ids, albedos, is_polygon)
 
     shadow = None
     if shadows:

@@ -16,6 +16,8 @@ import dataclasses
 
 import numpy as np
 
+from ddsgen.raster import plane_zbuffer
+
 #: Polygon points nearer than this to the camera plane (m) are clipped off before projecting (a pixel's ray
 #: meets them at a depth of at most this; far below any sensor's z_min).
 NEAR_CLIP_M = 1e-4
@@ -130,25 +132,52 @@ def primary_depth(polygon: Polygon, intrinsics) -> np.ndarray:
     return t
 
 
-def primary_depth_band(polygon: Polygon, intrinsics) -> tuple[int, np.ndarray]:
-    """``(v0, band)``: :func:`primary_depth` on the rows the polygon spans only, ``band`` (R, W) float32 being
-    rows v0..v0 + R - 1 (R = 0 when it spans none; every other row misses it)."""
+def _depth_band_terms(polygon: Polygon, intrinsics):
+    """``(v0, lo, hi, row_term, col_term)`` of the rows v0.. the polygon spans (None when it spans none; convex: the
+    rows are contiguous): their column spans (float64) and the float32 terms whose sum is n . d for the ray d through
+    each pixel (row_term (R,) + col_term (W,))."""
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
     xs = (np.arange(int(intrinsics.width), dtype=np.float64) - cx) / fx  # directions' x and y (z = 1)
     ys = (np.arange(int(intrinsics.height), dtype=np.float64) - cy) / fy
-    height, width = len(ys), len(xs)
-    lo, hi = image_spans(polygon, fx, fy, cx, cy, height)
+    lo, hi = image_spans(polygon, fx, fy, cx, cy, len(ys))
     rows = np.flatnonzero(lo <= hi)
     if not len(rows):
-        return 0, np.empty((0, width), dtype=np.float32)
-    v0, v1 = int(rows[0]), int(rows[-1]) + 1  # convex: the rows it spans are contiguous
+        return None
+    v0, v1 = int(rows[0]), int(rows[-1]) + 1
     n = polygon.basis[0]
-    nd = (n[1] * ys[v0:v1] + n[2]).astype(np.float32)[:, None] + (n[0] * xs).astype(np.float32)[None, :]
+    return v0, lo[v0:v1], hi[v0:v1], (n[1] * ys[v0:v1] + n[2]).astype(np.float32), (n[0] * xs).astype(np.float32)
+
+
+def primary_depth_band(polygon: Polygon, intrinsics) -> tuple[int, np.ndarray]:
+    """``(v0, band)``: :func:`primary_depth` on the rows the polygon spans only, ``band`` (R, W) float32 being
+    rows v0..v0 + R - 1 (R = 0 when it spans none; every other row misses it)."""
+    terms = _depth_band_terms(polygon, intrinsics)
+    if terms is None:
+        return 0, np.empty((0, int(intrinsics.width)), dtype=np.float32)
+    v0, lo, hi, row_term, col_term = terms
+    nd = row_term[:, None] + col_term[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         band = np.float32(polygon.offset) / nd
-    cols = np.arange(width, dtype=np.float64)[None, :]
-    ok = (cols >= lo[v0:v1, None]) & (cols <= hi[v0:v1, None]) & (band > 0)  # band > 0: False for nan
+    cols = np.arange(len(col_term), dtype=np.float64)[None, :]
+    ok = (cols >= lo[:, None]) & (cols <= hi[:, None]) & (band > 0)  # band > 0: False for nan
     return v0, np.where(ok, band, np.float32(np.inf))
+
+
+def write_primary_depth(polygon: Polygon, intrinsics, index: int, best_t: np.ndarray, owner: np.ndarray) -> None:
+    """Write the polygon's primary hits into the z-buffer ``best_t`` / ``owner`` ((H, W) float32 / int32, in place):
+    where :func:`primary_depth` is nearer than ``best_t``, it becomes ``best_t`` and ``index`` the owner. One C pass
+    where the raster is compiled (:func:`ddsgen.raster.plane_zbuffer`, the same values), numpy otherwise."""
+    terms = _depth_band_terms(polygon, intrinsics)
+    if terms is None:
+        return
+    v0, lo, hi, row_term, col_term = terms
+    if plane_zbuffer(polygon.offset, row_term, col_term, lo, hi, v0, index, best_t, owner):
+        return
+    v0, band = primary_depth_band(polygon, intrinsics)
+    rows = slice(v0, v0 + len(band))
+    nearer = band < best_t[rows]
+    owner[rows][nearer] = index
+    best_t[rows][nearer] = band[nearer]
 
 
 def _inside(polygon: Polygon, q1: np.ndarray, q2: np.ndarray) -> np.ndarray:

@@ -144,3 +144,35 @@ def test_without_a_compiler_the_embree_path_casts_everything(embree_only):
     assert hits.hit.any() and np.allclose(hits.depth[hits.hit], 1.0, atol=1e-5)
     with pytest.raises(RuntimeError, match="unavailable"):
         raster.raster_hits(raster.raster_meshes([]), K, *(np.zeros(1),) * 5)
+
+
+def test_the_c_hit_attributes_are_the_numpy_lookups(monkeypatch):
+    """take_rows and hit_attributes (raster.c) give np.take's rows and the numpy hit attributes bit for bit: owner -1
+    reads the tables' last row, depth is 0 there (points -0.0 where a direction is negative, as numpy's product), a
+    polygon's hits name face 0."""
+    if raster._library() is None:
+        pytest.skip("no C compiler: the numpy definition is the only path")
+    rng = np.random.default_rng(6)
+    n, owners = 5000, 7
+    owner = rng.integers(-1, owners, n).astype(np.int32)
+    table = rng.normal(size=(owners + 1, 3)).astype(np.float32)
+    best_t = rng.uniform(0.3, 5.0, n).astype(np.float32)
+    directions = np.column_stack([rng.normal(size=(n, 2)), np.ones(n)]).astype(np.float32)
+    ids = np.append(rng.integers(0, 9, owners), 0).astype(np.uint16)
+    albedos = np.append(rng.random(owners), 0.0).astype(np.float32)
+    is_polygon = np.append(rng.random(owners) < 0.4, False)
+    triangle = rng.integers(0, 100, n).astype(np.int32)
+
+    def run():
+        tri = triangle.copy()
+        return (raster.take_rows(table, owner), *raster.hit_attributes(owner, best_t, directions, tri, ids, albedos,
+                                                                        is_polygon), tri)  # fmt: skip
+
+    fast = run()
+    monkeypatch.setattr(raster, "_library", lambda: None)
+    definition = run()
+    for got, expected in zip(fast, definition):
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)
+        assert np.array_equal(np.signbit(got), np.signbit(expected)) if got.dtype.kind == "f" else True
+    assert (fast[-1] == 0).sum() > (triangle == 0).sum() and (fast[2][owner < 0] == 0).all()

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ddsgen.preset import Intrinsics
-from ddsgen.raycast_planes import as_polygon, primary_depth, segments_blocked
+from ddsgen.raycast_planes import as_polygon, primary_depth, primary_depth_band, segments_blocked, write_primary_depth
 
 WIDTH, HEIGHT, FX, FY, CX, CY = 80, 60, 70.0, 72.0, 39.5, 29.5
 K = Intrinsics(width=WIDTH, height=HEIGHT, fx=FX, fy=FY, cx=CX, cy=CY)
@@ -59,6 +59,34 @@ def test_primary_depth_matches_a_per_pixel_float64_reference(crossing):
         np.testing.assert_allclose(got[both], expected[both], rtol=1e-4)  # float32 arithmetic, grazing rays
         seen += int(np.isfinite(got).sum())
     assert seen > 0.1 * 40 * WIDTH * HEIGHT  # the polygons were in view, the comparison was not vacuous
+
+
+def test_the_c_z_buffer_writes_the_numpy_definitions_depths(monkeypatch):
+    """write_primary_depth's C pass (raster.c) and its numpy definition leave the same z-buffer and owners bit for bit,
+    over rectangles in front of and across the camera plane drawn over each other in turn."""
+    import ddsgen.raster as raster
+
+    if raster._library() is None:
+        pytest.skip("no C compiler: the numpy definition is the only path")
+    rng = np.random.default_rng(11)
+    polygons = [as_polygon(_quad(rng, crossing).astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]]))
+                for crossing in (False, True) * 10]  # fmt: skip
+
+    def z_buffer():
+        best_t = np.full((HEIGHT, WIDTH), np.inf, dtype=np.float32)
+        owner = np.full((HEIGHT, WIDTH), -1, dtype=np.int32)
+        for k, polygon in enumerate(polygons):
+            write_primary_depth(polygon, K, k, best_t, owner)
+        return best_t, owner
+
+    fast = z_buffer()
+    monkeypatch.setattr(raster, "_library", lambda: None)
+    definition = z_buffer()
+    for got, expected in zip(fast, definition):
+        np.testing.assert_array_equal(got, expected)
+    assert len(np.unique(fast[1])) >= 4  # several polygons nearest somewhere: the test is not vacuous
+    v0, band = primary_depth_band(polygons[0], K)
+    assert np.isfinite(band).any() and v0 >= 0
 
 
 def test_a_floor_under_the_camera_fills_the_lower_image_to_the_horizon():

@@ -281,3 +281,58 @@ int ddsgen_raster_shadow(const float *vertices, const int32_t *faces, int64_t n_
     return 0;
 #undef RAY
 }
+
+/* ---- per-pixel attributes of the primary hits (ddsgen.raycast.cast), one pass each -----------------------
+ * Owner indices are rows of per-owner tables whose last row stands for "no hit" (owner -1), as numpy's
+ * np.take(table, owner) reads them. */
+
+/* out (n, cols) = rows of table (n_rows, cols) at index (n); index -1 reads the last row. */
+void ddsgen_take_rows(const float *table, int64_t n_rows, int64_t cols, const int32_t *index, int64_t n,
+                      float *out)
+{
+    for (int64_t i = 0; i < n; i++) {
+        const float *row = table + (index[i] >= 0 ? index[i] : n_rows - 1) * cols;
+        for (int64_t c = 0; c < cols; c++) out[i * cols + c] = row[c];
+    }
+}
+
+/* From each pixel's owner (-1: no hit) and ray parameter t along directions (n, 3) with z = 1: hit, depth
+ * (t, 0 without a hit), points = directions * depth, the owner's instance id and albedo; triangle set to 0
+ * where the owner is a polygon. ids, albedos, is_polygon: (n_owners + 1,), the last entry for no hit. */
+void ddsgen_hit_attributes(const int32_t *owner, const float *best_t, const float *directions, int64_t n,
+                           const uint16_t *ids, const float *albedos, const uint8_t *is_polygon, int64_t n_entries,
+                           uint8_t *hit, float *depth, float *points, int32_t *triangle, uint16_t *instance,
+                           float *albedo)
+{
+    for (int64_t i = 0; i < n; i++) {
+        const int64_t k = owner[i] >= 0 ? owner[i] : n_entries - 1;
+        const float d = owner[i] >= 0 ? best_t[i] : 0.0f;
+        hit[i] = owner[i] >= 0;
+        depth[i] = d;
+        for (int c = 0; c < 3; c++) points[3 * i + c] = directions[3 * i + c] * d;
+        if (is_polygon[k]) triangle[i] = 0;
+        instance[i] = ids[k];
+        albedo[i] = albedos[k];
+    }
+}
+
+/* A planar polygon's primary hits written into the z-buffer (ddsgen.raycast_planes.primary_depth_band and the
+ * update ddsgen.raycast.cast makes with it), rows v0 .. v0 + rows - 1 of a width-wide image: at pixel (u, v) the
+ * ray parameter offset / (row_term[v - v0] + col_term[u]) (float32, the numpy definition's order), kept where
+ * lo[v - v0] <= u <= hi[v - v0], it is > 0 and nearer than best_t; there owner becomes `index`. */
+void ddsgen_plane_zbuffer(float offset, const float *row_term, const float *col_term, const double *lo,
+                          const double *hi, int64_t v0, int64_t rows, int64_t width, int32_t index, float *best_t,
+                          int32_t *owner)
+{
+    for (int64_t r = 0; r < rows; r++) {
+        float *t = best_t + (v0 + r) * width;
+        int32_t *o = owner + (v0 + r) * width;
+        for (int64_t u = 0; u < width; u++) {
+            const float band = offset / (row_term[r] + col_term[u]);
+            if ((double)u >= lo[r] && (double)u <= hi[r] && band > 0.0f && band < t[u]) {
+                t[u] = band;
+                o[u] = index;
+            }
+        }
+    }
+}
