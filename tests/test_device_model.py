@@ -71,6 +71,31 @@ def test_speckle_field_keeps_landaus_gamma_marginal_and_has_the_optics_grain():
     assert abs(lag_correlation(white, 1)) < 0.02
 
 
+def test_the_c_speckle_quantiles_are_the_numpy_definitions(monkeypatch):
+    """csrc/speckle.c interpolates the Gamma quantile table as the numpy definition does, bit for bit: scores inside
+    the table, beyond both of its ends, on its grid points and on its last interval."""
+    from ddsgen.sensor import speckle
+
+    if speckle._library() is None:
+        pytest.skip("no C compiler: the numpy definition is the only path")
+    grid = np.linspace(-speckle._Z_MAX, speckle._Z_MAX, speckle._TABLE_SIZE, dtype=np.float32)
+    extra = np.array([-7.0, 6.0, 6.5, -6.0, 5.9999, np.float32(6.0) - np.float32(1e-6)], dtype=np.float32)
+
+    class Scores:  # correlated_normal's draws, then the hand-picked ones appended
+        def standard_normal(self, size, dtype):
+            values = np.random.default_rng(2).standard_normal(size=size, dtype=dtype) * np.float32(2.5)
+            flat = values.reshape(-1)
+            flat[: len(grid)] = grid
+            flat[len(grid) : len(grid) + len(extra)] = extra
+            return values
+
+    fast = speckle.speckle_field(90, 100, 4.54, 0.0, Scores())
+    monkeypatch.setattr(speckle, "_library", lambda: None)
+    definition = speckle.speckle_field(90, 100, 4.54, 0.0, Scores())
+    np.testing.assert_array_equal(fast, definition)
+    assert fast.min() > 0 and len(np.unique(fast)) > 8000
+
+
 def test_speckle_is_fixed_to_the_scene_and_read_noise_is_not():
     sensor = _device(speckle_fixed_to_scene=True)
     plane = plane_geometry(sensor.intr, 1.0)
