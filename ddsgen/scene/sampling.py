@@ -231,7 +231,7 @@ def _layout(scene: SceneSpec, seed: int, block_start: int):
     ground_half = np.full(2, math.inf)
     if scene.ground is not None:
         ground_half = np.asarray(scene.ground.size) / 2.0 - clutter.min_gap
-    placed: list[tuple[PlacedObject, np.ndarray]] = []
+    placed: list[tuple[PlacedObject, Footprint]] = []
     used: set[int] = set()
 
     def fits(footprint: Footprint) -> bool:
@@ -333,7 +333,8 @@ def _distractors(scene: SceneSpec, group: DistractorSpec, rng: np.random.Generat
         bounds = np.asarray(scene.floor.size) / 2.0 - gap
         if scene.ground is not None:
             gx, gy = np.asarray(scene.ground.size) / 2.0
-            taken.append(Footprint.of(np.array([[-gx, -gy], [gx, -gy], [gx, gy], [-gx, gy]])))  # the table's
+            table = np.array([[-gx, -gy], [gx, -gy], [gx, gy], [-gx, gy]])
+            taken.append(Footprint.of(table))  # the table's footprint
     else:
         base_z, max_height = 0.0, math.inf
         bounds = np.asarray(scene.ground.size) / 2.0 - gap
