@@ -185,7 +185,7 @@ def render_ir(
                        speckle_scale, read_noise_mean, read_noise_std, noise, ir_bits, quantise,
                        projector_falloff_exponent, vignetting_exponent, electrons_per_count, lens_aperture_m,
                        PATTERN_UNIT)  # fmt: skip
-    if fast is not None:  # the same image in C where no gradient is taken
+    if fast is not None:  # in C where no gradient is taken (ir_kernel: the same operations, exact square roots)
         return fast
     u_p, v_p = projector_coordinates(points, fx, fy, cx, cy, baseline)
     pattern = field.sample(u_p, v_p) * PATTERN_UNIT
