@@ -67,3 +67,21 @@ def load_c_library(source: bytes, stem: str, flags: list[str], what: str, fallba
     except (OSError, subprocess.SubprocessError) as error:
         log.warning("ddsgen %s: C kernel unavailable (%s); using the %s", what, error, fallback)
         return None
+
+
+#: Flags of the kernels that repeat a torch or numpy definition's float32 operations one by one: no FMA contraction
+#: (which would fuse a multiply and an add into one rounding), -fno-math-errno only so that sqrtf can vectorise.
+EXACT_FLOAT_FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fPIC", "-shared", "-std=gnu11"]
+
+
+def load_exact_c_library(package: str, filename: str, what: str, fallback: str,
+                         signatures: dict[str, list]) -> ctypes.CDLL | None:  # fmt: skip
+    """``package``'s ``csrc/filename`` compiled with :data:`EXACT_FLOAT_FLAGS` (:func:`load_c_library`), each
+    function of ``signatures`` (name -> ctypes argument types) declared returning nothing; None as there."""
+    stem = filename.rsplit(".", 1)[0]
+    lib = load_c_library(c_source(package, "csrc", filename), stem, EXACT_FLOAT_FLAGS, what, fallback)
+    if lib is not None:
+        for name, argtypes in signatures.items():
+            function = getattr(lib, name)
+            function.argtypes, function.restype = argtypes, None
+    return lib

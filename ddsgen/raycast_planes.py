@@ -154,13 +154,17 @@ def primary_depth_band(polygon: Polygon, intrinsics) -> tuple[int, np.ndarray]:
     terms = _depth_band_terms(polygon, intrinsics)
     if terms is None:
         return 0, np.empty((0, int(intrinsics.width)), dtype=np.float32)
-    v0, lo, hi, row_term, col_term = terms
+    return terms[0], _depth_band(polygon, *terms[1:])
+
+
+def _depth_band(polygon: Polygon, lo, hi, row_term, col_term) -> np.ndarray:
+    """(R, W) float32 ray parameters of :func:`_depth_band_terms`' rows, inf where the rays miss the polygon."""
     nd = row_term[:, None] + col_term[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         band = np.float32(polygon.offset) / nd
     cols = np.arange(len(col_term), dtype=np.float64)[None, :]
     ok = (cols >= lo[:, None]) & (cols <= hi[:, None]) & (band > 0)  # band > 0: False for nan
-    return v0, np.where(ok, band, np.float32(np.inf))
+    return np.where(ok, band, np.float32(np.inf))
 
 
 def write_primary_depth(polygon: Polygon, intrinsics, index: int, best_t: np.ndarray, owner: np.ndarray) -> None:
@@ -173,7 +177,7 @@ def write_primary_depth(polygon: Polygon, intrinsics, index: int, best_t: np.nda
     v0, lo, hi, row_term, col_term = terms
     if plane_zbuffer(polygon.offset, row_term, col_term, lo, hi, v0, index, best_t, owner):
         return
-    v0, band = primary_depth_band(polygon, intrinsics)
+    band = _depth_band(polygon, lo, hi, row_term, col_term)
     rows = slice(v0, v0 + len(band))
     nearer = band < best_t[rows]
     owner[rows][nearer] = index

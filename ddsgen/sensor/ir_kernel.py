@@ -19,21 +19,16 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from ddsgen.ckernel import c_source, load_c_library
+from ddsgen.ckernel import load_exact_c_library
 
 
 @functools.cache
 def _library():
-    # No FMA contraction: torch's float32 operations, one by one (-fno-math-errno only lets sqrtf vectorise).
-    flags = ["-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fPIC", "-shared", "-std=gnu11"]
-    lib = load_c_library(c_source("ddsgen", "csrc", "ir_image.c"), "ir_image", flags, "IR image", "torch path")
-    if lib is not None:
-        p, q, f, i = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
-        lib.ddsgen_ir_grid.argtypes = [p, q, f, f, f, f, f, f, f, f, f, f, f, p]
-        lib.ddsgen_ir_grid.restype = None
-        lib.ddsgen_ir_image.argtypes = [p, p, p, p, p, p, p, q, q, q] + [f] * 9 + [i, i, f, i, p, p]
-        lib.ddsgen_ir_image.restype = None
-    return lib
+    p, q, f, i = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
+    return load_exact_c_library("ddsgen", "ir_image.c", "IR image", "torch path", {
+        "ddsgen_ir_grid": [p, q, f, f, f, f, f, f, f, f, f, f, f, p],
+        "ddsgen_ir_image": [p, p, p, p, p, p, p, q, q, q] + [f] * 9 + [i, i, f, i, p, p],
+    })  # fmt: skip
 
 
 def _whole_exponent(exponent: float) -> int | None:
@@ -44,8 +39,9 @@ def _whole_exponent(exponent: float) -> int | None:
     return None
 
 
-def _scalar(value) -> float:
-    """A float32 scalar (0-d tensor or Python number) as the float the torch definition computes with."""
+def float32_value(value) -> float:
+    """A scalar (0-d tensor or Python number) as the float32 a torch float32 operation computes with: Python numbers
+    rounded once, float32 tensors as they are."""
     return float(torch.as_tensor(value, dtype=torch.float32))
 
 
@@ -74,16 +70,16 @@ def render_ir_c(points: torch.Tensor, normals: torch.Tensor, albedo: torch.Tenso
     albedo, lit = albedo.contiguous(), lit.contiguous()
     hs, ws = field.raster.shape
     grid = torch.empty((1, 1, height * width, 2), dtype=torch.float32)
-    lib.ddsgen_ir_grid(points.data_ptr(), height * width, *(_scalar(v) for v in (fx, fy, cx, cy, baseline)),
-                       *(_scalar(v) for v in (field.origin_u, field.origin_v, field.sx, field.sy, ws, hs)),
+    lib.ddsgen_ir_grid(points.data_ptr(), height * width, *(float32_value(v) for v in (fx, fy, cx, cy, baseline)),
+                       *(float32_value(v) for v in (field.origin_u, field.origin_v, field.sx, field.sy, ws, hs)),
                        grid.data_ptr())  # fmt: skip
     pattern = F.grid_sample(field.raster[None, None], grid, mode="bilinear", padding_mode="zeros",
                             align_corners=False).reshape(height, width)  # fmt: skip
     ir, signal = torch.empty((height, width)), torch.empty((height, width))
     lib.ddsgen_ir_image(points.data_ptr(), normals.data_ptr(), albedo.data_ptr(), lit.data_ptr(), pattern.data_ptr(),
                         speckle.data_ptr(), read.data_ptr(), speckle.stride(0), height, width,
-                        *(_scalar(v) for v in (pattern_unit, baseline, emitted_intensity, ambient, speckle_scale,
+                        *(float32_value(v) for v in (pattern_unit, baseline, emitted_intensity, ambient, speckle_scale,
                                                read_noise_mean, read_noise_std, read_noise_std**2, electrons_per_count)),
-                        falloff, vignetting, _scalar(2.0**ir_bits - 1.0), int(bool(quantise)),
+                        falloff, vignetting, float32_value(2.0**ir_bits - 1.0), int(bool(quantise)),
                         ir.data_ptr(), signal.data_ptr())  # fmt: skip
     return ir, signal

@@ -22,8 +22,9 @@ import functools
 
 import torch
 
-from ddsgen.ckernel import c_source, load_c_library
+from ddsgen.ckernel import load_exact_c_library
 from ddsgen.sensor.ir import straight_through_round
+from ddsgen.sensor.ir_kernel import float32_value
 
 #: Neighbours whose disparity differs by more than this (px) are another surface and are not averaged in.
 SAME_SURFACE_PX = 1.0
@@ -61,20 +62,9 @@ def smooth_along_rows(disparity: torch.Tensor, valid: torch.Tensor, weight: floa
 
 @functools.cache
 def _library():
-    # No FMA contraction: torch's float32 operations, one by one.
-    flags = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=gnu11"]
-    lib = load_c_library(c_source("ddsgen", "csrc", "row_smoothing.c"), "row_smoothing", flags, "row smoothing",
-                         "torch path")  # fmt: skip
-    if lib is not None:
-        p, q, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
-        lib.ddsgen_smooth_along_rows.argtypes = [p, p, q, q, f, f, f, f, p]
-        lib.ddsgen_smooth_along_rows.restype = None
-    return lib
-
-
-def _float32(value) -> float:
-    """A scalar as the float32 the torch definition multiplies by (Python numbers rounded once, tensors as they are)."""
-    return float(torch.as_tensor(value, dtype=torch.float32))
+    p, q, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+    return load_exact_c_library("ddsgen", "row_smoothing.c", "row smoothing", "torch path",
+                                {"ddsgen_smooth_along_rows": [p, p, q, q, f, f, f, f, p]})
 
 
 def _smooth_along_rows_c(disparity: torch.Tensor, valid: torch.Tensor, weight, quantum_px) -> torch.Tensor | None:
@@ -90,7 +80,7 @@ def _smooth_along_rows_c(disparity: torch.Tensor, valid: torch.Tensor, weight, q
     source = disparity.contiguous()
     mask = valid.to(device="cpu", dtype=torch.bool).contiguous()  # one byte per pixel, 0 or 1
     out = torch.empty_like(source)
-    lib.ddsgen_smooth_along_rows(source.data_ptr(), mask.data_ptr(), height, width, _float32(1.0 - 2.0 * weight),
-                                 _float32(weight), _float32(SAME_SURFACE_PX),
-                                 0.0 if quantum_px is None else _float32(quantum_px), out.data_ptr())  # fmt: skip
+    lib.ddsgen_smooth_along_rows(source.data_ptr(), mask.data_ptr(), height, width, float32_value(1.0 - 2.0 * weight),
+                                 float32_value(weight), float32_value(SAME_SURFACE_PX),
+                                 0.0 if quantum_px is None else float32_value(quantum_px), out.data_ptr())  # fmt: skip
     return out

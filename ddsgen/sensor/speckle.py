@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import torch
 
-from ddsgen.ckernel import c_source, load_c_library
+from ddsgen.ckernel import load_exact_c_library
 from ddsgen.tensor_memo import memoised
 
 # Quantile table resolution (normal scores from -_Z_MAX to _Z_MAX); beyond it the table's ends
@@ -99,14 +99,9 @@ def speckle_field(height: int, width: int, shape: float, grain_px: float, rng: n
 
 @functools.cache
 def _library():
-    # No FMA contraction: numpy's float32 operations, one by one.
-    flags = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=gnu11"]
-    lib = load_c_library(c_source("ddsgen", "csrc", "speckle.c"), "speckle", flags, "speckle", "numpy path")
-    if lib is not None:
-        p, q, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
-        lib.ddsgen_gamma_quantiles.argtypes = [p, q, f, f, p, q, p]
-        lib.ddsgen_gamma_quantiles.restype = None
-    return lib
+    p, q, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+    return load_exact_c_library("ddsgen", "speckle.c", "speckle", "numpy path",
+                                {"ddsgen_gamma_quantiles": [p, q, f, f, p, q, p]})
 
 
 def _gamma_quantiles_c(normal: np.ndarray, table: np.ndarray) -> np.ndarray | None:

@@ -12,19 +12,14 @@ import functools
 
 import torch
 
-from ddsgen.ckernel import c_source, load_c_library
+from ddsgen.ckernel import load_exact_c_library
 
 
 @functools.cache
 def _library():
-    flags = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=gnu11"]
-    lib = load_c_library(c_source(__package__, "csrc", "validity.c"), "validity", flags, "matcher validity",
-                         "torch path")  # fmt: skip
-    if lib is not None:
-        p, q, i, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_float
-        lib.ddsgen_match_validity.argtypes = [p, p, p, p, q, q, q, q, i, f, f, p, p, p, p, p, p, p]
-        lib.ddsgen_match_validity.restype = None
-    return lib
+    p, q, i, f = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_float
+    return load_exact_c_library(__package__, "validity.c", "matcher validity", "torch path",
+                                {"ddsgen_match_validity": [p, p, p, p, q, q, q, q, i, f, f, p, p, p, p, p, p, p]})
 
 
 def match_validity_c(best: torch.Tensor, second: torch.Tensor, arg: torch.Tensor, arg2: torch.Tensor, k_hi: int,
