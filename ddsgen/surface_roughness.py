@@ -25,6 +25,7 @@ robust sigma 1.4826 MAD of the residuals, in px.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 
 import cv2
 import numpy as np
@@ -45,6 +46,9 @@ SLANTED_SLOPE = (0.07, 0.15)
 #: Residuals are taken at every STRIDE-th row and column (a window's fit costs a 6 x 6 solve; neighbours' residuals
 #: share most of their window anyway).
 STRIDE = 2
+#: The depth bins (m) of :func:`flat_roughness_by_depth`: real PrimeSense frames have flat surfaces in each of them
+#: (IC-BIN's bins of objects from 0.5 m, the LineMOD cat's table to 1.8 m).
+DEPTH_BINS_M = (0.5, 0.6, 0.7, 0.85, 1.0, 1.25, 1.6, 2.2)
 #: A bin with fewer residuals has no roughness (None).
 MIN_PIXELS = 200
 #: The keys of :func:`surface_roughness`'s result.
@@ -139,18 +143,25 @@ class SurfaceResiduals:
     """The residuals of the pixels measured (:func:`surface_residuals`), all (N,).
 
     residual: px; slope: |dd/du| (px per px); right, below: the neighbours' residuals under the same fit (px; NaN
-    where not usable or beyond :data:`OUTLIER_PX`).
+    where not usable or beyond :data:`OUTLIER_PX`); depth_m: the pixel's measured depth (m).
     """
 
     residual: np.ndarray
     slope: np.ndarray
     right: np.ndarray
     below: np.ndarray
+    depth_m: np.ndarray
+
+    def _subset(self, keep: np.ndarray) -> SurfaceResiduals:
+        return SurfaceResiduals(*(getattr(self, f.name)[keep] for f in dataclasses.fields(self)))
 
     def where(self, low: float, high: float) -> SurfaceResiduals:
         """The pixels whose slope lies in [low, high)."""
-        keep = (self.slope >= low) & (self.slope < high)
-        return SurfaceResiduals(self.residual[keep], self.slope[keep], self.right[keep], self.below[keep])
+        return self._subset((self.slope >= low) & (self.slope < high))
+
+    def at_depth(self, low: float, high: float) -> SurfaceResiduals:
+        """The pixels whose measured depth lies in [low, high) (m)."""
+        return self._subset((self.depth_m >= low) & (self.depth_m < high))
 
 
 def surface_residuals(depth_m: np.ndarray, disparity_fb: float, valid: np.ndarray | None = None,
@@ -179,7 +190,7 @@ def surface_residuals(depth_m: np.ndarray, disparity_fb: float, valid: np.ndarra
         return np.where(np.abs(values) < OUTLIER_PX, values, np.nan)
 
     return SurfaceResiduals(fit.residual[measured], np.abs(fit.slope_u[measured]), neighbour(fit.right_residual),
-                            neighbour(fit.below_residual))  # fmt: skip
+                            neighbour(fit.below_residual), depth[measured])  # fmt: skip
 
 
 def robust_sigma(values: np.ndarray) -> float | None:
@@ -218,6 +229,27 @@ def roughness_by_slope(residuals: SurfaceResiduals, bins=SLOPE_BINS) -> list[dic
     for low, high in zip(bins[:-1], bins[1:]):
         inside = residuals.where(low, high).residual
         rows.append({"slope_px": [low, high], "roughness_px": robust_sigma(inside), "pixels": int(len(inside))})
+    return rows
+
+
+def flat_roughness_by_depth(frames: Iterable[SurfaceResiduals], bins=DEPTH_BINS_M) -> list[dict]:
+    """The flat roughness (slopes :data:`FLAT_SLOPE`) per depth bin, pooled over frames.
+
+    The sensor's disparity noise against distance, measured where real frames have it without ground truth: a
+    real PrimeSense device's stays near 0.06 px from 0.5 to 2 m (docs/noise_study.md, session 52).
+
+    Args:
+        frames: each frame's :func:`surface_residuals` (one sensor: the same f b).
+        bins: depth bin edges (m), increasing.
+
+    Returns:
+        Per bin ``{"depth_m": [low, high], "roughness_px": robust sigma or None, "pixels": n}``.
+    """
+    flat = [residuals.where(*FLAT_SLOPE) for residuals in frames]
+    rows = []
+    for low, high in zip(bins[:-1], bins[1:]):
+        inside = np.concatenate([residuals.at_depth(low, high).residual for residuals in flat] or [np.empty(0)])
+        rows.append({"depth_m": [low, high], "roughness_px": robust_sigma(inside), "pixels": int(len(inside))})
     return rows
 
 
