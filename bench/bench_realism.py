@@ -7,6 +7,9 @@ Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statist
   sim_cat_*         the same frame simulated at its ground-truth pose (ddsgen compare's region and seed 0)
   real_icbin_*      the nine real IC-BIN PrimeSense frames, whole image (min and max over the frames)
   real_tum_*        the real TUM RGB-D frame (Kinect V1, another scene at 1.5-9 m, depth in 1/5000 m), whole image
+  *_flat_roughness_A_to_Bm   the disparity noise where flat, per depth bin, pooled over the frames (px;
+                    ddsgen.surface_roughness.flat_roughness_by_depth); nguyen_* is Nguyen 2012's sigma_z read as
+                    disparity, sigma_z f b / z^2 at the bin's centre
   sim_render_*      frames of the built-in scene list (`ddsgen render PRESET -n 4`), whole image (min and max);
                     sim_render_frames_*: how many frames meet issue 12's per-frame targets (10-120 isolated
                     dropouts, their share of the invalid pixels <= 2 %, both)
@@ -35,6 +38,8 @@ DATA = ROOT.parent / "shared" / "data"
 from ddsgen.depth_jumps import band_outcomes, registration_band_jumps  # noqa: E402
 from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
+from ddsgen.study.noise import nguyen_sigma  # noqa: E402
+from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
         "isolated_dropout_share": "", "isolated_dropout_share_off_border": "", "isolated_dropout_mean_px": "px", "depth_step_at_1m_mm": "mm",
@@ -117,6 +122,18 @@ def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
     print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
 
 
+def _print_roughness_by_depth(name: str, depths: list[np.ndarray], fb: float) -> None:
+    """Flat roughness per depth bin, pooled over the frames; with the real frames also Nguyen's curve in px."""
+    for row in flat_roughness_by_depth([surface_residuals(d, fb) for d in depths]):
+        low, high = row["depth_m"]
+        if row["roughness_px"] is not None:
+            print(f"bench: {name}_flat_roughness_{low:g}_to_{high:g}m {row['roughness_px']:.4g} px "
+                  f"({row['pixels']} pixels)", flush=True)
+        if name.startswith("real"):
+            z = 0.5 * (low + high)
+            print(f"bench: nguyen_{low:g}_to_{high:g}m {float(nguyen_sigma(z)) * fb / z**2:.4g} px", flush=True)
+
+
 def _read_mm(path: Path) -> np.ndarray:
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
 
@@ -134,6 +151,7 @@ def real_icbin() -> None:
     depths = [_read_mm(p) for p in paths]
     _print_range("real_icbin", [realism_statistics(d, disparity_fb=ICBIN_FB) for d in depths])
     _print_pooled("real_icbin", depths)
+    _print_roughness_by_depth("real_icbin", depths, ICBIN_FB)
 
 
 TUM_DEPTH = DATA / "tum_rgbd_frame_open3d" / "TUM_depth.png"
@@ -163,6 +181,7 @@ def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
     stats = [realism_statistics(d, disparity_fb=fb) for d in depths]
     _print_range("sim_render", stats)
     _print_pooled("sim_render", depths)
+    _print_roughness_by_depth("sim_render", depths, fb)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid
     # pixels (with --frames 16, seed 0: the frames docs/realism.md reports).
     counts = [10 <= s["isolated_dropouts"] <= 120 for s in stats]
