@@ -124,7 +124,8 @@ def test_rendered_frames_are_as_rough_as_real_ones_at_every_depth(default_frames
     2.2 m: real 0.062, 0.064, 0.051, 0.051, 0.052, 0.056, 0.055 px, flat with depth; these four frames 0.061, 0.059,
     0.061, 0.061, 0.063, 0.059, 0.055 (16 frames 0.053-0.063); the paper preset's 0.097-0.102. Nguyen 2012's sigma_z
     read as disparity (sigma_z f b / z^2) rises to 0.176 px at 0.55 m, 2.8x the real frames' roughness there: the
-    near-range points of `ddsgen study noise` are judged against these frames too (docs/noise_study.md, session 52)."""
+    near-range points of `ddsgen study noise` are judged against these frames too (docs/noise_study.md, "The near
+    range, the same way")."""
     import cv2
 
     from ddsgen.study.noise import nguyen_sigma
