@@ -16,7 +16,8 @@ Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statist
   distreal_step_at_1m_mm   the level spacing of the real Kinect for Windows list distReal_mm.txt at 1 m
 
 Usage: python bench/bench_realism.py [PRESET] [--frames N] [--pictures DIR]
-(PRESET defaults to kinect_v1; --pictures writes side-by-side PNGs of real and simulated depth.)
+(PRESET defaults to kinect_v1; --pictures writes side-by-side PNGs of real and simulated depth, and the flat
+roughness against depth as a plot.)
 Statistics of missing real data are skipped with a note.
 """
 
@@ -122,16 +123,47 @@ def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
     print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
 
 
-def _print_roughness_by_depth(name: str, depths: list[np.ndarray], fb: float) -> None:
-    """Flat roughness per depth bin, pooled over the frames; with the real frames also Nguyen's curve in px."""
-    for row in flat_roughness_by_depth([surface_residuals(d, fb) for d in depths]):
+def _print_roughness_by_depth(name: str, depths: list[np.ndarray], fb: float) -> list[dict]:
+    """Flat roughness per depth bin, pooled over the frames (its rows); with the real frames also Nguyen's curve."""
+    rows = flat_roughness_by_depth([surface_residuals(d, fb) for d in depths])
+    for row in rows:
         low, high = row["depth_m"]
         if row["roughness_px"] is not None:
             print(f"bench: {name}_flat_roughness_{low:g}_to_{high:g}m {row['roughness_px']:.4g} px "
                   f"({row['pixels']} pixels)", flush=True)
         if name.startswith("real"):
-            z = 0.5 * (low + high)
-            print(f"bench: nguyen_{low:g}_to_{high:g}m {float(nguyen_sigma(z)) * fb / z**2:.4g} px", flush=True)
+            print(f"bench: nguyen_{low:g}_to_{high:g}m {_nguyen_px(0.5 * (low + high), fb):.4g} px", flush=True)
+    return rows
+
+
+def _nguyen_px(z, fb: float):
+    """Nguyen 2012's axial sigma at depth z (m), read as disparity: sigma_z f b / z^2 (px)."""
+    return nguyen_sigma(z) * fb / np.asarray(z) ** 2
+
+
+def roughness_picture(path: Path, real_rows: list[dict], sim_rows: list[dict], preset_name: str, fb: float) -> None:
+    """Flat roughness against depth: the real frames' bins, the renders' and Nguyen's curve, as disparity (px)."""
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(7, 4.2), dpi=110)
+    axes = figure.add_subplot()
+    for rows, label, style in ((real_rows, "real PrimeSense (IC-BIN, 9 frames)", "ks-"),
+                               (sim_rows, f"ddsgen {preset_name}, rendered", "o-")):  # fmt: skip
+        kept = [row for row in rows if row["roughness_px"] is not None]
+        centres = [0.5 * sum(row["depth_m"]) for row in kept]
+        half_widths = [0.5 * (row["depth_m"][1] - row["depth_m"][0]) for row in kept]
+        axes.errorbar(centres, [row["roughness_px"] for row in kept], xerr=half_widths, fmt=style, capsize=2,
+                      label=label)  # fmt: skip
+    z = np.linspace(0.5, 2.2, 100)
+    axes.plot(z, _nguyen_px(z, fb), "--", color="grey", label="Nguyen 2012 sigma_z, as disparity")
+    axes.set_xlabel("depth (m)")
+    axes.set_ylabel("flat roughness (px of disparity)")
+    axes.set_ylim(0, None)
+    axes.set_title("Disparity noise where flat, against depth (15 x 15 px local fits)")
+    axes.grid(alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path)
 
 
 def _read_mm(path: Path) -> np.ndarray:
@@ -143,15 +175,16 @@ def icbin_frames() -> list[Path]:
     return sorted(folder.glob("seq*/depth/*.png")) if folder.is_dir() else []
 
 
-def real_icbin() -> None:
+def real_icbin() -> list[dict]:
+    """Prints the IC-BIN frames' statistics; returns their flat roughness by depth (empty without the frames)."""
     paths = icbin_frames()
     if not paths:
         print("# IC-BIN frames absent: skipped", flush=True)
-        return
+        return []
     depths = [_read_mm(p) for p in paths]
     _print_range("real_icbin", [realism_statistics(d, disparity_fb=ICBIN_FB) for d in depths])
     _print_pooled("real_icbin", depths)
-    _print_roughness_by_depth("real_icbin", depths, ICBIN_FB)
+    return _print_roughness_by_depth("real_icbin", depths, ICBIN_FB)
 
 
 TUM_DEPTH = DATA / "tum_rgbd_frame_open3d" / "TUM_depth.png"
@@ -170,7 +203,7 @@ def real_tum() -> None:
     _print("real_tum", realism_statistics(depth, disparity_fb=TUM_FB))
 
 
-def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
+def rendered(preset_name: str, n: int, pictures: Path | None, real_roughness: list[dict]) -> None:
     from ddsgen.runner import render_dataset
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -181,7 +214,9 @@ def rendered(preset_name: str, n: int, pictures: Path | None) -> None:
     stats = [realism_statistics(d, disparity_fb=fb) for d in depths]
     _print_range("sim_render", stats)
     _print_pooled("sim_render", depths)
-    _print_roughness_by_depth("sim_render", depths, fb)
+    roughness = _print_roughness_by_depth("sim_render", depths, fb)
+    if pictures is not None and real_roughness:
+        roughness_picture(pictures / "realism_roughness_by_depth.png", real_roughness, roughness, preset_name, fb)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid
     # pixels (with --frames 16, seed 0: the frames docs/realism.md reports).
     counts = [10 <= s["isolated_dropouts"] <= 120 for s in stats]
@@ -220,11 +255,11 @@ def main() -> int:
     torch.set_num_threads(1)
     if args.pictures is not None:
         args.pictures.mkdir(parents=True, exist_ok=True)
-    real_icbin()
+    real_roughness = real_icbin()
     real_tum()
     distreal_step()
     cat_frame(args.preset, args.pictures)
-    rendered(args.preset, args.frames, args.pictures)
+    rendered(args.preset, args.frames, args.pictures, real_roughness)
     return 0
 
 

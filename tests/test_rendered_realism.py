@@ -120,12 +120,12 @@ def test_rendered_frames_are_as_rough_as_real_ones_where_flat_and_where_slanted(
 @pytest.mark.skipif(not (SHARED / "icbin_primesense_unpaired").is_dir(), reason="../shared/data is absent")
 def test_rendered_frames_are_as_rough_as_real_ones_at_every_depth(default_frames):
     """The disparity noise against distance, where flat, judged by real frames (ddsgen.surface_roughness
-    .flat_roughness_by_depth; IC-BIN with a Carmine's nominal f b, the cat with LineMOD's). Measured, 0.5 m bins up to
-    2.2 m: real 0.062, 0.064, 0.051, 0.051, 0.052, 0.056, 0.055 px, flat with depth; these four frames 0.061, 0.059,
-    0.061, 0.061, 0.063, 0.059, 0.055 (16 frames 0.053-0.063); the paper preset's 0.097-0.102. Nguyen 2012's sigma_z
-    read as disparity (sigma_z f b / z^2) rises to 0.176 px at 0.55 m, 2.8x the real frames' roughness there: the
-    near-range points of `ddsgen study noise` are judged against these frames too (docs/noise_study.md, "The near
-    range, the same way")."""
+    .flat_roughness_by_depth; IC-BIN with a Carmine's nominal f b, the cat with LineMOD's). Measured in the bins of
+    DEPTH_BINS_M (0.5-2.2 m): real 0.062, 0.064, 0.051, 0.051, 0.052, 0.056, 0.055 px, flat with depth; these four
+    frames 0.061, 0.059, 0.061, 0.061, 0.063, 0.059, 0.055 (16 frames 0.053-0.063); the paper preset's 0.097-0.102.
+    Nguyen 2012's sigma_z read as disparity (sigma_z f b / z^2) rises to 0.176 px at 0.55 m, 2.8x the real frames'
+    roughness there: the near-range points of `ddsgen study noise` are judged against these frames too
+    (docs/noise_study.md, "The near range, the same way")."""
     import cv2
 
     from ddsgen.study.noise import nguyen_sigma
