@@ -9,7 +9,7 @@ Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statist
   real_tum_*        the real TUM RGB-D frame (Kinect V1, another scene at 1.5-9 m, depth in 1/5000 m), whole image
   *_flat_roughness_A_to_Bm   the disparity noise where flat, per depth bin, pooled over the frames (px;
                     ddsgen.surface_roughness.flat_roughness_by_depth); nguyen_* is Nguyen 2012's sigma_z read as
-                    disparity, sigma_z f b / z^2 at the bin's centre
+                    disparity with the preset's f b, sigma_z f b / z^2 at the bin's centre
   sim_render_*      frames of the built-in scene list (`ddsgen render PRESET -n 4`), whole image (min and max);
                     sim_render_frames_*: how many frames meet issue 12's per-frame targets (10-120 isolated
                     dropouts, their share of the invalid pixels <= 2 %, both)
@@ -123,15 +123,15 @@ def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
     print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
 
 
-def _print_roughness_by_depth(name: str, depths: list[np.ndarray], fb: float) -> list[dict]:
-    """Flat roughness per depth bin, pooled over the frames (its rows); with the real frames also Nguyen's curve."""
+def _print_roughness_by_depth(name: str, depths: list[np.ndarray], fb: float, nguyen: bool = False) -> list[dict]:
+    """Flat roughness per depth bin, pooled over the frames (its rows); ``nguyen``: also Nguyen's curve at f b."""
     rows = flat_roughness_by_depth([surface_residuals(d, fb) for d in depths])
     for row in rows:
         low, high = row["depth_m"]
         if row["roughness_px"] is not None:
             print(f"bench: {name}_flat_roughness_{low:g}_to_{high:g}m {row['roughness_px']:.4g} px "
                   f"({row['pixels']} pixels)", flush=True)
-        if name.startswith("real"):
+        if nguyen:
             print(f"bench: nguyen_{low:g}_to_{high:g}m {_nguyen_px(0.5 * (low + high), fb):.4g} px", flush=True)
     return rows
 
@@ -214,7 +214,7 @@ def rendered(preset_name: str, n: int, pictures: Path | None, real_roughness: li
     stats = [realism_statistics(d, disparity_fb=fb) for d in depths]
     _print_range("sim_render", stats)
     _print_pooled("sim_render", depths)
-    roughness = _print_roughness_by_depth("sim_render", depths, fb)
+    roughness = _print_roughness_by_depth("sim_render", depths, fb, nguyen=True)
     if pictures is not None and real_roughness:
         roughness_picture(pictures / "realism_roughness_by_depth.png", real_roughness, roughness, preset_name, fb)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid

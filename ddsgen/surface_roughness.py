@@ -47,7 +47,7 @@ SLANTED_SLOPE = (0.07, 0.15)
 #: share most of their window anyway).
 STRIDE = 2
 #: The depth bins (m) of :func:`flat_roughness_by_depth`: real PrimeSense frames have flat surfaces in each of them
-#: (IC-BIN's bins of objects from 0.5 m, the LineMOD cat's table to 1.8 m).
+#: (IC-BIN's piles of objects from 0.5 m, the LineMOD cat's table to 1.8 m).
 DEPTH_BINS_M = (0.5, 0.6, 0.7, 0.85, 1.0, 1.25, 1.6, 2.2)
 #: A bin with fewer residuals has no roughness (None).
 MIN_PIXELS = 200

@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddsgen.surface_roughness import local_quadratic_fit, roughness_by_slope, surface_residuals, surface_roughness
+from ddsgen.surface_roughness import (flat_roughness_by_depth, local_quadratic_fit, roughness_by_slope, surface_residuals,
+                                      surface_roughness)
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 FB = 572.41 * 0.075  # the Kinect's f b (px m)
@@ -35,6 +36,26 @@ def test_a_noisy_slanted_surface_gives_its_noise_and_its_slope(slope):
     measured = [row for row in rows if row["roughness_px"] is not None]
     assert len(measured) == 1 and measured[0]["slope_px"][0] <= slope < measured[0]["slope_px"][1], rows
     assert measured[0]["roughness_px"] == pytest.approx(0.08 * np.sqrt(1 - 6 / 225), rel=0.05)
+
+
+def test_flat_roughness_is_binned_by_depth_and_pooled_over_frames():
+    """Two flat surfaces per frame, one at 0.55 m with 0.04 px of disparity noise and one at 1.5 m with 0.09 px (the
+    same f b): each noise comes out in its own depth bin, pooled over two frames (each frame's pixels counted), the
+    bins between them empty, and a slanted surface (slope 0.1) does not count as flat."""
+    def frame(seed):
+        near = _surface_depth(0.0, 0.04, seed=seed, base_px=FB / 0.55)
+        far = _surface_depth(0.0, 0.09, seed=seed + 10, base_px=FB / 1.5)
+        return np.concatenate([near, far], axis=1)
+
+    one = flat_roughness_by_depth([surface_residuals(frame(0), FB)])
+    rows = flat_roughness_by_depth([surface_residuals(frame(0), FB), surface_residuals(frame(1), FB)])
+    by_bin = {tuple(row["depth_m"]): row for row in rows}
+    assert by_bin[(0.5, 0.6)]["roughness_px"] == pytest.approx(0.04 * np.sqrt(1 - 6 / 225), rel=0.05)
+    assert by_bin[(1.25, 1.6)]["roughness_px"] == pytest.approx(0.09 * np.sqrt(1 - 6 / 225), rel=0.05)
+    assert by_bin[(0.5, 0.6)]["pixels"] == 2 * one[0]["pixels"] > 2000
+    assert all(row["roughness_px"] is None and row["pixels"] == 0 for row in rows[1:5]), rows
+    slanted = flat_roughness_by_depth([surface_residuals(_surface_depth(0.1, 0.04, base_px=FB / 0.55), FB)])
+    assert slanted[0]["pixels"] == 0
 
 
 def test_windows_across_a_depth_edge_do_not_count():
