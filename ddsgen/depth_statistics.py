@@ -286,7 +286,7 @@ def depth_step_at_1m(depth_m: np.ndarray, valid: np.ndarray | None = None, regio
 
 
 def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, region: np.ndarray | None = None,
-                       resolution_m: float = 0.001, disparity_fb: float | None = None) -> dict:
+                       resolution_m: float = 0.001, disparity_fb: float | None = None, residuals=None) -> dict:
     """The hole, validity and quantisation statistics of one frame, as a JSON-ready dict.
 
     Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),
@@ -302,10 +302,11 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     ``outline_jitter_px`` (:func:`ddsgen.silhouette_edges.outline_jitter`; None without outlines),
     ``flat_roughness_px``, ``slanted_roughness_px``, ``slant_roughness_ratio``, ``noise_correlation_row``,
     ``noise_correlation_column`` (:func:`ddsgen.surface_roughness.surface_roughness`, in the disparity of a sensor
-    with ``disparity_fb`` = f b in px m; None without it or without enough such surface), ``pixels``.
+    with ``disparity_fb`` = f b in px m; None without it or without enough such surface; ``residuals``: those of
+    :func:`ddsgen.surface_roughness.surface_residuals` for this frame when already computed), ``pixels``.
     """
     from ddsgen.silhouette_edges import outline_jitter
-    from ddsgen.surface_roughness import ROUGHNESS_KEYS, surface_roughness
+    from ddsgen.surface_roughness import ROUGHNESS_KEYS, roughness_summary, surface_residuals
 
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
@@ -320,6 +321,8 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     one_surface, at_edge = isolated_dropouts_by_rim(valid_depth, region)
     band_holes, band_jumps, slits, narrow_jumps = band_outcomes(*registration_band_jumps(valid_depth, region))
     vertical, horizontal = _orientation(*components[2:])
+    if residuals is None and disparity_fb:
+        residuals = surface_residuals(valid_depth, disparity_fb, valid, region)
     return {
         "valid_share": whole,
         "corner_valid_share": corner,
@@ -336,7 +339,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
         "narrow_band_slit_share": slits / narrow_jumps if narrow_jumps else None,
         "isolated_vertical_share": vertical / (vertical + horizontal) if vertical + horizontal else None,
         "outline_jitter_px": outline_jitter(valid_depth, region)["outline_jitter_px"],
-        **(surface_roughness(valid_depth, disparity_fb, valid, region) if disparity_fb
-           else dict.fromkeys(ROUGHNESS_KEYS)),  # fmt: skip
+        **(roughness_summary(residuals) if residuals is not None else dict.fromkeys(ROUGHNESS_KEYS)),
         "pixels": int(region.sum()),
     }

@@ -256,14 +256,17 @@ def flat_roughness_by_depth(frames: Iterable[SurfaceResiduals], bins=DEPTH_BINS_
 
 def surface_roughness(depth_m: np.ndarray, disparity_fb: float, valid: np.ndarray | None = None,
                       region: np.ndarray | None = None) -> dict:  # fmt: skip
-    """The frame's roughness on flat and on slanted surfaces (px), their ratio, and the flat noise's grain.
+    """The frame's roughness on flat and on slanted surfaces (px), their ratio, and the flat noise's grain:
+    :func:`roughness_summary` of :func:`surface_residuals` (same arguments)."""
+    return roughness_summary(surface_residuals(depth_m, disparity_fb, valid, region))
 
-    Returns ``{"flat_roughness_px", "slanted_roughness_px", "slant_roughness_ratio", "noise_correlation_row",
-    "noise_correlation_column"}``: the robust sigma of the residuals at slopes :data:`FLAT_SLOPE` and
-    :data:`SLANTED_SLOPE`, slanted / flat, and where flat the correlation of a residual with its right and with its
-    lower neighbour's; None where fewer than :data:`MIN_PIXELS` pixels are measured.
+
+def roughness_summary(residuals: SurfaceResiduals) -> dict:
+    """``{"flat_roughness_px", "slanted_roughness_px", "slant_roughness_ratio", "noise_correlation_row",
+    "noise_correlation_column"}`` of one frame's residuals: the robust sigma of the residuals at slopes
+    :data:`FLAT_SLOPE` and :data:`SLANTED_SLOPE`, slanted / flat, and where flat the correlation of a residual with its
+    right and with its lower neighbour's; None where fewer than :data:`MIN_PIXELS` pixels are measured.
     """
-    residuals = surface_residuals(depth_m, disparity_fb, valid, region)
     flat = residuals.where(*FLAT_SLOPE)
     flat_sigma = robust_sigma(flat.residual)
     slanted_sigma = robust_sigma(residuals.where(*SLANTED_SLOPE).residual)

@@ -91,22 +91,26 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
     clean = full_frame(np.asarray(frame.clean_depth), frame, 0.0)
     instance = full_frame(np.asarray(frame.instance), frame, 0)
     fb = frame.intrinsics.fx * baseline_m if baseline_m else None
+    real_residuals = sim_residuals = None
+    if fb:
+        # In the compare region the simulation's roughness is measured as the real values are stored (rounded to
+        # their unit: at 0.5 m a millimetre's rounding alone is 0.05 px of disparity noise); computed once here for
+        # realism_statistics and for the pooled flat roughness by depth (aggregate()).
+        stored = np.round(sim_depth / real_resolution_m) * real_resolution_m if real_resolution_m else sim_depth
+        real_residuals = surface_residuals(real, fb, real_valid, region)
+        sim_residuals = surface_residuals(stored, fb, sim_valid, region)
     # The simulation's depth is float (EXR): its levels are exact, not rounded.
     statistics = {
         "name": frame.name,
-        "real": {"region": realism_statistics(real, real_valid, region, real_resolution_m, fb),
+        "real": {"region": realism_statistics(real, real_valid, region, real_resolution_m, fb, real_residuals),
                  "whole_frame": realism_statistics(real, real_valid, None, real_resolution_m, fb)},
-        "sim": {"region": realism_statistics(sim_depth, sim_valid, region, 0.0, fb),
+        "sim": {"region": realism_statistics(sim_depth, sim_valid, region, 0.0, fb, sim_residuals),
                 "modelled": realism_statistics(sim_depth, sim_valid, modelled, 0.0, fb)},
         "edges": {"real": edge_statistics(real, real_valid, clean, instance, region),
                   "sim": edge_statistics(sim_depth, sim_valid, clean, instance, region)},
     }  # fmt: skip
     if fb:
-        # Pooled over frames in aggregate(). The simulation is rounded as the real values are stored: at 0.5 m a
-        # millimetre's rounding alone is 0.05 px of disparity noise.
-        stored = np.round(sim_depth / real_resolution_m) * real_resolution_m if real_resolution_m else sim_depth
-        statistics["roughness_residuals"] = {"real": surface_residuals(real, fb, real_valid, region),
-                                             "sim": surface_residuals(stored, fb, sim_valid, region)}  # fmt: skip
+        statistics["roughness_residuals"] = {"real": real_residuals, "sim": sim_residuals}
     return statistics
 
 
