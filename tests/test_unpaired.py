@@ -545,6 +545,11 @@ def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_a
     depths = render_depths(stock, cast_scenes(stock, load_scene_list(None), DEFAULT_SIM_FRAMES, 0), 1)
     isolated = np.median([realism_statistics(round_like(d, 0.001))["isolated_dropouts"] for d in depths])
     assert report["realism_statistics"]["stock"]["isolated_dropouts"] == isolated
+    # The noise where flat by depth, pooled over the frames, real and rendered, in the same bins.
+    real_rows = report["realism_statistics"]["real"]["flat_roughness_by_depth"]
+    stock_rows = report["realism_statistics"]["stock"]["flat_roughness_by_depth"]
+    assert [row["depth_m"] for row in real_rows] == [row["depth_m"] for row in stock_rows]
+    assert sum(row["pixels"] for row in real_rows) > 0 and sum(row["pixels"] for row in stock_rows) > 0
 
 
 def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined():

@@ -26,6 +26,7 @@ import math
 import numpy as np
 
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
+from ddsgen.fit.unpaired.realfolder import round_like
 from ddsgen.silhouette_edges import edge_statistics
 from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals
 
@@ -96,7 +97,7 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
         # In the compare region the simulation's roughness is measured as the real values are stored (rounded to
         # their unit: at 0.5 m a millimetre's rounding alone is 0.05 px of disparity noise); computed once here for
         # realism_statistics and for the pooled flat roughness by depth (aggregate()).
-        stored = np.round(sim_depth / real_resolution_m) * real_resolution_m if real_resolution_m else sim_depth
+        stored = round_like(sim_depth, real_resolution_m)
         real_residuals = surface_residuals(real, fb, real_valid, region)
         sim_residuals = surface_residuals(stored, fb, sim_valid, region)
     # The simulation's depth is float (EXR): its levels are exact, not rounded.

@@ -15,7 +15,8 @@ Files written into the report folder (each atomically):
   do not determine.
 * ``unpaired_report.json``: fitted values with bootstrap uncertainties, distances before and
   after, feature summaries, the hole/validity/quantisation statistics of
-  :mod:`ddsgen.depth_statistics` (median over frames) for real, stock and fitted renders.
+  :mod:`ddsgen.depth_statistics` (median over frames) for real, stock and fitted renders, and (with f b) their
+  flat roughness by depth, pooled over the frames (:func:`ddsgen.surface_roughness.flat_roughness_by_depth`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 from ddsgen.fit.unpaired.features import DEPTH_EDGES, ISOLATED_CLASSES, NOISE_BIN_PX, RADIUS_EDGES, summary
 from ddsgen.io.atomic import atomic_path, atomic_write_text
+from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals
 
 COLOURS = {"real": "black", "stock": "tab:orange", "fitted": "tab:blue"}
 PATCH_PX = 64
@@ -51,12 +53,17 @@ def _save(fig, path: Path) -> None:
 
 def median_statistics(depths: list[np.ndarray], resolution_m: float, disparity_fb: float | None = None) -> dict:
     """Median over frames of :func:`~ddsgen.depth_statistics.realism_statistics` (None-safe; ``disparity_fb``:
-    f b (px m) for the roughness statistics)."""
-    rows = [realism_statistics(d, resolution_m=resolution_m, disparity_fb=disparity_fb) for d in depths]
+    f b (px m) for the roughness statistics, then also ``"flat_roughness_by_depth"``: the rows of
+    :func:`~ddsgen.surface_roughness.flat_roughness_by_depth` pooled over the frames)."""
+    residuals = [surface_residuals(d, disparity_fb, d > 0) for d in depths] if disparity_fb else [None] * len(depths)
+    rows = [realism_statistics(d, resolution_m=resolution_m, disparity_fb=disparity_fb, residuals=r)
+            for d, r in zip(depths, residuals)]  # fmt: skip
     out = {}
     for key in STATISTIC_KEYS:
         values = [r[key] for r in rows if r[key] is not None]
         out[key] = float(np.median(values)) if values else None
+    if disparity_fb:
+        out["flat_roughness_by_depth"] = flat_roughness_by_depth(residuals)
     return out
 
 
