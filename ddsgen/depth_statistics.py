@@ -57,10 +57,15 @@ component counts for the region when any of its pixels lies in it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
 
 from ddsgen.depth_jumps import band_outcomes, holes_at_depth_jumps, region_or_all, registration_band_jumps
+
+if TYPE_CHECKING:
+    from ddsgen.surface_roughness import SurfaceResiduals
 
 #: The statistics of :func:`realism_statistics`, in reporting order, with their table labels.
 STATISTIC_LABELS = {
@@ -286,7 +291,8 @@ def depth_step_at_1m(depth_m: np.ndarray, valid: np.ndarray | None = None, regio
 
 
 def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, region: np.ndarray | None = None,
-                       resolution_m: float = 0.001, disparity_fb: float | None = None, residuals=None) -> dict:
+                       resolution_m: float = 0.001, disparity_fb: float | None = None,
+                       residuals: SurfaceResiduals | None = None) -> dict:  # fmt: skip
     """The hole, validity and quantisation statistics of one frame, as a JSON-ready dict.
 
     Keys: ``valid_share``, ``corner_valid_share``, ``isolated_dropouts`` (count),

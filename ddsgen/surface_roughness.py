@@ -246,10 +246,22 @@ def flat_roughness_by_depth(frames: Iterable[SurfaceResiduals], bins=DEPTH_BINS_
     Returns:
         Per bin ``{"depth_m": [low, high], "roughness_px": robust sigma or None, "pixels": n}``.
     """
-    flat = [residuals.where(*FLAT_SLOPE) for residuals in frames]
+    return pooled_flat_roughness((flat_residuals_by_depth(residuals, bins) for residuals in frames), bins)
+
+
+def flat_residuals_by_depth(residuals: SurfaceResiduals, bins=DEPTH_BINS_M) -> list[np.ndarray]:
+    """One frame's flat residuals (float32 px) per depth bin: what :func:`pooled_flat_roughness` pools, a few
+    hundred kB a 640 x 480 frame where its whole :class:`SurfaceResiduals` take megabytes."""
+    flat = residuals.where(*FLAT_SLOPE)
+    return [flat.at_depth(low, high).residual.astype(np.float32) for low, high in zip(bins[:-1], bins[1:])]
+
+
+def pooled_flat_roughness(frames: Iterable[list[np.ndarray]], bins=DEPTH_BINS_M) -> list[dict]:
+    """:func:`flat_roughness_by_depth` from each frame's :func:`flat_residuals_by_depth` (the same ``bins``)."""
+    frames = list(frames)
     rows = []
-    for low, high in zip(bins[:-1], bins[1:]):
-        inside = np.concatenate([residuals.at_depth(low, high).residual for residuals in flat] or [np.empty(0)])
+    for index, (low, high) in enumerate(zip(bins[:-1], bins[1:])):
+        inside = np.concatenate([per_bin[index] for per_bin in frames] or [np.empty(0, np.float32)])
         rows.append({"depth_m": [low, high], "roughness_px": robust_sigma(inside), "pixels": int(len(inside))})
     return rows
 

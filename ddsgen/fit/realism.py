@@ -28,7 +28,7 @@ import numpy as np
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 from ddsgen.fit.unpaired.realfolder import round_like
 from ddsgen.silhouette_edges import edge_statistics
-from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals
+from ddsgen.surface_roughness import flat_residuals_by_depth, pooled_flat_roughness, surface_residuals
 
 SCOPES = {
     "real.region": "real frame, compare region (modelled, visible, plausible pixels)",
@@ -100,7 +100,7 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
         stored = round_like(sim_depth, real_resolution_m)
         real_residuals = surface_residuals(real, fb, real_valid, region)
         sim_residuals = surface_residuals(stored, fb, sim_valid, region)
-    # The simulation's depth is float (EXR): its levels are exact, not rounded.
+    # Otherwise the simulation's depth is used as computed (float, as in its EXR): exact levels, not rounded.
     statistics = {
         "name": frame.name,
         "real": {"region": realism_statistics(real, real_valid, region, real_resolution_m, fb, real_residuals),
@@ -111,7 +111,8 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
                   "sim": edge_statistics(sim_depth, sim_valid, clean, instance, region)},
     }  # fmt: skip
     if fb:
-        statistics["roughness_residuals"] = {"real": real_residuals, "sim": sim_residuals}
+        statistics["flat_residuals_by_depth"] = {"real": flat_residuals_by_depth(real_residuals),
+                                                 "sim": flat_residuals_by_depth(sim_residuals)}  # fmt: skip
     return statistics
 
 
@@ -131,11 +132,11 @@ def aggregate(per_frame: list[dict]) -> dict:
                "edges": {side: {k: _r(v) for k, v in stats.items()} for side, stats in f["edges"].items()}}
               for f in per_frame]  # fmt: skip
     result = {"scopes": SCOPES, "statistics": list(STATISTICS), "aggregate": summary, "edges": edges, "frames": frames}
-    residuals = [f["roughness_residuals"] for f in per_frame if "roughness_residuals" in f]
-    if residuals:
+    flat = [f["flat_residuals_by_depth"] for f in per_frame if "flat_residuals_by_depth" in f]
+    if flat:
         result["flat_roughness_by_depth"] = {
             side: [{"depth_m": row["depth_m"], "roughness_px": _r(row["roughness_px"]), "pixels": row["pixels"]}
-                   for row in flat_roughness_by_depth([r[side] for r in residuals])]
+                   for row in pooled_flat_roughness(f[side] for f in flat)]
             for side in ("real", "sim")
         }  # fmt: skip
     return result

@@ -29,7 +29,7 @@ import numpy as np
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 from ddsgen.fit.unpaired.features import DEPTH_EDGES, ISOLATED_CLASSES, NOISE_BIN_PX, RADIUS_EDGES, summary
 from ddsgen.io.atomic import atomic_path, atomic_write_text
-from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals
+from ddsgen.surface_roughness import flat_residuals_by_depth, pooled_flat_roughness, surface_residuals
 
 COLOURS = {"real": "black", "stock": "tab:orange", "fitted": "tab:blue"}
 PATCH_PX = 64
@@ -63,7 +63,7 @@ def median_statistics(depths: list[np.ndarray], resolution_m: float, disparity_f
         values = [r[key] for r in rows if r[key] is not None]
         out[key] = float(np.median(values)) if values else None
     if disparity_fb:
-        out["flat_roughness_by_depth"] = flat_roughness_by_depth(residuals)
+        out["flat_roughness_by_depth"] = pooled_flat_roughness(flat_residuals_by_depth(r) for r in residuals)
     return out
 
 
