@@ -139,16 +139,15 @@ def test_rendered_frames_are_as_rough_as_real_ones_at_every_depth(default_frames
     real.append(residuals(SHARED / "linemod_bop" / "test" / "000006" / "depth" / "000000.png", RENDER_FB))
     real_rows = flat_roughness_by_depth(real)
     sim_rows = flat_roughness_by_depth([surface_residuals(depth, RENDER_FB) for depth in default_frames])
-    compared = 0
-    for real_row, sim_row in zip(real_rows, sim_rows):
-        if min(real_row["pixels"], sim_row["pixels"]) < 2000:
-            continue
-        compared += 1
-        ratio = sim_row["roughness_px"] / real_row["roughness_px"]
-        assert 0.77 <= ratio <= 1.3, (real_rows, sim_rows)
-    assert compared >= 6, (real_rows, sim_rows)
+    ratios = [sim_row["roughness_px"] / real_row["roughness_px"] for real_row, sim_row in zip(real_rows, sim_rows)
+              if min(real_row["pixels"], sim_row["pixels"]) >= 2000]  # fmt: skip
+    # Per bin within 0.7-1.4x, and 0.85-1.2x at the median (measured on these four frames 0.94-1.22, median 1.06;
+    # on other blocks of four of the first 16 frames 0.88-1.30, medians 1.01-1.16).
+    assert len(ratios) >= 6 and all(0.7 <= r <= 1.4 for r in ratios), (ratios, real_rows, sim_rows)
+    assert 0.85 <= float(np.median(ratios)) <= 1.2, (ratios, real_rows, sim_rows)
     # At 0.5-0.7 m the real device is far quieter than Nguyen's curve, and so are the renders.
     for real_row, sim_row in zip(real_rows[:2], sim_rows[:2]):
+        assert real_row["roughness_px"] is not None and sim_row["roughness_px"] is not None, (real_rows, sim_rows)
         z = float(np.mean(real_row["depth_m"]))
         nguyen_px = float(nguyen_sigma(z)) * RENDER_FB / z**2
         assert real_row["roughness_px"] < 0.5 * nguyen_px and sim_row["roughness_px"] < 0.5 * nguyen_px
