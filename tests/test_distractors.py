@@ -16,7 +16,7 @@ from ddsgen.preset import load_preset
 from ddsgen.raycast import cast
 from ddsgen.scene import sample_frame
 from ddsgen.scene.default_scenes import default_scene_list_dict
-from ddsgen.scene.sampling import polygons_separated
+from ddsgen.scene.footprints import polygons_separated
 from ddsgen.scene.scenelist import scene_list_from_dict
 
 TABLETOP, AGAINST_WALL = 0, 1  # the built-in list's scenes (4 frames each)
