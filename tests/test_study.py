@@ -61,6 +61,29 @@ def test_published_curves():
     assert quantisation_step(1.0, 572.41, 0.075, 3) == pytest.approx(1 / (8 * 572.41 * 0.075))
 
 
+def test_verdict_counts_the_points_within_30_percent_of_each_published_curve():
+    """Each curve judges its own points: Nguyen every point (without and with its angle term), Khoshelham the points
+    tilted by at most 30 deg (measured on a plane facing the sensor); a point without valid pixels is a miss."""
+    from ddsgen.study.noise import NoisePoint, khoshelham_sigma
+    from ddsgen.study.noise_report import verdict, verdict_line
+
+    def point(z, angle, std):
+        return NoisePoint(z=z, angle_deg=angle, rms_m=std, std_m=std, bias_m=0.0, valid_fraction=1.0, step_m=None)
+
+    points = [point(0.5, 0.0, khoshelham_sigma(0.5)),  # Khoshelham's value: 0.29x Nguyen's
+              point(2.0, 0.0, 1.2 * nguyen_sigma(2.0)),  # within both (Khoshelham 0.0057 m vs Nguyen 0.0061 m)
+              point(1.0, 60.0, nguyen_sigma(1.0, 60.0)),  # on Nguyen's angle curve, 1.21x its 10-60 deg curve
+              point(1.0, 30.0, None)]  # fmt: skip
+    result = verdict(points)
+    assert (result["nguyen"]["within"], result["nguyen"]["of"]) == (2, 4)
+    assert [m[:2] for m in result["nguyen"]["misses"]] == [[0.5, 0.0], [1.0, 30.0]]
+    assert result["nguyen"]["misses"][0][2] == pytest.approx(khoshelham_sigma(0.5) / nguyen_sigma(0.5), abs=1e-3)
+    assert result["nguyen"]["misses"][1][2] is None
+    assert (result["nguyen_with_angle"]["within"], result["nguyen_with_angle"]["of"]) == (2, 4)
+    assert (result["khoshelham"]["within"], result["khoshelham"]["of"]) == (2, 3)  # the 60 deg point is not judged
+    assert verdict_line(result).endswith("Khoshelham 2012 (α ≤ 30°) 2 of 3")
+
+
 def test_plane_residuals_exact_plane_and_outliers():
     rng = np.random.default_rng(0)
     v, u = (a.ravel().astype(float) for a in np.mgrid[0:40, 0:60])
@@ -145,7 +168,8 @@ def study_run(tmp_path_factory):
 
 def test_noise_json_schema_and_outputs(study_run):
     out, data, _ = study_run
-    assert list(data) == ["points", "lateral"]
+    assert list(data) == ["points", "verdict", "lateral"]
+    assert data["verdict"]["nguyen"]["of"] == len(data["points"])
     assert len(data["points"]) == len(data["lateral"]) == len(Z_GRID) * len(ANGLES)
     for point in data["lateral"]:
         assert tuple(point) == ("z", "angle_deg", "lateral_px", "left_px", "right_px", "nguyen_px", "fattening_px")

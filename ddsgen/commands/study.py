@@ -44,7 +44,8 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral,
     default), also a board of finite width before a wall, its two vertical edges' distance from a fitted line
     per row (the lateral noise, px). Writes OUT/noise.json,
     OUT/noise_study.png (with the Nguyen 2012 and Khoshelham 2012 Kinect V1 curves and the real Kinect's
-    depth values from ../shared/data when present), OUT/noise_table.md and OUT/sensor.yaml.
+    depth values from ../shared/data when present), OUT/noise_table.md and OUT/sensor.yaml; prints how many
+    points lie within +-30 % of each published curve (also in noise.json's "verdict" and the table).
     """
     from tqdm import tqdm
 
@@ -53,8 +54,8 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral,
     from ddsgen.study.lateral import run_lateral_study
     from ddsgen.study.noise import parse_grid, run_noise_study, study_intrinsics
     from ddsgen.study.quantisation import real_quantisation
-    from ddsgen.study.noise_report import (lateral_table, noise_table, plot_noise_study, quantisation_table,
-                                           write_noise_json)
+    from ddsgen.study.noise_report import (lateral_table, noise_table, plot_noise_study, quantisation_table, verdict,
+                                           verdict_line, verdict_section, write_noise_json)
 
     zs = parse_grid(z_text, "--z", 0.0, 100.0, low_open=True)
     angles = parse_grid(angles_text, "--angles", 0.0, 89.0)
@@ -86,11 +87,14 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral,
 
     notes = "".join(f"- {m}\n" for m in real.messages)
     lateral_section = "" if edges is None else f"\n## Lateral noise\n\n{lateral_table(edges, sensor.intrinsics.fx)}"
-    atomic_write_text(out_dir / "noise_table.md", f"# Noise study: {sensor.name}\n\n{table}\n## Quantisation step\n\n"
-                      f"{quant}\n{notes}{lateral_section}")  # fmt: skip
+    judged = verdict(points)
+    published = f"## Against the published curves\n\n{verdict_section(judged)}"
+    atomic_write_text(out_dir / "noise_table.md", f"# Noise study: {sensor.name}\n\n{table}\n{published}\n"
+                      f"## Quantisation step\n\n{quant}\n{notes}{lateral_section}")  # fmt: skip
     plot_noise_study(points, sensor, real, out_dir / "noise_study.png", lateral=edges)
     if not quiet:
         for message in real.messages:
             click.echo(f"note: {message}", err=True)
+        click.echo(f"std {verdict_line(judged)}")
         click.echo(f"{len(points)} points x {frames} frames -> {out_dir}/noise.json, {out_dir}/noise_study.png, "
                    f"{out_dir}/noise_table.md")  # fmt: skip

@@ -12,13 +12,64 @@ from ddsgen.study.noise import NoisePoint, khoshelham_sigma, nguyen_sigma
 from ddsgen.study.quantisation import RealQuantisation, local_steps, quantisation_step
 
 
+#: A point agrees with a published curve when its std is within this fraction of it (issue 12's +-30 %).
+AGREEMENT = 0.3
+#: Khoshelham & Oude Elberink measured their random error on a plane facing the sensor: their curve judges the points
+#: tilted by at most this much.
+KHOSHELHAM_MAX_ANGLE_DEG = 30.0
+
+
+def verdict(points: list[NoisePoint]) -> dict:
+    """How many points lie within +-:data:`AGREEMENT` of each published Kinect V1 curve, and which do not.
+
+    ``{curve: {"within": k, "of": n, "misses": [[z, angle_deg, std / curve or None], ...]}}`` for ``"nguyen"`` (the
+    10-60 deg curve, every point), ``"nguyen_with_angle"`` (with Nguyen's angle term, every point) and
+    ``"khoshelham"`` (1.425e-3 z^2, the points tilted by at most :data:`KHOSHELHAM_MAX_ANGLE_DEG`). A point without
+    valid pixels (std None) is a miss.
+    """
+    curves = {"nguyen": (lambda p: nguyen_sigma(p.z), lambda p: True),
+              "nguyen_with_angle": (lambda p: nguyen_sigma(p.z, p.angle_deg), lambda p: True),
+              "khoshelham": (lambda p: khoshelham_sigma(p.z), lambda p: p.angle_deg <= KHOSHELHAM_MAX_ANGLE_DEG)}
+    result = {}
+    for name, (curve, judged) in curves.items():
+        judged_points = [p for p in points if judged(p)]
+        misses = []
+        for p in judged_points:
+            ratio = None if p.std_m is None else p.std_m / float(curve(p))
+            if ratio is None or abs(ratio - 1.0) > AGREEMENT:
+                misses.append([p.z, p.angle_deg, None if ratio is None else round(ratio, 3)])
+        result[name] = {"within": len(judged_points) - len(misses), "of": len(judged_points), "misses": misses}
+    return result
+
+
+VERDICT_LABELS = {"nguyen": "Nguyen 2012", "nguyen_with_angle": "Nguyen 2012 with its angle term",
+                  "khoshelham": f"Khoshelham 2012 (α ≤ {KHOSHELHAM_MAX_ANGLE_DEG:g}°)"}
+
+
+def verdict_line(result: dict) -> str:
+    """One line: ``within ±30 %: Nguyen 2012 30 of 39, ...``."""
+    parts = [f"{VERDICT_LABELS[name]} {v['within']} of {v['of']}" for name, v in result.items() if v["of"]]
+    return f"within ±{100 * AGREEMENT:.0f} %: " + ", ".join(parts)
+
+
+def verdict_section(result: dict) -> str:
+    """Markdown: the verdict line and each curve's misses (z, angle, std / curve)."""
+    lines = [verdict_line(result), ""]
+    for name, v in result.items():
+        if v["misses"]:
+            misses = ", ".join(f"{z:g} m / {a:g}° ({'no valid pixels' if r is None else f'{r:.2f}×'})"
+                               for z, a, r in v["misses"])  # fmt: skip
+            lines.append(f"- misses against {VERDICT_LABELS[name]}: {misses}")
+    return "\n".join(lines) + "\n"
+
+
 def write_noise_json(points: list[NoisePoint], path: Path | str, lateral: list | None = None) -> None:
-    """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...]}``, atomically; with
-    ``lateral`` (:class:`~ddsgen.study.lateral.LateralPoint` list) also ``"lateral": [{z, angle_deg, lateral_px,
-    left_px, right_px, nguyen_px}, ...]``."""
+    """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...], "verdict": ...}``
+    (:func:`verdict`), atomically; with ``lateral`` (:class:`~ddsgen.study.lateral.LateralPoint` list) also
+    ``"lateral": [{z, angle_deg, lateral_px, left_px, right_px, nguyen_px}, ...]``."""
     from ddsgen.io.atomic import atomic_write_text
 
-    data = {"points": [p.as_json() for p in points]}
+    data = {"points": [p.as_json() for p in points], "verdict": verdict(points)}
     if lateral is not None:
         data["lateral"] = [p.as_json() for p in lateral]
     atomic_write_text(path, json.dumps(data, indent=1) + "\n")
