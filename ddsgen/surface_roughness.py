@@ -250,20 +250,58 @@ def flat_roughness_by_depth(frames: Iterable[SurfaceResiduals], bins=DEPTH_BINS_
 
 
 def flat_residuals_by_depth(residuals: SurfaceResiduals, bins=DEPTH_BINS_M) -> list[np.ndarray]:
-    """One frame's flat residuals (float32 px) per depth bin: what :func:`pooled_flat_roughness` pools, a few
-    hundred kB a 640 x 480 frame where its whole :class:`SurfaceResiduals` take megabytes."""
+    """One frame's flat residuals (float32 px) per depth bin: what a :class:`FlatRoughnessPool` pools."""
     flat = residuals.where(*FLAT_SLOPE)
     return [flat.at_depth(low, high).residual.astype(np.float32) for low, high in zip(bins[:-1], bins[1:])]
 
 
 def pooled_flat_roughness(frames: Iterable[list[np.ndarray]], bins=DEPTH_BINS_M) -> list[dict]:
-    """:func:`flat_roughness_by_depth` from each frame's :func:`flat_residuals_by_depth` (the same ``bins``)."""
-    frames = list(frames)
-    rows = []
-    for index, (low, high) in enumerate(zip(bins[:-1], bins[1:])):
-        inside = np.concatenate([per_bin[index] for per_bin in frames] or [np.empty(0, np.float32)])
-        rows.append({"depth_m": [low, high], "roughness_px": robust_sigma(inside), "pixels": int(len(inside))})
-    return rows
+    """:func:`flat_roughness_by_depth` from each frame's :func:`flat_residuals_by_depth` (the same ``bins``), exact."""
+    pool = FlatRoughnessPool(bins, cap=None)
+    for per_bin in frames:
+        pool.add(per_bin)
+    return pool.rows()
+
+
+class FlatRoughnessPool:
+    """Flat residuals per depth bin, pooled over frames in bounded memory, for folders of any length.
+
+    Per bin it keeps a uniform random sample of at most ``cap`` of all the residuals added: each residual gets a
+    random key and the ``cap`` smallest keys stay (seeded: the same frames give the same sample). The robust sigma
+    of 200,000 residuals is within about 0.3 % of all of them. With ``cap`` None, or fewer residuals, it is exact.
+    """
+
+    def __init__(self, bins=DEPTH_BINS_M, cap: int | None = 200_000, seed: int = 0):
+        self.bins = tuple(bins)
+        self.cap = cap
+        self._rng = np.random.default_rng(seed)
+        n = len(self.bins) - 1
+        self._values = [np.empty(0, np.float32) for _ in range(n)]
+        self._keys = [np.empty(0) for _ in range(n)]
+        self._counts = [0] * n
+
+    def add(self, per_bin: list[np.ndarray]) -> None:
+        """Add one frame's :func:`flat_residuals_by_depth` (made with this pool's bins)."""
+        if len(per_bin) != len(self._values):
+            raise ValueError(f"FlatRoughnessPool.add: {len(per_bin)} bins, the pool has {len(self._values)}")
+        for index, new in enumerate(per_bin):
+            self._counts[index] += len(new)
+            values = np.concatenate([self._values[index], np.asarray(new, np.float32)])
+            if self.cap is None:
+                self._values[index] = values
+                continue
+            keys = np.concatenate([self._keys[index], self._rng.random(len(new))])
+            if len(values) > self.cap:
+                keep = np.argpartition(keys, self.cap)[: self.cap]
+                values, keys = values[keep], keys[keep]
+            self._values[index], self._keys[index] = values, keys
+
+    def rows(self) -> list[dict]:
+        """Per bin ``{"depth_m": [low, high], "roughness_px": robust sigma or None, "pixels": n}`` (n: every residual
+        added, the sample's robust sigma)."""
+        edges = zip(self.bins[:-1], self.bins[1:])
+        return [{"depth_m": [low, high], "roughness_px": robust_sigma(values), "pixels": count}
+                for (low, high), values, count in zip(edges, self._values, self._counts)]  # fmt: skip
 
 
 def surface_roughness(depth_m: np.ndarray, disparity_fb: float, valid: np.ndarray | None = None,

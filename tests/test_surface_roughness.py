@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddsgen.surface_roughness import (flat_roughness_by_depth, local_quadratic_fit, roughness_by_slope, surface_residuals,
-                                      surface_roughness)
+from ddsgen.surface_roughness import (FlatRoughnessPool, flat_roughness_by_depth, local_quadratic_fit, robust_sigma,
+                                      roughness_by_slope, surface_residuals, surface_roughness)
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 FB = 572.41 * 0.075  # the Kinect's f b (px m)
@@ -56,6 +56,32 @@ def test_flat_roughness_is_binned_by_depth_and_pooled_over_frames():
     assert all(row["roughness_px"] is None and row["pixels"] == 0 for row in rows[1:5]), rows
     slanted = flat_roughness_by_depth([surface_residuals(_surface_depth(0.1, 0.04, base_px=FB / 0.55), FB)])
     assert slanted[0]["pixels"] == 0
+
+
+def test_the_pool_keeps_a_bounded_uniform_sample_and_counts_every_residual():
+    """A long folder streams: per bin at most ``cap`` residuals are kept, a uniform sample of all added (the robust
+    sigma of 20 frames of 0.08 px noise then 20 of 0.04 px is their mix's, not the first or last frames'), every
+    residual is counted, the same frames give the same sample, and without a cap the pool is exact."""
+    rng = np.random.default_rng(5)
+    frames = [[rng.normal(0.0, 0.04 if k >= 20 else 0.08, 5000).astype(np.float32), np.empty(0, np.float32)]
+              for k in range(40)]  # fmt: skip
+    exact = robust_sigma(np.concatenate([f[0] for f in frames]))
+
+    def pooled(cap, seed=0):
+        pool = FlatRoughnessPool(bins=(0.5, 1.0, 2.0), cap=cap, seed=seed)
+        for per_bin in frames:
+            pool.add(per_bin)
+        return pool
+
+    bounded = pooled(cap=20_000)
+    rows = bounded.rows()
+    assert rows[0]["pixels"] == 40 * 5000 and rows[1] == {"depth_m": [1.0, 2.0], "roughness_px": None, "pixels": 0}
+    assert len(bounded._values[0]) == 20_000
+    assert rows[0]["roughness_px"] == pytest.approx(exact, rel=0.02)
+    assert pooled(cap=20_000).rows() == rows  # seeded: the same sample
+    assert pooled(cap=None).rows()[0]["roughness_px"] == exact
+    with pytest.raises(ValueError, match="bins"):
+        bounded.add([np.zeros(3, np.float32)])
 
 
 def test_windows_across_a_depth_edge_do_not_count():

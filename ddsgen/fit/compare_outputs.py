@@ -4,7 +4,8 @@
 frame it computes the realism statistics of real and sim (:mod:`ddsgen.fit.realism`), draws the
 full-resolution real | simulated | difference picture (:mod:`ddsgen.fit.compare_pictures`) and
 hands the frame to a :class:`~ddsgen.fit.save_sim.SimFolderWriter` when one is given. Nothing is
-kept per frame but a few numbers, so long folders stream. :meth:`FrameOutputs.finish` adds the
+kept per frame but a few numbers (the flat residuals by depth go into bounded pools,
+:class:`~ddsgen.surface_roughness.FlatRoughnessPool`), so long folders stream. :meth:`FrameOutputs.finish` adds the
 statistics to the report and writes ``comparison.json``, the plots and ``index.html``.
 """
 
@@ -42,6 +43,7 @@ class FrameOutputs:
         self.crop_border_px = int(crop_border_px)
         self.baseline_m = baseline_m
         self.statistics: list[dict] = []
+        self.roughness = realism.roughness_pools()
         self.pictures: list[tuple[str, str]] = []
 
     def __call__(self, frame, sim, patches=None) -> None:
@@ -53,8 +55,8 @@ class FrameOutputs:
         # PNG values are rounded to the file's unit; EXR values are not
         resolution = 0.0 if str(scan.source_depth_path).lower().endswith(".exr") else float(scan.depth_scale)
         region = region_mask(frame, self.region).numpy()
-        self.statistics.append(realism.frame_realism(frame, sim, region, real, resolution, self.crop_border_px,
-                                                     self.baseline_m))  # fmt: skip
+        statistics = realism.frame_realism(frame, sim, region, real, resolution, self.crop_border_px, self.baseline_m)
+        self.statistics.append(realism.pool_frame_roughness(statistics, self.roughness))
         relative = f"{FRAMES_FOLDER}/{len(self.pictures):06d}.png"
         side_by_side(self.report_dir / relative, f"{frame.name}: real | simulated | difference", real,
                      realism.full_frame(sim.depth.detach().numpy(), frame, 0.0),
@@ -72,7 +74,7 @@ class FrameOutputs:
 
         from ddsgen.fit.compare import region_rule, table, write_report
 
-        report.realism = realism.aggregate(self.statistics)
+        report.realism = realism.aggregate(self.statistics, self.roughness)
         written = write_report(report, self.report_dir)
         plots = [p.relative_to(self.report_dir).as_posix() for p in written[1:]]
         summary = table(report, title) + "\n\n" + textwrap.fill(region_rule(report.region), 110)

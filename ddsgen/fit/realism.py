@@ -16,7 +16,8 @@ Aggregates are the mean, min and max over frames of each statistic.
 Besides, ``edges``: the objects' outlines in real and simulated depth against the ray-cast silhouette, inside the
 compare region (:mod:`ddsgen.silhouette_edges`: how far the edges lie outside it, and how ragged they are); and,
 with the sensor's baseline, ``flat_roughness_by_depth``: the disparity noise where flat, per depth bin, pooled over
-the frames, real and simulated, in the compare region (:func:`ddsgen.surface_roughness.flat_roughness_by_depth`).
+the frames, real and simulated, in the compare region (:class:`ddsgen.surface_roughness.FlatRoughnessPool`: exact up
+to 200,000 residuals per bin, a uniform sample of them beyond).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 from ddsgen.fit.unpaired.realfolder import round_like
 from ddsgen.silhouette_edges import edge_statistics
-from ddsgen.surface_roughness import flat_residuals_by_depth, pooled_flat_roughness, surface_residuals
+from ddsgen.surface_roughness import FlatRoughnessPool, flat_residuals_by_depth, surface_residuals
 
 SCOPES = {
     "real.region": "real frame, compare region (modelled, visible, plausible pixels)",
@@ -116,8 +117,10 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
     return statistics
 
 
-def aggregate(per_frame: list[dict]) -> dict:
-    """``{"scopes", "frames", "aggregate": {"real.region": {stat: {mean, min, max}}, ...}}`` (JSON-ready)."""
+def aggregate(per_frame: list[dict], roughness: dict[str, FlatRoughnessPool] | None = None) -> dict:
+    """``{"scopes", "frames", "aggregate": {"real.region": {stat: {mean, min, max}}, ...}}`` (JSON-ready); with
+    ``roughness`` (:func:`roughness_pools`, fed every frame) also ``"flat_roughness_by_depth": {"real": rows, "sim":
+    rows}``."""
     summary = {}
     for scope in SCOPES:
         side, where = scope.split(".")
@@ -132,14 +135,28 @@ def aggregate(per_frame: list[dict]) -> dict:
                "edges": {side: {k: _r(v) for k, v in stats.items()} for side, stats in f["edges"].items()}}
               for f in per_frame]  # fmt: skip
     result = {"scopes": SCOPES, "statistics": list(STATISTICS), "aggregate": summary, "edges": edges, "frames": frames}
-    flat = [f["flat_residuals_by_depth"] for f in per_frame if "flat_residuals_by_depth" in f]
-    if flat:
+    if roughness is not None and any(row["pixels"] for pool in roughness.values() for row in pool.rows()):
         result["flat_roughness_by_depth"] = {
             side: [{"depth_m": row["depth_m"], "roughness_px": _r(row["roughness_px"]), "pixels": row["pixels"]}
-                   for row in pooled_flat_roughness(f[side] for f in flat)]
-            for side in ("real", "sim")
+                   for row in pool.rows()]
+            for side, pool in roughness.items()
         }  # fmt: skip
     return result
+
+
+def roughness_pools() -> dict[str, FlatRoughnessPool]:
+    """``{"real": pool, "sim": pool}``: feed each frame's :func:`frame_realism` ``"flat_residuals_by_depth"`` with
+    :func:`pool_frame_roughness`, then pass them to :func:`aggregate` (bounded memory for any number of frames)."""
+    return {"real": FlatRoughnessPool(), "sim": FlatRoughnessPool()}
+
+
+def pool_frame_roughness(statistics: dict, pools: dict[str, FlatRoughnessPool]) -> dict:
+    """Move one frame's flat residuals out of its :func:`frame_realism` dict into ``pools``; returns the dict."""
+    flat = statistics.pop("flat_residuals_by_depth", None)
+    if flat is not None:
+        for side, pool in pools.items():
+            pool.add(flat[side])
+    return statistics
 
 
 def _spread(values: list) -> dict | None:
