@@ -120,7 +120,7 @@ def test_no_lateral_writes_the_axial_study_only(tmp_path):
     code = main(["study", "noise", "kinect_v1", "--z", "1", "--angles", "0", "--frames", "1", "--rows", "48",
                  "--no-lateral", "--out", str(out), "--quiet"])  # fmt: skip
     assert code == 0
-    assert list(json.loads((out / "noise.json").read_text())) == ["points"]
+    assert list(json.loads((out / "noise.json").read_text())) == ["points", "verdict"]
     assert "Lateral noise" not in (out / "noise_table.md").read_text()
 
 
