@@ -39,7 +39,7 @@ DATA = ROOT.parent / "shared" / "data"
 from ddsgen.depth_jumps import band_outcomes, registration_band_jumps  # noqa: E402
 from ddsgen.depth_statistics import isolated_dropout_orientation, realism_statistics  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
-from ddsgen.study.noise import nguyen_sigma  # noqa: E402
+from ddsgen.study.noise import nguyen_sigma_px  # noqa: E402
 from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals  # noqa: E402
 
 KEYS = {"valid_share": "", "corner_valid_share": "", "isolated_dropouts": "count",
@@ -123,22 +123,23 @@ def _print_pooled(name: str, depths: list[np.ndarray]) -> None:
     print(f"bench: {name}_isolated_vertical_of_elongated {vertical} of {vertical + horizontal}", flush=True)
 
 
-def _print_roughness_by_depth(name: str, depths: list[np.ndarray], fb: float, nguyen: bool = False) -> list[dict]:
-    """Flat roughness per depth bin, pooled over the frames (its rows); ``nguyen``: also Nguyen's curve at f b."""
-    rows = flat_roughness_by_depth([surface_residuals(d, fb) for d in depths])
+def _print_roughness_by_depth(name: str, residuals: list, fb: float, nguyen: bool = False) -> list[dict]:
+    """Flat roughness per depth bin, pooled over the frames' residuals (its rows); ``nguyen``: also Nguyen's curve."""
+    rows = flat_roughness_by_depth(residuals)
     for row in rows:
         low, high = row["depth_m"]
         if row["roughness_px"] is not None:
             print(f"bench: {name}_flat_roughness_{low:g}_to_{high:g}m {row['roughness_px']:.4g} px "
                   f"({row['pixels']} pixels)", flush=True)
         if nguyen:
-            print(f"bench: nguyen_{low:g}_to_{high:g}m {_nguyen_px(0.5 * (low + high), fb):.4g} px", flush=True)
+            print(f"bench: nguyen_{low:g}_to_{high:g}m {nguyen_sigma_px(0.5 * (low + high), fb):.4g} px", flush=True)
     return rows
 
 
-def _nguyen_px(z, fb: float):
-    """Nguyen 2012's axial sigma at depth z (m), read as disparity: sigma_z f b / z^2 (px)."""
-    return nguyen_sigma(z) * fb / np.asarray(z) ** 2
+def _roughness_inputs(depths: list[np.ndarray], fb: float) -> tuple[list, list[dict]]:
+    """Each frame's surface residuals, computed once, and its realism statistics made with them."""
+    residuals = [surface_residuals(d, fb, d > 0) for d in depths]
+    return residuals, [realism_statistics(d, disparity_fb=fb, residuals=r) for d, r in zip(depths, residuals)]
 
 
 def roughness_picture(path: Path, real_rows: list[dict], sim_rows: list[dict], preset_name: str, fb: float) -> None:
@@ -155,7 +156,7 @@ def roughness_picture(path: Path, real_rows: list[dict], sim_rows: list[dict], p
         axes.errorbar(centres, [row["roughness_px"] for row in kept], xerr=half_widths, fmt=style, capsize=2,
                       label=label)  # fmt: skip
     z = np.linspace(0.5, 2.2, 100)
-    axes.plot(z, _nguyen_px(z, fb), "--", color="grey", label="Nguyen 2012 sigma_z, as disparity")
+    axes.plot(z, nguyen_sigma_px(z, fb), "--", color="grey", label="Nguyen 2012 sigma_z, as disparity")
     axes.set_xlabel("depth (m)")
     axes.set_ylabel("flat roughness (px of disparity)")
     axes.set_ylim(0, None)
@@ -182,9 +183,10 @@ def real_icbin() -> list[dict]:
         print("# IC-BIN frames absent: skipped", flush=True)
         return []
     depths = [_read_mm(p) for p in paths]
-    _print_range("real_icbin", [realism_statistics(d, disparity_fb=ICBIN_FB) for d in depths])
+    residuals, stats = _roughness_inputs(depths, ICBIN_FB)
+    _print_range("real_icbin", stats)
     _print_pooled("real_icbin", depths)
-    return _print_roughness_by_depth("real_icbin", depths, ICBIN_FB)
+    return _print_roughness_by_depth("real_icbin", residuals, ICBIN_FB)
 
 
 TUM_DEPTH = DATA / "tum_rgbd_frame_open3d" / "TUM_depth.png"
@@ -211,10 +213,10 @@ def rendered(preset_name: str, n: int, pictures: Path | None, real_roughness: li
         depths = [_read_mm(p) for p in sorted(Path(tmp, "depth").glob("*.png"))]
     preset = load_preset(preset_name)
     fb = preset.focal_px * preset.baseline_m
-    stats = [realism_statistics(d, disparity_fb=fb) for d in depths]
+    residuals, stats = _roughness_inputs(depths, fb)
     _print_range("sim_render", stats)
     _print_pooled("sim_render", depths)
-    roughness = _print_roughness_by_depth("sim_render", depths, fb, nguyen=True)
+    roughness = _print_roughness_by_depth("sim_render", residuals, fb, nguyen=True)
     if pictures is not None and real_roughness:
         roughness_picture(pictures / "realism_roughness_by_depth.png", real_roughness, roughness, preset_name, fb)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid

@@ -128,7 +128,7 @@ def test_rendered_frames_are_as_rough_as_real_ones_at_every_depth(default_frames
     (docs/noise_study.md, "The near range, the same way")."""
     import cv2
 
-    from ddsgen.study.noise import nguyen_sigma
+    from ddsgen.study.noise import nguyen_sigma_px
     from ddsgen.surface_roughness import flat_roughness_by_depth, surface_residuals
 
     def residuals(path, fb):
@@ -148,6 +148,5 @@ def test_rendered_frames_are_as_rough_as_real_ones_at_every_depth(default_frames
     # At 0.5-0.7 m the real device is far quieter than Nguyen's curve, and so are the renders.
     for real_row, sim_row in zip(real_rows[:2], sim_rows[:2]):
         assert real_row["roughness_px"] is not None and sim_row["roughness_px"] is not None, (real_rows, sim_rows)
-        z = float(np.mean(real_row["depth_m"]))
-        nguyen_px = float(nguyen_sigma(z)) * RENDER_FB / z**2
+        nguyen_px = float(nguyen_sigma_px(np.mean(real_row["depth_m"]), RENDER_FB))
         assert real_row["roughness_px"] < 0.5 * nguyen_px and sim_row["roughness_px"] < 0.5 * nguyen_px

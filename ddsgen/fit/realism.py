@@ -135,11 +135,12 @@ def aggregate(per_frame: list[dict], roughness: dict[str, FlatRoughnessPool] | N
                "edges": {side: {k: _r(v) for k, v in stats.items()} for side, stats in f["edges"].items()}}
               for f in per_frame]  # fmt: skip
     result = {"scopes": SCOPES, "statistics": list(STATISTICS), "aggregate": summary, "edges": edges, "frames": frames}
-    if roughness is not None and any(row["pixels"] for pool in roughness.values() for row in pool.rows()):
+    by_depth = {side: pool.rows() for side, pool in (roughness or {}).items()}
+    if any(row["pixels"] for rows in by_depth.values() for row in rows):
         result["flat_roughness_by_depth"] = {
             side: [{"depth_m": row["depth_m"], "roughness_px": _r(row["roughness_px"]), "pixels": row["pixels"]}
-                   for row in pool.rows()]
-            for side, pool in roughness.items()
+                   for row in rows]
+            for side, rows in by_depth.items()
         }  # fmt: skip
     return result
 

@@ -60,6 +60,12 @@ def nguyen_sigma(z, angle_deg=None):
     return sigma
 
 
+def nguyen_sigma_px(z, disparity_fb: float):
+    """:func:`nguyen_sigma` (10-60 deg) read as disparity, sigma_z f b / z^2 (px) for a sensor of f b (px m)."""
+    z = np.asarray(z, dtype=np.float64)
+    return nguyen_sigma(z) * disparity_fb / z**2
+
+
 def khoshelham_sigma(z):
     """Khoshelham & Oude Elberink 2012 random depth error of a Kinect V1, ~1.425e-3 z^2 (m)."""
     return 1.425e-3 * np.asarray(z, dtype=np.float64) ** 2
