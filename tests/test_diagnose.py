@@ -534,6 +534,8 @@ def test_diagnose_command_writes_the_report_and_the_extended_preset(tmp_path, sc
     assert len(figures) >= 3 and all((report / f).is_file() for f in figures), figures  # PNG files beside the page
     assert any("residual_map" in f for f in figures) and "Missing effect: disparity_offset" in html
     fitted = load_preset(extended)
+    for key in ("speckle_scale", "read_noise_mean_counts", "focal_px"):  # not fitted: the input's own values
+        assert getattr(fitted, key) == getattr(stock(), key), key
     # steps name generic terms NAME:AXIS; the preset entry carries the axis as an option
     assert [(e["name"], e.get("axis")) for e in fitted.effects] == \
         [(s["effect"].partition(":")[0], s["effect"].partition(":")[2] or None) for s in doc["steps"]]

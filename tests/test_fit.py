@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -21,7 +22,9 @@ from test_compare import LINEMOD, render, write_presets
 
 from ddsgen.cli import main
 from ddsgen.fit.compare import gap
+from ddsgen.fit.fit_report import fitted_line
 from ddsgen.fit.fitting import fit_sensor, split_frames
+from ddsgen.fit.parameters import values_to_write
 from ddsgen.fit.simulate import prepare_frames
 from ddsgen.io.scanfolder import read_scan_folder
 from ddsgen.preset import load_preset
@@ -125,6 +128,10 @@ def test_fit_cli_writes_loadable_preset_with_cnn(perturbed, tmp_path, capsys):
     sensor = DepthSensor(fitted)  # loads the CNN weights named by the preset
     assert sensor.postprocess is not None and parameter_count(sensor.postprocess) == 2531
     assert fitted.width_px == 160
+    stock = load_preset(perturbed["stock"])
+    for key in ("baseline_m", "emitted_intensity", "speckle_scale", "read_noise_std_counts", "read_noise_mean_counts",
+                "focal_px"):  # fmt: skip
+        assert getattr(fitted, key) == getattr(stock, key), key  # the input's values, not their float32 round trips
     report = json.loads((tmp_path / "fitted_report" / "fit_report.json").read_text())
     assert len(report["fit"]["history"]) == 2 and report["fit"]["trainable"] == 2532
     for name in ("loss_curve.png", "residuals.png", "comparison_before.json", "comparison_after.json", "index.html",
@@ -177,3 +184,23 @@ def test_fit_lowers_object_gap_on_real_linemod_frame(linemod):
     assert fitted.gap <= stock.gap + fitted.noise_floor
     # Real Kinect depth is quantised on its own 1/8 px lattice: the 1/4 px lattice search must not claim a baseline.
     assert not result.searches["baseline"]["accepted"]
+
+
+def test_written_values_are_the_inputs_own_unless_the_fit_moved_them():
+    stock = SimpleNamespace(baseline_m=0.075, emitted_intensity=1500000.0, softargmax_beta=15.0, ambient_counts=0.0)
+    round_trips = {"baseline_m": float(torch.tensor(0.075)), "emitted_intensity": float(torch.tensor(1.5e6).log().exp()),
+                   "ambient_counts": 0.0, "softargmax_beta": float(torch.tensor(17.3))}  # fmt: skip
+    assert round_trips["baseline_m"] != 0.075 and round_trips["emitted_intensity"] != 1500000.0
+    written = values_to_write(round_trips, stock)
+    assert written["baseline_m"] == 0.075 and written["emitted_intensity"] == 1500000.0
+    assert written["ambient_counts"] == 0.0
+    # A moved value: the fewest digits that give the sensor's float32 back.
+    assert written["softargmax_beta"] == 17.3 and float(torch.tensor(written["softargmax_beta"])) == round_trips[
+        "softargmax_beta"]
+
+
+def test_a_held_parameter_shows_why_it_has_no_uncertainty():
+    held = {"fitted": 1.0, "sigma": math.nan, "method": "held: only the ratio eta_c / sigma is identifiable"}
+    assert fitted_line(held) == "1 (held: only the ratio eta_c / sigma is identifiable)"
+    assert fitted_line({"fitted": 17.25, "sigma": 0.5, "method": "loss curvature"}) == "17.25 +- 0.5"
+    assert fitted_line({"fitted": 2.0, "sigma": math.inf, "method": "not identified"}) == "2 +- inf"

@@ -118,9 +118,9 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     from ddsgen.fit.losses import FIT_WEIGHTS
     from ddsgen.fit.plane_depth import plane_depth_for
     from ddsgen.fit.simulate import prepare_frames
-    from ddsgen.fit.fit_report import parameter_rows, write_fit_report
+    from ddsgen.fit.fit_report import fitted_line, parameter_rows, write_fit_report
     from ddsgen.fit.fitting import fit_sensor, refine_frame_poses
-    from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, resolve_params
+    from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, resolve_params, values_to_write
     from ddsgen.fit.priors import Priors
     from ddsgen.fit.revert import param_group, revert_summary, revert_unhelpful, snapshot
     from ddsgen.fit.split import SPLIT_MEANING, split_fit_held_out
@@ -225,7 +225,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     values.update(device_key_values(sensor, SENSOR_PARAMS))
     scale = float(sensor.focal_scale.detach())
     values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
-    changes = {k: v for k, v in values.items()}
+    changes = values_to_write(values, original)
     changes["effects"] = [e.to_entry() for e in sensor.effects]
     pattern_path = original.resolve_path(original.pattern)
     if pattern_path.parent.resolve() != PATTERN_DIR.resolve():
@@ -267,7 +267,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     comment = [f"fitted by ddsgen fit to {real_dir} from {preset}", f"params: {', '.join(names)}",
                f"split: {split_kind}; held-out gap ({region}) {before[held_key].gap:.2f} -> {after[held_key].gap:.2f} mm",
                *revert_lines, "value +- uncertainty (1 s.d.) of each fitted parameter:"]  # fmt: skip
-    comment += [f"  {r['key']}: {r['fitted']:.6g} +- {r['sigma']:.2g}" + ("" if r["kept"] else
+    comment += [f"  {r['key']}: {fitted_line(r)}" + ("" if r["kept"] else
                 f" (reverted: the preset keeps the input's {r['after']:.6g})") for r in rows]  # fmt: skip
     save_preset(fitted, out_path, comment="\n".join(comment))
     click.echo(f"split: {split_kind} ({SPLIT_MEANING[split_kind]})")
@@ -276,7 +276,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     for line in revert_lines:
         click.echo(f"  {line}")
     for r in rows:
-        click.echo(f"  {r['key']:24s} {r['before']:.6g} -> fitted {r['fitted']:.6g} +- {r['sigma']:.2g}"
+        click.echo(f"  {r['key']:24s} {r['before']:.6g} -> fitted {fitted_line(r)}"
                    + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})")
                    + (" -- at a bound: the data push beyond the physical range" if r["at_bound"] else ""))  # fmt: skip
     for name, info in result.searches.items():

@@ -28,6 +28,14 @@ def format_value(value: float, sigma: float | None = None) -> str:
     return text + (" +- inf" if math.isinf(sigma) else f" +- {sigma:.2g}")
 
 
+def fitted_line(row: dict) -> str:
+    """A :func:`parameter_rows` row's fitted value with its 1 s.d., or, where the parameter has none (held or
+    switched off: ``sigma`` is NaN), with the reason."""
+    text = format_value(row["fitted"], row["sigma"])
+    held = isinstance(row["sigma"], float) and math.isnan(row["sigma"])
+    return text + (f" ({row['method']})" if held else "")
+
+
 def parameter_rows(before: dict, fitted: dict, after: dict, uncertainty: dict, kept: dict[str, bool],
                    bounds: list[dict]) -> list[dict]:  # fmt: skip
     """One row per fitted scalar parameter: name, key, before (input), fitted (the fit's value, whose

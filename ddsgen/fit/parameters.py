@@ -4,11 +4,14 @@
 device key of the preset, ``attr=None``: :mod:`ddsgen.fit.device_keys`), its bounds, prior and group
 (:mod:`ddsgen.fit.priors`); a new sensor parameter joins the fit with one entry. :func:`resolve_params` turns names
 (``--params``) into the tensors :func:`ddsgen.fit.fitting.fit_sensor` moves, :func:`physical_values` reads the values
-reports show.
+reports show, :func:`values_to_write` the values a written preset holds.
 """
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 
 from ddsgen.errors import InputError
@@ -100,3 +103,27 @@ def physical_values(sensor) -> dict:
         for key, value in effect.values().items():
             values[f"effect:{effect.name}.{key}"] = round(value, 9)
     return values
+
+
+#: Relative difference within which a value is the input's own after a float32 (and log-exp) round trip.
+FLOAT32_ROUND_TRIP = 2e-6
+
+
+def values_to_write(values: dict, original) -> dict:
+    """Preset values as a fitted or extended preset file should hold them.
+
+    The sensor holds its parameters as float32 (several as logs), so a value the fit did not move comes back as
+    0.07499999552965164 for 0.075, or 1500000.375 for 1500000. Such a value is written as the input preset's own
+    (``original``'s); any other with the fewest decimal digits that give the same float32. Non-float values pass.
+    """
+    out = {}
+    for key, value in values.items():
+        before = getattr(original, key, None)
+        if not isinstance(value, float) or not math.isfinite(value):
+            out[key] = value
+        elif (isinstance(before, (int, float)) and not isinstance(before, bool)
+              and math.isclose(value, before, rel_tol=FLOAT32_ROUND_TRIP, abs_tol=0.0)):  # fmt: skip
+            out[key] = before
+        else:
+            out[key] = float(np.format_float_positional(np.float32(value), unique=True))
+    return out
