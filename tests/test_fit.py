@@ -204,3 +204,17 @@ def test_a_held_parameter_shows_why_it_has_no_uncertainty():
     assert fitted_line(held) == "1 (held: only the ratio eta_c / sigma is identifiable)"
     assert fitted_line({"fitted": 17.25, "sigma": 0.5, "method": "loss curvature"}) == "17.25 +- 0.5"
     assert fitted_line({"fitted": 2.0, "sigma": math.inf, "method": "not identified"}) == "2 +- inf"
+
+
+def test_an_effect_the_preset_lacks_is_refused_with_the_way_to_add_it():
+    from ddsgen.errors import InputError
+    from ddsgen.fit.parameters import resolve_params
+
+    preset = load_preset("kinect_v1").replace(width_px=160, height_px=120, effects=[])
+    with pytest.raises(InputError, match=r"list it under the preset's effects: \(- name: disparity_distortion\)"):
+        resolve_params(DepthSensor(preset), ["effect:disparity_distortion"])
+    with pytest.raises(InputError, match="the library has no such effect either"):
+        resolve_params(DepthSensor(preset), ["effect:disparity_distorsion"])
+    # The way the message names works: listed by name alone, the effect starts at its defaults and is fitted.
+    listed = DepthSensor(preset.replace(effects=[{"name": "disparity_distortion"}]))
+    assert resolve_params(listed, ["effect:disparity_distortion"])

@@ -75,8 +75,13 @@ def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
         elif name.startswith("effect:"):
             effect_name, _, key = name[len("effect:"):].partition(".")
             if effect_name not in effects:
+                from ddsgen.sensor.effects import REGISTRY
+
+                fix = (f"; to fit it, list it under the preset's effects: (- name: {effect_name}), or let "
+                       f"ddsgen diagnose --candidates {effect_name} --apply add it" if effect_name in REGISTRY else
+                       f"; the library has no such effect either (known: {', '.join(sorted(REGISTRY))})")  # fmt: skip
                 raise InputError(f"--params: {name}: the preset has no effect {effect_name!r} "
-                                 f"(listed: {', '.join(effects) or 'none'})")  # fmt: skip
+                                 f"(listed: {', '.join(effects) or 'none'}){fix}")  # fmt: skip
             raw = effects[effect_name].raw
             if key and key not in raw:
                 raise InputError(f"--params: {name}: effect {effect_name} has no parameter {key!r} "
