@@ -21,11 +21,14 @@ BATCH ?= 1
 
 install: $(VENV)/.installed
 
-# torch==2.13.0 first: it is the CPU wheel; an unpinned torch would pull a multi-GB CUDA build.
+# torch==2.13.0 first: on the project's machines pip finds its CPU wheel; an unpinned torch would pull a multi-GB
+# CUDA build. Where pip's index is plain PyPI (whose Linux torch is the CUDA build), take PyTorch's CPU index:
+#   make demo TORCH_PIP_ARGS="--index-url https://download.pytorch.org/whl/cpu"
+TORCH_PIP_ARGS ?=
 $(VENV)/.installed: pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q torch==2.13.0 $(TORCH_PIP_ARGS)
 	$(PY) -m pip install -q -e ".[test,dask]"
 	touch $@
 
