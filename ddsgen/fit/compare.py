@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ddsgen.errors import InputError
 from ddsgen.fit.local_patches import patch_gap, patch_line, patch_summary
 from ddsgen.fit.losses import LossWeights, depth_compared, frame_loss, local_window
 from ddsgen.fit.simulate import FrameData, simulate, simulate_twin, twin_draws
@@ -230,6 +231,9 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
     """
     from tqdm import tqdm
 
+    if region == "objects" and not any(bool(f.object_region.any()) for f in frames):
+        raise InputError(f"--region objects: no annotated object is visible in any of the {len(frames)} frame(s) "
+                         f"({frames[0].name}{', ...' if len(frames) > 1 else ''}): check the poses")  # fmt: skip
     per_frame, floors, maps, patches = [], [], [], []
     draws = twin_draws(len(frames))
     rows = {k: [] for k in ("depth", "incidence", "radius", "sim", "real", "clean", "sim_valid", "real_valid")}
@@ -310,7 +314,7 @@ def table(report: GapReport, title: str = "") -> str:
         f"  systematic depth D     {p['depth_mm']:8.2f} mm",
         f"  noise texture    G     {p['gradient_mm']:8.2f} mm",
         f"  validity         V     {p['validity_mm']:8.2f} mm",
-        f"sim - real: bias {p['bias_mm']:+.2f} mm, spread {p['spread_mm']:.2f} mm over {p['pixels']} px",
+        f"sim - real: bias {_mm(p['bias_mm'], '+.2f')}, spread {_mm(p['spread_mm'], '.2f')} over {p['pixels']} px",
         f"validity: both {c['both_valid']:.3f}  real only {c['real_only']:.3f}  sim only {c['sim_only']:.3f}  "
         f"neither {c['neither']:.3f}",
         "depth bin (m)   px     bias   spread  real-valid sim-valid",
@@ -327,6 +331,11 @@ def table(report: GapReport, title: str = "") -> str:
 
 def _f(x):
     return "-" if x is None else f"{x:+.1f}"
+
+
+def _mm(x, spec: str) -> str:
+    """``x`` mm formatted by ``spec``, or "-" where no pixel was valid in both (None)."""
+    return "-" if x is None else f"{x:{spec}} mm"
 
 
 def write_report(report: GapReport, folder: str | Path, name: str = "comparison") -> list[Path]:

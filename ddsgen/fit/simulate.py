@@ -174,6 +174,8 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     intr = frame.intrinsics
     real = np.asarray(frame.depth, dtype=np.float32)
     real = np.where(np.isfinite(real) & (real > 0), real, 0.0).astype(np.float32)
+    if not real.any():  # nothing measured: every comparison, fit or refinement against it would be noise
+        raise InputError(f"{frame.source_depth_path}: depth: no valid pixel (all zero) in frame {frame.name}")
     fb = intr.fx * preset.baseline_m
     scene = frame_scene(frame, albedo)
     hits = cast(scene, intr, output_projector_x_m(preset), preset.shadow_bias_m)

@@ -157,6 +157,11 @@ class _ScanView:
 
         prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
                                  crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
+        if not bool((prepared.instance > 0).any()):
+            from ddsgen.errors import InputError
+
+            raise InputError(f"{frame.source_depth_path}: frame {frame.name}: no annotated object is in view at its "
+                             "pose (nothing to refine; check the poses, mesh units and intrinsics)")  # fmt: skip
         self.frame, self.crop, self.plane_fitted = frame, tuple(int(v) for v in prepared.crop), prepared.plane is not None
         scene = frame_scene(frame, plane=prepared.plane)
         self.refinable = RefinableScene(scene, prepared.intrinsics, baseline_m, preset.shadow_bias_m,
