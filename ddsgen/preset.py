@@ -10,7 +10,6 @@ out-of-range value) and raises :class:`~ddsgen.errors.InputError` with one line
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 from importlib.resources import files
 from pathlib import Path
@@ -18,7 +17,7 @@ from typing import Any
 
 import yaml
 
-from ddsgen.errors import InputError, where
+from ddsgen.errors import InputError, did_you_mean, where
 from ddsgen.yamlfile import read_yaml
 
 # The shipped presets and dot patterns: package data (presets/ and pattern_assets/ of the
@@ -303,8 +302,7 @@ def preset_from_dict(data: Any, source: str | Path = "") -> SensorPreset:
         raise InputError(f"{where(source)}a preset must be a YAML mapping of keys to values, got {type(data).__name__}")
     for key in data:
         if key not in FIELDS:
-            near = difflib.get_close_matches(str(key), FIELDS, n=1)
-            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            hint = did_you_mean(key, FIELDS)
             raise InputError(f"{where(source, str(key))}unknown key{hint}")
     values: dict[str, Any] = {}
     for key, field in FIELDS.items():

@@ -60,6 +60,7 @@ def test_save_and_reload_round_trip(tmp_path):
     "change, message",
     [
         ({"baseline_mm": 75}, "unknown key (did you mean 'baseline_m'?)"),
+        ({"focal_lenght_px": 580}, "unknown key (did you mean 'focal_y_px' or 'focal_px'?)"),
         ({"focal_px": -5.0}, "focal_px: must be > 0"),
         ({"baseline_m": 0}, "baseline_m: must be > 0"),
         ({"block_size_px": 8}, "block_size_px: must be odd"),

@@ -4,11 +4,10 @@
 
 from __future__ import annotations
 
-import difflib
 import math
 from typing import Any
 
-from ddsgen.errors import InputError, where
+from ddsgen.errors import InputError, did_you_mean, where
 
 
 def check_keys(source, key: str, data: Any, allowed, what: str) -> dict:
@@ -16,8 +15,7 @@ def check_keys(source, key: str, data: Any, allowed, what: str) -> dict:
         raise InputError(f"{where(source, key)}expected a mapping ({what}), got {describe(data)}")
     for name in data:
         if not isinstance(name, str) or name not in allowed:
-            near = difflib.get_close_matches(str(name), list(allowed), n=1)
-            hint = f" (did you mean {near[0]!r}?)" if near else f" (valid keys: {', '.join(allowed)})"
+            hint = did_you_mean(name, allowed, f"valid keys: {', '.join(allowed)}")
             sub = f"{key}.{name}" if key else str(name)
             raise InputError(f"{where(source, sub)}unknown key{hint}")
     return data

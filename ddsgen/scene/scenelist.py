@@ -55,14 +55,13 @@ Every problem raises :class:`~ddsgen.errors.InputError` with one line
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ddsgen.errors import InputError, where
+from ddsgen.errors import InputError, did_you_mean, where
 from ddsgen.scene import shapes
 from ddsgen.scene.default_scenes import default_scene_list_dict
 from ddsgen.scene.distractors import DistractorSpec, parse_distractors
@@ -222,8 +221,7 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
     if "shape" in data:
         name = data["shape"]
         if not isinstance(name, str) or name not in shapes.SHAPES:
-            near = difflib.get_close_matches(str(name), list(shapes.SHAPES), n=1)
-            hint = f" (did you mean {near[0]!r}?)" if near else f" (built-in: {', '.join(shapes.SHAPES)})"
+            hint = did_you_mean(name, shapes.SHAPES, f"built-in: {', '.join(shapes.SHAPES)}")
             raise InputError(f"{where(source, key + '.shape')}unknown shape {name!r}{hint}")
         schema = shapes.shape_params(name)
         check_keys(source, key, data, ("shape", *schema, *OBJECT_KEYS_COMMON), f"a {name}")

@@ -7,11 +7,10 @@ protocol and :data:`REGISTRY` for the names.
 
 from __future__ import annotations
 
-import difflib
 import math
 import numbers
 
-from ddsgen.errors import InputError, where
+from ddsgen.errors import InputError, did_you_mean, where
 from ddsgen.sensor.effects.base import Effect, EffectParam
 
 REGISTRY: dict[str, type[Effect]] = {}
@@ -53,8 +52,7 @@ def validate_effects(entries: list[dict], source: str = "") -> list[dict]:
         key = f"effects[{index}]"
         name = entry["name"]
         if name not in REGISTRY:
-            near = difflib.get_close_matches(name, REGISTRY, n=1)
-            hint = f" (did you mean {near[0]!r}?)" if near else f" (known: {', '.join(sorted(REGISTRY))})"
+            hint = did_you_mean(name, REGISTRY, f"known: {', '.join(sorted(REGISTRY))}")
             raise InputError(f"{where(source, key)}unknown effect {name!r}{hint}")
         cls = REGISTRY[name]
         resolved = {"name": name}
@@ -70,8 +68,7 @@ def validate_effects(entries: list[dict], source: str = "") -> list[dict]:
                 continue
             if param not in cls.params:
                 known = [*cls.options, *cls.groups, *cls.params]
-                near = difflib.get_close_matches(param, known, n=1)
-                hint = f" (did you mean {near[0]!r}?)" if near else f" (parameters: {', '.join(known)})"
+                hint = did_you_mean(param, known, f"parameters: {', '.join(known)}")
                 raise InputError(f"{where(source, key + '.' + param)}unknown parameter of {name}{hint}")
             spec = cls.params[param]
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
