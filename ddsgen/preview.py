@@ -96,7 +96,7 @@ def projected_box(obj, intrinsics, shape: tuple[int, int]) -> tuple[int, int, in
     """(x, y, w, h) px of the object's mesh projected with its pose, clipped to the image; None if out of view."""
     from ddsgen.scene.meshes import load_mesh
 
-    mesh = load_mesh(obj.mesh_path, obj.mesh_scale, source="" if obj.mesh_path.startswith("shape:") else obj.mesh_path)
+    mesh = load_mesh(obj.mesh_path, obj.mesh_scale)
     points = mesh.vertices @ obj.cam_T_obj[:3, :3].T + obj.cam_T_obj[:3, 3]
     points = points[points[:, 2] > 1e-3]
     if not len(points):

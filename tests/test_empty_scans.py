@@ -72,3 +72,15 @@ def test_objects_out_of_view_are_refused_where_only_the_objects_count(scans, tmp
     # The control: the same folder with its objects in view compares and refines.
     assert main(["compare", scans["preset"], str(scans["good"]), "--region", "objects", "--report", str(out),
                  "--quiet"]) == 0  # fmt: skip
+
+
+def test_an_unreadable_mesh_of_a_scan_is_named_once(scans, tmp_path, capsys):
+    folder = tmp_path / "garbage_mesh"
+    shutil.copytree(scans["good"], folder)
+    (folder / "garbage.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n0 0\n")
+    record = json.loads((folder / "manifest.jsonl").read_text().splitlines()[0])
+    record["objects"][0]["mesh"] = "garbage.ply"
+    (folder / "manifest.jsonl").write_text(json.dumps(record) + "\n")
+    line = _one_line_exit_2(capsys, ["compare", scans["preset"], str(folder), "--report", str(tmp_path / "r"),
+                                     "--quiet"], "cannot read mesh")  # fmt: skip
+    assert line.count("garbage.ply") == 1, line

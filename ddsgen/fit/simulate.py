@@ -112,9 +112,7 @@ class FrameData:
 def _load_object_mesh(obj):
     from ddsgen.scene.scenelist import load_mesh
 
-    if obj.mesh_path.startswith("shape:"):
-        return load_mesh(obj.mesh_path, obj.mesh_scale)
-    return load_mesh(obj.mesh_path, obj.mesh_scale, source=obj.mesh_path)
+    return load_mesh(obj.mesh_path, obj.mesh_scale)  # a file's errors name it (passing it as source named it twice)
 
 
 def frame_scene(frame, albedo: float = DEFAULT_ALBEDO, plane: Plane | None = None, plane_size_m: float = 20.0):
