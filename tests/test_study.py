@@ -43,7 +43,8 @@ def test_parse_grid_rejects_malformed(text):
 
 
 @pytest.mark.parametrize(
-    "argv", [["--z", "0.5:x:1"], ["--angles", "0,90"], ["--angles", "ten"], ["--frames", "0"], ["--rows", "47"]]
+    "argv", [["--z", "0.5:x:1"], ["--angles", "0,90"], ["--angles", "ten"], ["--frames", "0"], ["--rows", "47"],
+             ["--rows", "5000"]]
 )
 def test_cli_bad_grid_is_one_line_and_exit_2(argv, tmp_path, capsys):
     code = main(["study", "noise", "kinect_v1", "--out", str(tmp_path / "o"), "--quiet", *argv])
@@ -146,6 +147,9 @@ def test_rows_crop_is_centred_and_checked():
     assert study_intrinsics(preset, None) == preset.intrinsics
     with pytest.raises(InputError, match="--rows"):
         study_intrinsics(preset, 47)
+    assert study_intrinsics(preset, 480) == preset.intrinsics
+    with pytest.raises(InputError, match="--rows: the preset's image has 480 rows, got 481"):
+        study_intrinsics(preset, 481)
 
 
 # ------------------------------------------------------------------------------------------ the command, physics

@@ -159,7 +159,9 @@ def study_intrinsics(preset: SensorPreset, rows: int | None = None) -> Intrinsic
     pattern is centred on the image, so a crop is the same physics on fewer pixels (used by the tests).
     """
     intr = preset.intrinsics
-    if rows is None or rows >= intr.height:
+    if rows is not None and rows > intr.height:  # not silently the whole image: the user asked for something else
+        raise InputError(f"--rows: the preset's image has {intr.height} rows, got {rows}")
+    if rows is None or rows == intr.height:
         return intr
     if rows < 2 * preset.block_size_px or (intr.height - rows) % 2:
         raise InputError(
