@@ -61,3 +61,133 @@ def check_can_create_folder(folder: str | Path, what: str) -> None:
         raise InputError(f"{folder}: cannot write {what} there ({existing} is a file, not a folder)")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise InputError(f"{folder}: cannot write {what} there ({existing} is not writable)")
+
+
+def overlap(folder: str | Path, other: str | Path) -> str | None:
+    """How ``folder`` meets ``other``: ``"is"``, ``"is inside"``, ``"holds"`` (symbolic links followed) or None."""
+    folder, other = Path(folder).resolve(), Path(other).resolve()
+    if folder == other:
+        return "is"
+    if other in folder.parents:
+        return "is inside"
+    return "holds" if folder in other.parents else None
+
+
+def check_new_folder(folder: str | Path, option: str, inputs: tuple[str | Path, ...] = ()) -> Path:
+    """Raise ``InputError`` unless ``folder`` can become a new output folder: absent or an empty folder, writable,
+    and neither one of ``inputs`` nor inside one nor holding one. Writes nothing; call before any work. Returns
+    ``folder`` as a Path. ``option`` names the option in the message (``--out``)."""
+    from ddsgen.errors import InputError
+
+    folder = Path(folder)
+    for source in inputs:
+        where = overlap(folder, source)
+        if where:
+            raise InputError(f"{folder}: {option}: {where} the input folder {source}; give a new folder")
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        what = "folder is not empty" if folder.is_dir() else "exists and is not a folder"
+        raise InputError(f"{folder}: {option}: {what}; give a new folder")
+    check_can_create_folder(folder, option)
+    return folder
+
+
+@contextlib.contextmanager
+def atomic_folder(folder: str | Path, what: str, *, merge: bool = True, last: str | None = None):
+    """Yield a new hidden folder next to ``folder`` to build it in; on success put what it holds in place.
+
+    ``folder`` therefore appears only complete: an exception (a Ctrl-C's KeyboardInterrupt included) removes the
+    temporary folder and the parent folders made for it, and leaves ``folder`` as it was. When ``folder`` is absent
+    or empty the temporary folder is renamed to it. An existing folder (an earlier run's report) is kept with
+    ``merge``: each entry built replaces its namesake (a sub-folder as a whole), the others stay, ``last`` (the
+    index page) goes in last; without ``merge`` it is an error. Ctrl-C waits for the renames. Errors of the file
+    system are one-line ``InputError`` naming ``folder`` and ``what``.
+    """
+    from ddsgen.errors import InputError
+
+    folder = Path(folder)
+    target = folder.resolve()
+    made = _make_parents(target.parent, folder, what)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".partial", dir=target.parent))
+    except OSError as error:
+        _remove_made(made)
+        raise InputError(f"{folder}: cannot write {what} there ({error.strerror or error})") from None
+    try:
+        os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700; outputs get the usual permissions
+        yield tmp
+        with _interrupts_deferred():
+            _put_in_place(tmp, target, folder, what, merge, last)
+    except BaseException:
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_made(made)
+        raise
+    if tmp.exists():  # the replaced entries of a merge
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _make_parents(parent: Path, folder: Path, what: str) -> list[Path]:
+    """Create ``parent`` and its missing ancestors; returns those created, outermost first."""
+    from ddsgen.errors import InputError
+
+    missing = [p for p in (parent, *parent.parents) if not p.exists()][::-1]
+    try:
+        for path in missing:
+            path.mkdir()
+    except OSError as error:
+        _remove_made(missing)
+        raise InputError(f"{folder}: cannot write {what} there ({error.strerror or error})") from None
+    return missing
+
+
+def _remove_made(made: list[Path]) -> None:
+    for path in reversed(made):
+        with contextlib.suppress(OSError):
+            path.rmdir()
+
+
+def _put_in_place(tmp: Path, target: Path, folder: Path, what: str, merge: bool, last: str | None) -> None:
+    from ddsgen.errors import InputError
+
+    try:
+        if target.is_dir() and not any(target.iterdir()):
+            target.rmdir()
+        if not target.exists():
+            tmp.rename(target)
+            return
+        if not merge or not target.is_dir():
+            raise InputError(f"{folder}: {what}: appeared while the command ran; give a new folder")
+        replaced = Path(tempfile.mkdtemp(prefix=".replaced.", dir=tmp))
+        for entry in sorted(tmp.iterdir(), key=lambda p: (p.name == last, p.name)):
+            if entry == replaced:
+                continue
+            old = target / entry.name
+            if old.exists() or old.is_symlink():
+                old.rename(replaced / entry.name)
+            entry.rename(old)
+    except OSError as error:
+        raise InputError(f"{folder}: cannot write {what} there ({error.strerror or error})") from None
+
+
+@contextlib.contextmanager
+def _interrupts_deferred():
+    """Hold a Ctrl-C (SIGINT) until the block ends, then act on it as usual: the renames that put a folder in place
+    are not cut in half. Only the main thread can handle signals; elsewhere this does nothing."""
+    import signal
+    import threading
+
+    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if not callable(previous):
+        yield
+        return
+    received = []
+    signal.signal(signal.SIGINT, lambda number, frame: received.append((number, frame)))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        previous(*received[0])
