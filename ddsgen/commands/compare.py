@@ -47,21 +47,28 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     from ddsgen.fit.inputs import load_inputs
     from ddsgen.fit.compare_outputs import FrameOutputs
     from ddsgen.fit.save_sim import SimFolderWriter, check_target
+    from ddsgen.io.atomic import atomic_folder, check_can_create_folder, overlap
     from ddsgen.sensor.depth_sensor import DepthSensor
 
+    # Every output location is checked before any work.
+    check_can_create_folder(report_dir, "the report (--report)")
     if save_sim is not None:
-        check_target(save_sim)  # before any work
-        if Path(save_sim).resolve() == Path(report_dir).resolve():
-            raise InputError(f"{save_sim}: --save-sim: must differ from the --report folder")
+        check_target(save_sim, inputs=(real_dir,))
+        where = overlap(save_sim, report_dir)
+        if where:
+            raise InputError(f"{save_sim}: --save-sim: {where} the --report folder {report_dir}; give another folder")
     _, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
                                                   plausible_px=plausible_px, seed=seed, progress=not quiet, echo=echo_stderr)  # fmt: skip
     sensor = DepthSensor(camera_preset).eval()
     title = f"{camera_preset.name} vs {real_dir} ({len(frames)} frame(s))"
-    with SimFolderWriter(save_sim, camera_preset, seed) if save_sim else contextlib.nullcontext() as writer:
+    # Both folders are built under temporary names and put in place only once complete: an interrupted run leaves
+    # neither. The report goes in first, --save-sim last: a re-run replaces a report but refuses a --save-sim.
+    with (SimFolderWriter(save_sim, camera_preset, seed) if save_sim else contextlib.nullcontext()) as writer, \
+            atomic_folder(report_dir, "the report (--report)", last="index.html") as building:
         border = camera_preset.block_size_px // 2 + 1 if crop else 0  # as prepare_frame's crop region
-        outputs = FrameOutputs(scans, Path(report_dir), region, writer, border, camera_preset.baseline_m)
+        outputs = FrameOutputs(scans, building, region, writer, border, camera_preset.baseline_m)
         report = gap(sensor, frames, region=region, seed=seed, keep_maps=True, progress=not quiet, on_frame=outputs)
-    written = outputs.finish(report, title)
+        written = [Path(report_dir) / p.relative_to(building) for p in outputs.finish(report, title)]
     click.echo(table(report, title))
     saved = f"; simulated frames in {save_sim}" if save_sim else ""
     click.echo(f"wrote {', '.join(str(p) for p in written)}{saved}")

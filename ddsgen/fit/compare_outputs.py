@@ -26,7 +26,8 @@ class FrameOutputs:
 
     Args:
         scans: the real :class:`~ddsgen.io.scanfolder.ScanFrame` list; FrameData ``index`` i is scans[i].
-        report_dir: folder of the report (pictures go to ``report_dir/frames/NNNNNN.png``).
+        report_dir: folder the report is written to (pictures go to ``report_dir/frames/NNNNNN.png``); ``compare``
+            passes the temporary folder it builds the report in (:func:`ddsgen.io.atomic.atomic_folder`).
         region: ``"all"`` or ``"objects"`` (the compare region of the statistics and pictures).
         sim_writer: a :class:`~ddsgen.fit.save_sim.SimFolderWriter` inside its ``with``, or None.
         crop_border_px: with ``--crop``, the crop window's border the matcher cannot reach (see

@@ -12,8 +12,6 @@ back with :func:`ddsgen.io.scanfolder.read_scan_folder`.
 from __future__ import annotations
 
 import contextlib
-import shutil
-import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,6 +19,7 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.fit.realism import full_frame
+from ddsgen.io.atomic import atomic_folder, check_new_folder
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import append_record
 from ddsgen.preset import SensorPreset, save_preset
@@ -28,20 +27,18 @@ from ddsgen.preset import SensorPreset, save_preset
 MANIFEST = "manifest.jsonl"
 
 
-def check_target(out: str | Path) -> Path:
-    """DIR must not exist yet (or be an empty folder): call before any work. Returns it as a Path."""
-    out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        what = "folder is not empty" if out.is_dir() else "exists and is not a folder"
-        raise InputError(f"{out}: --save-sim: {what}; give a new folder")
-    return out
+def check_target(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> Path:
+    """DIR must not exist yet (or be an empty folder), nor be one of ``inputs`` (the real folder): call before any
+    work. Returns it as a Path."""
+    return check_new_folder(out, "--save-sim", inputs)
 
 
 class SimFolderWriter:
     """Collects simulated frames into a scan folder; use as a context manager.
 
-    ``with SimFolderWriter(out, preset, seed) as writer: writer.add(frame, sim, scan)`` -- on a
-    clean exit the folder is renamed to ``out``; on an exception it is removed.
+    ``with SimFolderWriter(out, preset, seed) as writer: writer.add(frame, sim, scan)`` -- the frames go to a
+    hidden temporary folder (:func:`ddsgen.io.atomic.atomic_folder`) that a clean exit renames to ``out``; an
+    exception (Ctrl-C included) removes it, so an unfinished command leaves no ``out`` and can be re-run.
     """
 
     def __init__(self, out: str | Path, preset: SensorPreset, seed: int):
@@ -50,34 +47,22 @@ class SimFolderWriter:
         self.seed = int(seed)
         self.count = 0
         self.tmp: Path | None = None
+        self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> SimFolderWriter:
-        parent = self.out.resolve().parent
+        self.tmp = self._stack.enter_context(atomic_folder(self.out, "--save-sim", merge=False))
         try:
-            parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", suffix=".partial", dir=parent))
             save_preset(self.preset, self.tmp / "sensor.yaml", comment=f"resolved from {self.preset.source}; "
                         "the camera is the real scans'")  # fmt: skip
-        except OSError as error:
-            self._remove()
-            raise InputError(f"{self.out}: --save-sim: cannot write ({error.strerror or error})") from None
+        except BaseException as error:
+            self._stack.__exit__(type(error), error, error.__traceback__)  # removes the folder: nothing is left
+            if isinstance(error, OSError):
+                raise InputError(f"{self.out}: --save-sim: cannot write ({error.strerror or error})") from None
+            raise
         return self
 
-    def __exit__(self, kind, error, trace) -> None:
-        if kind is not None:
-            self._remove()
-            return
-        try:
-            with contextlib.suppress(FileNotFoundError):
-                self.out.rmdir()  # an empty folder given as the target
-            self.tmp.rename(self.out)
-        except OSError as error:
-            self._remove()
-            raise InputError(f"{self.out}: --save-sim: cannot write ({error.strerror or error})") from None
-
-    def _remove(self) -> None:
-        if self.tmp is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
+    def __exit__(self, kind, error, trace) -> bool:
+        return self._stack.__exit__(kind, error, trace)
 
     def add(self, frame, sim, scan) -> dict:
         """Write the simulation ``sim`` (SensorOutput) of ``frame`` (FrameData) of the real ``scan`` (ScanFrame)."""
