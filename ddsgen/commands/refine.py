@@ -44,12 +44,13 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
 
     Each frame's objects are moved until the simulated depth matches the real one (Huber loss on the
     pixels where the real depth is within --band-mm of the rendered scene) and their outlines lie on
-    the real depth's discontinuities (--edge-weight). Writes OUT with the refined
-    poses in the input's layout, and OUT/report/ (refine_report.json: per-object pose change in deg/mm,
-    gap before/after; one PNG per frame: real | before | after).
+    the real depth's discontinuities (--edge-weight). Writes OUT (a new or empty folder, not REAL_DIR)
+    with the refined poses in the input's layout, and OUT/report/ (refine_report.json: per-object pose
+    change in deg/mm, gap before/after; one PNG per frame: real | before | after).
     """
     from tqdm import tqdm
 
+    from ddsgen.io.atomic import atomic_folder, check_new_folder
     from ddsgen.io.pose_writer import write_refined_poses
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.preset import load_preset
@@ -68,6 +69,8 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
         raise click.BadParameter("must be >= 0", param_hint="--edge-weight")
     if static_views < 1:
         raise click.BadParameter("must be >= 1", param_hint="--static-views")
+    # Before any work: OUT is a new folder, not the input (whose manifest it would overwrite) nor in it.
+    check_new_folder(out_dir, "--out", inputs=(real_dir,))
     base = load_preset(preset)
     frames = read_scan_folder(real_dir)
     if not frames:
@@ -93,15 +96,16 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
         refined[frame.name] = refinements[-1].refined_poses()
         frame.release()
     out = Path(out_dir)
-    written = write_refined_poses(frames, refined, out)
-    report = write_report(refinements, out / "report", {"preset": str(preset), "real_dir": str(real_dir),
-                          "static_scene": bool(static_scene), "static_views": int(static_views), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
+    with atomic_folder(out, "--out", merge=False) as building:  # OUT appears whole or not at all
+        written = write_refined_poses(frames, refined, building, final=out)
+        write_report(refinements, building / "report", {"preset": str(preset), "real_dir": str(real_dir),
+                     "static_scene": bool(static_scene), "static_views": int(static_views), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
     for r in refinements:
         for change in r.object_changes():
             click.echo(f"{r.name} object {change['id']}: moved {change['rotation_deg']:.2f} deg, "
                        f"{change['translation_mm']:.2f} mm")  # fmt: skip
         click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm")
-    click.echo(f"wrote {', '.join(str(p) for p in written)} and {report.parent}/")
+    click.echo(f"wrote {', '.join(str(p) for p in written)} and {out / 'report'}/")
 
 
 def _camera_preset(base, frames):

@@ -24,22 +24,28 @@ from ddsgen.io.atomic import atomic_write_text
 from ddsgen.io.manifest import OPTIONAL_PATH_KEYS, dumps_record
 
 
-def write_refined_poses(frames, refined: dict, out: str | Path) -> list[Path]:
-    """Write the refined poses of ``frames`` under ``out``; returns the files written.
+def write_refined_poses(frames, refined: dict, out: str | Path, final: str | Path | None = None) -> list[Path]:
+    """Write the refined poses of ``frames`` under ``out``; returns the files written (under ``final``).
 
     Args:
         frames: the :class:`~ddsgen.io.scanfolder.ScanFrame` list read from one folder (one layout).
         refined: frame name -> {object id (ScanObject.id) -> (4, 4) refined ``cam_T_obj`` (m)}.
             Frames or objects not in it keep their poses.
         out: output folder.
+        final: where ``out`` will be once complete, when it is built under a temporary name
+            (:func:`ddsgen.io.atomic.atomic_folder`): the manifest's paths to the source files are relative to it.
+            Default: ``out``.
     """
     out = Path(out)
+    final = out if final is None else Path(final)
     layouts = {f.layout for f in frames}
     if layouts == {"bop"}:
-        return _write_bop(frames, refined, out)
-    if layouts == {"ddsgen"}:
-        return [_write_manifest(frames, refined, out)]
-    raise InputError(f"{out}: frames of layouts {sorted(layouts)}: cannot write one folder for them")
+        written = _write_bop(frames, refined, out)
+    elif layouts == {"ddsgen"}:
+        written = [_write_manifest(frames, refined, out, final)]
+    else:
+        raise InputError(f"{final}: frames of layouts {sorted(layouts)}: cannot write one folder for them")
+    return [final / path.relative_to(out) for path in written]
 
 
 def _write_bop(frames, refined: dict, out: Path) -> list[Path]:
@@ -73,7 +79,7 @@ def _write_bop(frames, refined: dict, out: Path) -> list[Path]:
     return list(contents)
 
 
-def _write_manifest(frames, refined: dict, out: Path) -> Path:
+def _write_manifest(frames, refined: dict, out: Path, final: Path) -> Path:
     lines = []
     for f in frames:
         if f.record is None:
@@ -84,7 +90,7 @@ def _write_manifest(frames, refined: dict, out: Path) -> Path:
             source = source.parent
         for key in ("depth",) + OPTIONAL_PATH_KEYS:
             if isinstance(record.get(key), str):
-                record[key] = Path(os.path.relpath(source / record[key], out.resolve())).as_posix()
+                record[key] = Path(os.path.relpath(source / record[key], final.resolve())).as_posix()
         poses = refined.get(f.name, {})
         for obj, scan_obj in zip(record["objects"], f.objects):
             obj["mesh"] = scan_obj.mesh_path
