@@ -10,6 +10,7 @@ import click
 from ddsgen.commands import POSITIVE, SEED, echo_stderr, split_names, threads_option, use_threads
 from ddsgen.errors import InputError
 from ddsgen.fit import DEFAULT_TILE_PX
+from ddsgen.io.atomic import check_can_create_folder
 
 
 @click.command("diagnose")
@@ -90,6 +91,12 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise click.BadParameter("must be in (0, 1)", param_hint="--holdout")
     if apply_path is not None and Path(apply_path).suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--apply: {apply_path}: the extended preset must be a .yaml file")
+    # The output locations are checked before any work (a diagnosis takes minutes to hours).
+    check_can_create_folder(report_dir, "the report (--report)")
+    if apply_path is not None:
+        if Path(apply_path).is_dir():
+            raise InputError(f"{apply_path}: --apply: is a folder; give the extended preset's .yaml file")
+        check_can_create_folder(Path(apply_path).parent, "the extended preset (--apply)")
     names = split_names(candidates)
     unknown = [n for n in names if n not in REGISTRY and n not in BEHAVIOURS]
     if unknown:

@@ -12,6 +12,7 @@ from ddsgen.diagnose.acceptance import RULE
 from ddsgen.diagnose.maps import ResidualMap, crop_zoom, region_box
 from ddsgen.fit.compare import BELOW_FLOOR
 from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
+from ddsgen.io.atomic import atomic_folder
 
 
 #: Where the report's figures go, relative to the report folder (report.html references them).
@@ -242,9 +243,15 @@ def generic_term(sensor, label: str):
 
 
 def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] | None = None) -> list[Path]:
-    """Write ``diagnosis.json`` and ``report.html`` of a :class:`~ddsgen.diagnose.Diagnosis` into ``folder``."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    """Write ``diagnosis.json``, ``report.html`` and ``plots/`` of a :class:`~ddsgen.diagnose.Diagnosis` into
+    ``folder``; returns the first two. The report is built under a temporary name and put in place whole
+    (:func:`ddsgen.io.atomic.atomic_folder`): an interrupted run leaves no half-written report."""
+    with atomic_folder(folder, "the report", last="report.html") as building:
+        _write_diagnosis(diagnosis, building, title, notes)
+    return [Path(folder) / "diagnosis.json", Path(folder) / "report.html"]
+
+
+def _write_diagnosis(diagnosis, folder: Path, title: str, notes: list[str] | None) -> None:
     plots = folder / PLOTS
     d = diagnosis
     summary = list(notes or []) + list(getattr(d, "notes", []))
@@ -316,4 +323,3 @@ def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] 
     json_path, html_path = folder / "diagnosis.json", folder / "report.html"
     write_json(json_path, d.to_dict())
     write_html(html_path, title, summary, steps, overview, unexplained_text, RULE, rejected, maps)
-    return [json_path, html_path]
