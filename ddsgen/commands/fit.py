@@ -13,7 +13,7 @@ from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.inputs import load_inputs
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import check_can_create_folder
+from ddsgen.io.atomic import atomic_folder, check_can_create_folder
 
 
 @click.command("fit")
@@ -240,14 +240,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
 
     rows = parameter_rows(physical_values(DepthSensor(camera_preset)), result.after, final_values, uncertainty, kept, result.bounds)
     held_key = ("held-out", region)
-    report.mkdir(parents=True, exist_ok=True)
-    write_report(before[held_key], report, "comparison_before")
-    write_report(after[held_key], report, "comparison_after")
-    plot_residuals([before[held_key], after[held_key]], report / "residuals.png", ["before fit", "after fit"])
     gap_pairs = {k: (before[k].gap, after[k].gap) for k in before}
-    write_fit_report(report, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs,
-                     split_kind=split_kind, split_meaning=SPLIT_MEANING[split_kind], revert_lines=revert_lines,
-                     history=result.history, before_maps=before[held_key], after_maps=after[held_key])  # fmt: skip
     summary = {
         "preset": str(preset), "real_dir": str(real_dir), "fitted_preset": str(out_path),
         "split": {"kind": split_kind, "meaning": SPLIT_MEANING[split_kind]},
@@ -260,16 +253,25 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     if refine_poses:
         summary["pose_refinement"] = {"steps": pose_steps, "rounds": pose_rounds, "static_scene": bool(static_scene),
                                       "static_views": int(static_views) if static_scene else None}  # fmt: skip
-    atomic_write_text(report / "fit_report.json", json.dumps(summary, indent=1, default=float) + "\n")
-    if weights_path is not None:
-        save_postprocess(sensor.postprocess, weights_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
     comment = [f"fitted by ddsgen fit to {real_dir} from {preset}", f"params: {', '.join(names)}",
                f"split: {split_kind}; held-out gap ({region}) {before[held_key].gap:.2f} -> {after[held_key].gap:.2f} mm",
                *revert_lines, "value +- uncertainty (1 s.d.) of each fitted parameter:"]  # fmt: skip
     comment += [f"  {r['key']}: {fitted_line(r)}" + ("" if r["kept"] else
                 f" (reverted: the preset keeps the input's {r['after']:.6g})") for r in rows]  # fmt: skip
-    save_preset(fitted, out_path, comment="\n".join(comment))
+    # The report is built under a temporary name and put in place once complete, after the preset: an interrupted
+    # fit leaves no half-written report (a re-run replaces an earlier one).
+    with atomic_folder(report, "the report", last="index.html") as building:
+        write_report(before[held_key], building, "comparison_before")
+        write_report(after[held_key], building, "comparison_after")
+        plot_residuals([before[held_key], after[held_key]], building / "residuals.png", ["before fit", "after fit"])
+        write_fit_report(building, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs,
+                         split_kind=split_kind, split_meaning=SPLIT_MEANING[split_kind], revert_lines=revert_lines,
+                         history=result.history, before_maps=before[held_key], after_maps=after[held_key])  # fmt: skip
+        atomic_write_text(building / "fit_report.json", json.dumps(summary, indent=1, default=float) + "\n")
+        if weights_path is not None:
+            save_postprocess(sensor.postprocess, weights_path)
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        save_preset(fitted, out_path, comment="\n".join(comment))
     click.echo(f"split: {split_kind} ({SPLIT_MEANING[split_kind]})")
     for (which, r), (b, a) in gap_pairs.items():
         click.echo(f"  {which:8s} gap, region {r:7s}: {b:.2f} mm -> {a:.2f} mm")
