@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -118,14 +119,10 @@ def atomic_folder(folder: str | Path, what: str, *, merge: bool = True, last: st
         with _interrupts_deferred():
             _put_in_place(tmp, target, folder, what, merge, last)
     except BaseException:
-        import shutil
-
         shutil.rmtree(tmp, ignore_errors=True)
         _remove_made(made)
         raise
     if tmp.exists():  # the replaced entries of a merge
-        import shutil
-
         shutil.rmtree(tmp, ignore_errors=True)
 
 
@@ -159,7 +156,7 @@ def _put_in_place(tmp: Path, target: Path, folder: Path, what: str, merge: bool,
             tmp.rename(target)
             return
         if not merge or not target.is_dir():
-            raise InputError(f"{folder}: {what}: appeared while the command ran; give a new folder")
+            raise InputError(f"{folder}: {what}: folder is not empty; give a new folder")
         replaced = Path(tempfile.mkdtemp(prefix=".replaced.", dir=tmp))
         for entry in sorted(tmp.iterdir(), key=lambda p: (p.name == last, p.name)):
             if entry == replaced:
