@@ -16,6 +16,7 @@ from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
+from ddsgen.io.atomic import atomic_folder
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -88,7 +89,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                           "model": model.name,
                           "stock_radius_distance": {m.name: m.distance for m in candidates}},
     }  # fmt: skip
-    content = write_report(report, content, pooled, depths, resolution, seed, fb)
+    with atomic_folder(report, "the report") as building:  # in place only when complete (an interrupt leaves none)
+        content = write_report(building, content, pooled, depths, resolution, seed, fb)
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
