@@ -2,13 +2,17 @@
 
 Every command: ``--help``; exit 0 on success; bad input -> one line on stderr and
 exit 2 (no traceback, nothing half-written); so is a path the system refuses to read or write (OSError).
+Ctrl-C (SIGINT) and SIGTERM unwind the same way (worker processes ended, finished frames kept): exit 130 / 143.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
+import signal
 import sys
+import threading
 
 import click
 
@@ -33,8 +37,52 @@ for _name in COMMAND_MODULES:
         cli.add_command(getattr(importlib.import_module(f"ddsgen.commands.{_name}"), _name))
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM as an exception. A KeyboardInterrupt, so that it unwinds exactly as Ctrl-C does: every
+    ``except KeyboardInterrupt`` / ``except BaseException`` clean-up runs (the runner ends its worker processes,
+    atomic writes drop their temporary files), where SIGTERM's default action ended the process on the spot and
+    left the pool's workers and multiprocessing's resource tracker running, re-parented to PID 1."""
+
+
+#: Exit code after SIGTERM: 128 + 15, as a shell reports a process that SIGTERM ended.
+EXIT_TERMINATED = 128 + signal.SIGTERM
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """While the block runs, SIGTERM raises :class:`Terminated` in the main thread (once: a second SIGTERM
+    during the clean-up does not cut the clean-up short; SIGKILL still ends everything). The previous handler is
+    restored afterwards. Left alone where the embedding program installed its own handler, and off the main
+    thread (only the main thread can set handlers)."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+    received: list[int] = []
+
+    def handler(number, frame):
+        if not received:
+            received.append(number)
+            raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: run the CLI, turning bad input into one line and exit code 2."""
+    try:
+        with _sigterm_raises():
+            return _run(argv)
+    except Terminated:  # the signal came between _run's own handlers and the end of the block
+        click.echo("ddsgen: terminated", err=True)
+        return EXIT_TERMINATED
+
+
+def _run(argv: list[str] | None) -> int:
+    """:func:`main` inside the SIGTERM handler: each kind of failure -> its one line and exit code."""
     try:
         cli.main(args=argv, prog_name="ddsgen", standalone_mode=False)
     except InputError as error:
@@ -45,12 +93,18 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{path}: " if path and path != "ddsgen" else ""
         click.echo(f"ddsgen: error: {where}{error.format_message()}", err=True)
         return 2
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as error:  # click turns a KeyboardInterrupt inside a command into Abort
+        if isinstance(error.__cause__, Terminated):
+            click.echo("ddsgen: terminated", err=True)
+            return EXIT_TERMINATED
         click.echo("ddsgen: interrupted", err=True)
         return 130
     except click.exceptions.ClickException as error:
         click.echo(f"ddsgen: error: {error.format_message()}", err=True)
         return error.exit_code
+    except Terminated:
+        click.echo("ddsgen: terminated; re-run the same command to resume", err=True)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         click.echo("ddsgen: interrupted; re-run the same command to resume", err=True)
         return 130

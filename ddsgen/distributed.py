@@ -100,17 +100,78 @@ def run_batch_on_worker(fn: Callable, job, batch: list[int]) -> list[dict]:
         return fn(job, batch)
 
 
-def connect(scheduler: str, timeout: float | None = None):
-    """A :class:`distributed.Client` for ``scheduler``; :class:`InputError` if unreachable or Dask is missing."""
+ADDRESS_HINT = "give tcp://HOST:PORT or HOST:PORT, e.g. tcp://10.0.0.5:8786"
+
+
+def check_address(scheduler: str) -> None:
+    """:class:`InputError` unless ``scheduler`` has the form of a Dask scheduler address.
+
+    Dask takes ``SCHEME://LOCATION`` or a bare ``HOST:PORT`` (scheme ``tcp``); every scheme but ``inproc`` needs a
+    host and a port. Checked with Dask's own parser before any connection is tried: a malformed address fails at
+    once and in one line, never after a connection timeout.
+    """
+    _require_distributed()
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    def bad(problem: str) -> InputError:
+        return InputError(f"--scheduler: {scheduler!r} is not a scheduler address ({problem}); {ADDRESS_HINT}")
+
     try:
-        from distributed import Client
+        scheme, location = parse_address(scheduler)
+    except ValueError as error:
+        raise bad(str(error)) from None
+    if scheme not in backends:
+        raise bad(f"unknown scheme {scheme}://; Dask knows {', '.join(s + '://' for s in sorted(backends))}")
+    if scheme == "inproc":
+        return
+    try:
+        host, port = parse_host_port(location)
+    except ValueError as error:
+        raise bad("no port number" if "missing port" in str(error) else "the port is not a number") from None
+    if not host:
+        raise bad("no host name")
+    if not 0 < port < 65536:
+        raise bad(f"port {port} is out of range 1-65535")
+
+
+def _require_distributed() -> None:
+    try:
+        import distributed  # noqa: F401
     except ImportError:
         raise InputError("--scheduler: needs Dask distributed (pip install 'ddsgen[dask]')") from None
+
+
+def connect(scheduler: str, timeout: float | None = None):
+    """A :class:`distributed.Client` for ``scheduler``; :class:`InputError` if malformed, unreachable or Dask is missing.
+
+    A Client whose constructor failed still exists, half built, with its event-loop thread running; left to the
+    garbage collector, its ``__del__`` closed it at interpreter exit against a loop already gone, which waited
+    2 x the timeout (40 s) and printed an ``Exception ignored in: Client.__del__`` traceback. So the object is made
+    first and initialised in a second step, and a failed one is closed here, while its loop still runs.
+    """
+    check_address(scheduler)
+    from distributed import Client
+
+    client = Client.__new__(Client)
     try:
-        return Client(scheduler, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False)
+        client.__init__(scheduler, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as error:
+        _discard(client)
         first = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise InputError(f"--scheduler: cannot connect to {scheduler} ({first})") from None
+    except BaseException:  # Ctrl-C while connecting
+        _discard(client)
+        raise
+    return client
+
+
+def _discard(client) -> None:
+    """Close a Client whose start failed; never raise (its own error is the one to report)."""
+    try:
+        client.close(timeout=5)
+    except Exception:  # noqa: BLE001 - a half-built client may lack any attribute close() touches
+        pass
 
 
 def _total_threads(client) -> int:
