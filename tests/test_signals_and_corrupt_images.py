@@ -180,3 +180,137 @@ def test_failed_connection_leaves_no_half_built_client(tmp_path):
     assert time.monotonic() - start < 15 and result.returncode == 0, result.stderr
     assert result.stdout.startswith("--scheduler: cannot connect to inproc://"), result.stdout
     assert result.stderr == "", result.stderr
+
+
+# ---------------------------------------------------------------- 3. truncated / corrupt images: our line only
+
+
+def _depth_png_bytes(height: int = 48, width: int = 64) -> bytes:
+    """A valid 16-bit depth PNG (mm) with some texture, so that its image data spans many bytes."""
+    from ddsgen.io.png import depth_to_units
+    import cv2
+
+    rng = np.random.default_rng(3)
+    depth = depth_to_units(rng.uniform(0.5, 2.0, (height, width)))
+    ok, data = cv2.imencode(".png", depth)
+    assert ok
+    return data.tobytes()
+
+
+def _png_chunks(data: bytes) -> list[tuple[bytes, bytes]]:
+    import struct
+
+    chunks, position = [], 8
+    while position < len(data):
+        (length,) = struct.unpack_from(">I", data, position)
+        chunks.append((data[position + 4 : position + 8], data[position + 8 : position + 8 + length]))
+        position += 12 + length
+    return chunks
+
+
+def _png_from_chunks(chunks) -> bytes:
+    import struct
+    import zlib
+
+    return b"\x89PNG\r\n\x1a\n" + b"".join(struct.pack(">I", len(body)) + kind + body
+                                          + struct.pack(">I", zlib.crc32(kind + body)) for kind, body in chunks)  # fmt: skip
+
+
+def _bad_filter_png() -> bytes:
+    """Every chunk intact (CRCs valid), but the rows' filter bytes say 9 (valid: 0-4): libpng's 'bad adaptive filter
+    value', which no structural check can see."""
+    import zlib
+
+    chunks = _png_chunks(_depth_png_bytes())
+    width = int.from_bytes(chunks[0][1][:4], "big")
+    raw = bytearray(zlib.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT")))
+    raw[:: 1 + 2 * width] = bytes([9]) * len(raw[:: 1 + 2 * width])
+    rest = [c for c in chunks if c[0] not in (b"IDAT", b"IEND")]
+    return _png_from_chunks([*rest, (b"IDAT", zlib.compress(bytes(raw))), (b"IEND", b"")])
+
+
+def _flipped_png() -> bytes:
+    """Bytes flipped inside the image data (the chunk's CRC no longer matches)."""
+    data = bytearray(_depth_png_bytes())
+    start = data.find(b"IDAT") + 20
+    data[start : start + 30] = bytes(b ^ 0x5A for b in data[start : start + 30])
+    return bytes(data)
+
+
+BAD_PNGS = {
+    "truncated": (lambda: _depth_png_bytes()[:300], "truncated: the file ends inside its IDAT chunk"),
+    "flipped": (_flipped_png, "corrupt: CRC error in its IDAT chunk"),
+    "bad_filter": (_bad_filter_png, "truncated or corrupt: bad adaptive filter value"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_PNGS))
+def test_corrupt_depth_png_in_a_real_folder_is_our_line_only(kind, tmp_path):
+    """fit --unpaired reads a plain depth folder: the line names the file and why, and nothing of libpng's or
+    OpenCV's reaches stderr (they print to fd 2 from C, hence the subprocess)."""
+    make, reason = BAD_PNGS[kind]
+    real = tmp_path / "real"
+    real.mkdir()
+    (real / "0.png").write_bytes(make())
+    result = run_cli("fit", "kinect_v1", real, "--unpaired", "--out", tmp_path / "fitted.yaml", "--quiet")
+    assert_one_error_line(result, f"{real / '0.png'}: cannot read depth PNG ({reason}")
+    assert not (tmp_path / "fitted.yaml").exists()
+
+
+def test_read_image_reasons_and_fd2_restored(tmp_path, capfd):
+    """In-process: each bad file is an InputError with its reason and nothing on fd 2; fd 2 works afterwards, also
+    when the decode raised; what another writer put on fd 2 during a decode is passed on."""
+    import cv2
+
+    from ddsgen.io import images
+
+    cases = {"empty.png": (b"", "(empty file)"), "text.png": (b"hello, not an image", "(not an image file OpenCV can decode)"),
+             **{f"{k}.png": (make(), reason) for k, (make, reason) in BAD_PNGS.items()}}  # fmt: skip
+    for name, (data, reason) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError, match=r"^.*" + name + r": cannot read depth PNG \(") as info:
+            images.read_image(tmp_path / name, "depth PNG")
+        assert reason in str(info.value)
+    with pytest.raises(InputError, match=r"missing.png: cannot read image \(no such file\)"):
+        images.read_image(tmp_path / "missing.png")
+    good = tmp_path / "good.png"
+    good.write_bytes(_depth_png_bytes())
+    assert images.read_image(good).dtype == np.uint16
+    assert capfd.readouterr().err == ""
+
+    real_imdecode = cv2.imdecode
+
+    def noisy_then_raise(data, flags):
+        os.write(2, b"another thread's line\n")
+        raise RuntimeError("boom")
+
+    images.cv2.imdecode = noisy_then_raise
+    try:
+        with pytest.raises(RuntimeError):
+            images.read_image(good)
+    finally:
+        images.cv2.imdecode = real_imdecode
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "another thread's line\nafter\n"
+
+
+def test_png_check_is_cheap_against_the_decode():
+    """The structural check reads each chunk's CRC only: a small fraction of the decode it guards."""
+    import cv2
+
+    from ddsgen.io.images import png_problem
+
+    data = np.frombuffer(_depth_png_bytes(480, 640), np.uint8)
+    assert png_problem(data) is None
+
+    def best_of(function, repeat=30):
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            function()
+            times.append(time.perf_counter() - start)
+        return min(times)
+
+    check = best_of(lambda: png_problem(data))
+    decode = best_of(lambda: cv2.imdecode(data, cv2.IMREAD_UNCHANGED))
+    assert check < 0.1 * decode, (check, decode)

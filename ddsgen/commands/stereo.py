@@ -20,11 +20,9 @@ def _read_grey(path: str) -> np.ndarray:
     """Image file -> float32 (H, W) grey levels; InputError if it cannot be read."""
     import cv2
 
-    if not Path(path).is_file():
-        raise InputError(f"{path}: cannot read image (no such file)")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None or image.size == 0:
-        raise InputError(f"{path}: cannot read image (not an image file OpenCV can decode)")
+    from ddsgen.io.images import read_image
+
+    image = read_image(path, "image")
     if image.ndim == 3:
         if image.shape[2] == 4:
             image = image[:, :, :3]

@@ -1,7 +1,7 @@
 """PNG files: 16-bit depth (millimetres by default, 0 = invalid), 16-bit instance masks, 8-bit previews.
 
-Encoding/decoding goes through ``cv2.imencode``/``cv2.imdecode`` (so paths with
-any characters work) and writes are atomic. Identical input gives identical
+Encoding goes through ``cv2.imencode``, decoding through ``io/images.py`` (so paths
+with any characters work; bad files are one line, without library noise) and writes are atomic. Identical input gives identical
 bytes with a given OpenCV build (fixed encoder parameters :data:`PNG_PARAMS`,
 no time stamps).
 """
@@ -15,6 +15,7 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_write_bytes
+from ddsgen.io.images import read_image
 
 #: cv2.imencode parameters. Empty = OpenCV's defaults, measured fastest here
 #: (about 5 ms for a 640x480 uint16 depth image) and deterministic.
@@ -60,17 +61,8 @@ def write_depth_png(path: str | Path, depth_m, depth_scale: float = 0.001) -> No
 
 
 def _decode(path: str | Path, what: str) -> np.ndarray:
-    path = Path(path)
-    try:
-        data = np.fromfile(path, dtype=np.uint8)
-    except FileNotFoundError:
-        raise InputError(f"{path}: cannot read {what} PNG (no such file)") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read {what} PNG ({exc.strerror or exc})") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if image is None:
-        raise InputError(f"{path}: cannot read {what} PNG (not an image or corrupt)")
-    return image
+    """Decode through :func:`ddsgen.io.images.read_image`: one line on a bad file, no library noise on stderr."""
+    return read_image(path, f"{what} PNG")
 
 
 def _check_single_channel(path, image: np.ndarray, dtype, what: str, expected_shape) -> None:

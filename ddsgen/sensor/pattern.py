@@ -165,9 +165,9 @@ def load_pattern(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: pattern file not found")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None or image.size == 0:
-        raise InputError(f"{path}: cannot read pattern image")
+    from ddsgen.io.images import read_image  # one line on a bad file, no library noise on stderr
+
+    image = read_image(path, "pattern image")
     if image.ndim == 3:
         image = image[..., :3].mean(axis=2)
     image = image.astype(np.float32)
