@@ -314,3 +314,82 @@ def test_png_check_is_cheap_against_the_decode():
     check = best_of(lambda: png_problem(data))
     decode = best_of(lambda: cv2.imdecode(data, cv2.IMREAD_UNCHANGED))
     assert check < 0.1 * decode, (check, decode)
+
+
+# ---------------------------------------------------------------- 4-6. pattern and stereo: inputs and outputs first
+
+
+def _main_fd(capfd, *argv) -> tuple[int, str]:
+    """``main(ARGV)`` in this process; (exit code, everything on fd 2: C libraries included)."""
+    from ddsgen.cli import main
+
+    code = main([str(a) for a in argv])
+    return code, capfd.readouterr().err
+
+
+def _one_line(err: str, *fragments: str) -> None:
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ddsgen: error: "), err
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("bad", ["text", "truncated"])
+def test_pattern_compare_is_read_before_the_pattern_is_written(bad, tmp_path, capfd):
+    compare = tmp_path / "bad.png"
+    compare.write_bytes(b"a text file\n" if bad == "text" else _depth_png_bytes()[:300])
+    out = tmp_path / "o" / "pt.png"
+    code, err = _main_fd(capfd, "pattern", "kinect_v1", "--compare", compare, "--out", out)
+    assert code == 2
+    _one_line(err, "--compare: ", f"{compare}: cannot read pattern image (")
+    assert not out.exists() and not out.parent.exists(), "wrote the pattern although --compare is unreadable"
+
+
+def test_output_below_a_plain_file_names_the_option_and_the_problem(tmp_path, capfd):
+    afile = tmp_path / "afile"
+    afile.write_text("a plain file\n")
+    code, err = _main_fd(capfd, "pattern", "kinect_v1", "--out", afile / "p.png")
+    assert code == 2
+    _one_line(err, "--out: ", f"({afile} is a file, not a folder)")
+    left, right = _stereo_pair(tmp_path)
+    for option, name in (("--out", "d.exr"), ("--png", "p.png")):
+        extra = ["--out", tmp_path / "d.exr"] if option == "--png" else []
+        code, err = _main_fd(capfd, "stereo", left, right, "-D", "8", *extra, option, afile / name)
+        assert code == 2
+        _one_line(err, f"{option}: ", f"({afile} is a file, not a folder)")
+    assert not (tmp_path / "d.exr").exists()
+
+
+def _stereo_pair(folder: Path) -> tuple[Path, Path]:
+    import cv2
+
+    texture = (np.random.default_rng(0).random((32, 64)) * 255).astype(np.uint8)
+    left, right = folder / "left.png", folder / "right.png"
+    cv2.imwrite(str(left), texture)
+    cv2.imwrite(str(right), np.roll(texture, -3, axis=1))
+    return left, right
+
+
+def test_stereo_refuses_an_output_name_whose_format_it_does_not_write(tmp_path, capfd):
+    """--out x.png used to receive EXR bytes; --png x.jpg a JPEG. Both are refused before any matching."""
+    left, right = _stereo_pair(tmp_path)
+    code, err = _main_fd(capfd, "stereo", left, right, "-D", "8", "--out", tmp_path / "x.png")
+    assert code == 2
+    _one_line(err, "--out: ", "x.png", "EXR", "give a name ending in .exr", "--png")
+    code, err = _main_fd(capfd, "stereo", left, right, "-D", "8", "--out", tmp_path / "d.exr", "--png", tmp_path / "x.jpg")
+    assert code == 2
+    _one_line(err, "--png: ", "x.jpg", "give a name ending in .png")
+    assert not list(tmp_path.glob("x.*")) and not (tmp_path / "d.exr").exists()
+    code, err = _main_fd(capfd, "stereo", left, right, "-D", "8", "--out", tmp_path / "D.EXR", "--png", tmp_path / "p.png")
+    assert code == 0, err
+    from ddsgen.io.exr import read_exr
+
+    assert read_exr(tmp_path / "D.EXR").shape == (32, 64) and (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_stereo_truncated_image_is_our_line_only(tmp_path, capfd):
+    left, right = _stereo_pair(tmp_path)
+    right.write_bytes(right.read_bytes()[:200])
+    code, err = _main_fd(capfd, "stereo", left, right, "-D", "8", "--out", tmp_path / "d.exr")
+    assert code == 2
+    _one_line(err, f"{right}: cannot read image (truncated")

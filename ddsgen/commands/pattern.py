@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from ddsgen.commands import SEED, FiniteFloat
-from ddsgen.io.atomic import atomic_write_bytes
+from ddsgen.errors import InputError
+from ddsgen.io.atomic import atomic_write_bytes, check_can_create_folder
 from ddsgen.preset import load_preset
 from ddsgen.sensor.pattern import generate_pattern, load_pattern, pattern_requirements, pattern_statistics
 
@@ -46,16 +47,28 @@ def pattern(preset, seed, density, out, compare_with):
     """
     sensor = load_preset(preset)
     need = pattern_requirements(sensor)
+    # Never into the package's own folder (site-packages in a wheel install): the current folder by default.
+    target = Path(out) if out else Path(Path(sensor.pattern).name)
+    # Every input and the output's folder are checked before anything is written.
+    try:
+        check_can_create_folder(target.parent, "the pattern PNG")
+    except InputError as error:
+        raise InputError(f"--out: {error}") from None
+    if not target.suffix.lower() == ".png":
+        raise InputError(f"--out: {target}: the pattern is written as PNG: give a name ending in .png")
+    other = None
+    if compare_with:
+        try:
+            other = load_pattern(compare_with)
+        except InputError as error:
+            raise InputError(f"--compare: {error}") from None
     try:
         image = generate_pattern(need["width"], need["height"], seed=seed, density=density, block=need["block"],
                                  max_shift=need["max_shift"])  # fmt: skip
     except ValueError as error:  # a density the dots cannot reach: nothing is written
         raise click.BadParameter(str(error), param_hint="--density") from None
-    # Never into the package's own folder (site-packages in a wheel install): the current folder by default.
-    target = Path(out) if out else Path(Path(sensor.pattern).name)
     ok, data = cv2.imencode(".png", image)
     atomic_write_bytes(target, data.tobytes())
     _print_statistics(f"wrote {target}", pattern_statistics(image, need["block"], need["max_shift"]))
-    if compare_with:
-        other = load_pattern(compare_with)
+    if other is not None:
         _print_statistics(compare_with, pattern_statistics(other.astype(np.float32), need["block"], need["max_shift"]))

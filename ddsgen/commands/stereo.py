@@ -1,6 +1,7 @@
 """``ddsgen stereo LEFT RIGHT``: the block matcher alone, on an ordinary rectified stereo pair.
 
-Writes float32 disparity in pixels (0 = invalid) as EXR, and optionally a colour-mapped PNG.
+Writes float32 disparity in pixels (0 = invalid) as EXR (``--out`` must end in .exr), and optionally a
+colour-mapped PNG (``--png``, ending in .png).
 The pair must be rectified (epipolar lines = image rows); a pixel u of the left image
 matches u - d in the right image.
 """
@@ -31,6 +32,19 @@ def _read_grey(path: str) -> np.ndarray:
     if not np.isfinite(image).all():
         raise InputError(f"{path}: image has NaN/inf values")
     return image
+
+
+def _check_output(option: str, path: str, suffix: str, what: str, why: str) -> None:
+    """Before any work: ``path`` ends in ``suffix`` (the format written; never EXR bytes in a .png file) and its
+    folder can be created (not below a plain file)."""
+    from ddsgen.io.atomic import check_can_create_folder
+
+    if Path(path).suffix.lower() != suffix:
+        raise InputError(f"{option}: {path}: {why}; give a name ending in {suffix}")
+    try:
+        check_can_create_folder(Path(path).parent, what)
+    except InputError as error:
+        raise InputError(f"{option}: {error}") from None
 
 
 def _colour_png(path: Path, disparity: np.ndarray, valid: np.ndarray, max_disparity: float) -> None:
@@ -85,6 +99,10 @@ def stereo(left, right, max_disparity, min_disparity, block, n_sub, beta, min_co
         raise InputError(f"--band-rows: must be >= 1, got {band_rows}")
     if not (math.isfinite(beta) and beta > 0):
         raise InputError(f"--beta: must be > 0, got {beta}")
+    _check_output("--out", out, ".exr", "the disparity EXR",
+                  "the disparity is written as float32 EXR (a picture to look at: --png NAME.png)")  # fmt: skip
+    if png:
+        _check_output("--png", png, ".png", "the colour-mapped PNG", "the colour-mapped picture is written as PNG")
     image_l, image_r = _read_grey(left), _read_grey(right)
     if image_l.shape != image_r.shape:
         raise InputError(f"{right}: size {image_r.shape[1]}x{image_r.shape[0]} differs from {left} "
