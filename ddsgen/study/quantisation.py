@@ -78,12 +78,16 @@ class RealQuantisation:
 
 def real_quantisation(linemod_png: Path | str | None = LINEMOD_DEPTH, distreal_txt: Path | str | None = DISTREAL_MM):
     """Read the real depth values; a missing file gives None and a message (the check is then skipped)."""
-    import cv2
+    from ddsgen.errors import InputError
+    from ddsgen.io.images import read_image
 
     messages = []
     linemod = distreal = None
     if linemod_png is not None and Path(linemod_png).is_file():
-        image = cv2.imread(str(linemod_png), cv2.IMREAD_UNCHANGED)
+        try:
+            image = read_image(linemod_png, "depth PNG")  # a corrupt file: our message, no library noise on stderr
+        except InputError:
+            image = None
         if image is None or image.dtype != np.uint16:
             messages.append(f"{linemod_png}: not a 16-bit depth PNG; LineMOD quantisation check skipped")
         else:
