@@ -273,11 +273,15 @@ def test_atomic_folder_puts_a_folder_in_place_whole_or_leaves_everything_as_it_w
     assert (target / "notes.txt").read_text() == "mine" and leftovers(tmp_path) == []
 
 
-def test_a_ctrl_c_while_the_folder_is_put_in_place_waits_for_the_renames(tmp_path, monkeypatch):
-    """SIGINT arriving between the renames of a merge is acted on once the folder is whole."""
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_a_ctrl_c_while_the_folder_is_put_in_place_waits_for_the_renames(signal_name, tmp_path, monkeypatch):
+    """SIGINT, or SIGTERM under the CLI's handler, arriving between the renames of a merge is acted on once the
+    folder is whole."""
+    import contextlib
     import os
     import signal
 
+    from ddsgen.cli import _sigterm_raises
     from ddsgen.io.atomic import atomic_folder
 
     target = tmp_path / "report"
@@ -288,10 +292,11 @@ def test_a_ctrl_c_while_the_folder_is_put_in_place_waits_for_the_renames(tmp_pat
 
     def rename_then_ctrl_c(self, to):
         result = rename(self, to)
-        os.kill(os.getpid(), signal.SIGINT)  # delivered at once to this (the main) thread
+        os.kill(os.getpid(), getattr(signal, signal_name))  # delivered at once to this (the main) thread
         return result
 
-    with pytest.raises(KeyboardInterrupt):
+    handling = _sigterm_raises() if signal_name == "SIGTERM" else contextlib.nullcontext()
+    with pytest.raises(KeyboardInterrupt), handling:
         with atomic_folder(target, "the report", last="index.html") as building:
             (building / "frames").mkdir()
             (building / "frames" / "0.png").write_text("new")

@@ -171,20 +171,25 @@ def _put_in_place(tmp: Path, target: Path, folder: Path, what: str, merge: bool,
 
 @contextlib.contextmanager
 def _interrupts_deferred():
-    """Hold a Ctrl-C (SIGINT) until the block ends, then act on it as usual: the renames that put a folder in place
-    are not cut in half. Only the main thread can handle signals; elsewhere this does nothing."""
+    """Hold a Ctrl-C (SIGINT) or a SIGTERM (the CLI turns it into the same unwinding) until the block ends, then act
+    on the first as usual: the renames that put a folder in place are not cut in half. Only the main thread can
+    handle signals; elsewhere this does nothing, as it does for a signal without a Python handler."""
     import signal
     import threading
 
-    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
-    if not callable(previous):
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
+    previous = {n: signal.getsignal(n) for n in (signal.SIGINT, signal.SIGTERM)}
+    held = [n for n, handler in previous.items() if callable(handler)]
     received = []
-    signal.signal(signal.SIGINT, lambda number, frame: received.append((number, frame)))
+    for number in held:
+        signal.signal(number, lambda number, frame: received.append((number, frame)))
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for number in held:
+            signal.signal(number, previous[number])
     if received:
-        previous(*received[0])
+        number, frame = received[0]
+        previous[number](number, frame)
