@@ -72,7 +72,7 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     from ddsgen.diagnose import DiagnoseConfig
     from ddsgen.diagnose import diagnose as run_diagnosis
     from ddsgen.diagnose.report import write_diagnosis
-    from ddsgen.fit.parameters import values_to_write
+    from ddsgen.fit.parameters import preset_values
     from ddsgen.preset import PATTERN_DIR, save_preset
     from ddsgen.diagnose.device_candidates import BEHAVIOURS
     from ddsgen.sensor.effects import REGISTRY
@@ -126,10 +126,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
                               [f"Sensor preset {preset}; scans {real_dir} ({len(frames)} frame(s))."])  # fmt: skip
     if apply_path is not None:
         sensor = result.sensor
-        values = sensor.physical_parameters()
-        scale = float(sensor.focal_scale.detach())
-        values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
-        changes = dict(values_to_write(values, original), effects=[e.to_entry() for e in sensor.effects], name=f"{original.name}_diagnosed")
+        changes = dict(preset_values(sensor, original), effects=[e.to_entry() for e in sensor.effects],
+                       name=f"{original.name}_diagnosed")  # fmt: skip
         for step in result.steps:  # accepted device behaviours are preset keys
             if step.effect in BEHAVIOURS:
                 key = BEHAVIOURS[step.effect].key

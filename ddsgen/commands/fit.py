@@ -120,7 +120,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     from ddsgen.fit.simulate import prepare_frames
     from ddsgen.fit.fit_report import fitted_line, parameter_rows, write_fit_report
     from ddsgen.fit.fitting import fit_sensor, refine_frame_poses
-    from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, resolve_params, values_to_write
+    from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, preset_values, resolve_params
     from ddsgen.fit.priors import Priors
     from ddsgen.fit.revert import param_group, revert_summary, revert_unhelpful, snapshot
     from ddsgen.fit.split import SPLIT_MEANING, split_fit_held_out
@@ -221,11 +221,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     final_values = physical_values(sensor)
 
     # The fitted preset: the user's preset (its camera) with the fitted physical values.
-    values = sensor.physical_parameters()
-    values.update(device_key_values(sensor, SENSOR_PARAMS))
-    scale = float(sensor.focal_scale.detach())
-    values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
-    changes = values_to_write(values, original)
+    changes = {**preset_values(sensor, original), **device_key_values(sensor, SENSOR_PARAMS)}
     changes["effects"] = [e.to_entry() for e in sensor.effects]
     pattern_path = original.resolve_path(original.pattern)
     if pattern_path.parent.resolve() != PATTERN_DIR.resolve():

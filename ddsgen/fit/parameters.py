@@ -114,6 +114,16 @@ def physical_values(sensor) -> dict:
 FLOAT32_ROUND_TRIP = 2e-6
 
 
+def preset_values(sensor, original) -> dict:
+    """The sensor's physical values as a fitted or extended preset file holds them (:func:`values_to_write`): the
+    keys of :meth:`~ddsgen.sensor.depth_sensor.DepthSensor.physical_parameters`, with the focal lengths those of
+    ``original`` (the user's preset, whose camera may differ from the scans') times the fitted focal scale."""
+    values = sensor.physical_parameters()
+    scale = float(sensor.focal_scale.detach())
+    values["focal_px"], values["focal_y_px"] = original.focal_px * scale, original.focal_y_px * scale
+    return values_to_write(values, original)
+
+
 def values_to_write(values: dict, original) -> dict:
     """Preset values as a fitted or extended preset file should hold them.
 
