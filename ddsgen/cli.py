@@ -22,7 +22,29 @@ from ddsgen.errors import InputError
 COMMAND_MODULES = ("render", "preview", "pattern", "stereo", "compare", "fit", "diagnose", "refine", "study", "presets")
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+#: Commands that keep their finished work when interrupted and continue it when run again.
+RESUMABLE_COMMANDS = frozenset({"render"})
+
+
+class _Stopped(BaseException):
+    """A Ctrl-C or SIGTERM inside a command, carried past click's ``main`` (which would print an empty line to
+    stderr and turn it into ``Abort``), with the name of the command it stopped."""
+
+    def __init__(self, signal_exception: KeyboardInterrupt, command: str | None):
+        super().__init__(command)
+        self.terminated = isinstance(signal_exception, Terminated)
+        self.command = command
+
+
+class _DdsgenGroup(click.Group):
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as stop:
+            raise _Stopped(stop, ctx.invoked_subcommand) from None
+
+
+@click.group(cls=_DdsgenGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="ddsgen")
 def cli():
     """ddsgen: realistic synthetic depth scans by simulating a structured-light depth sensor.
@@ -46,6 +68,8 @@ class Terminated(KeyboardInterrupt):
 
 #: Exit code after SIGTERM: 128 + 15, as a shell reports a process that SIGTERM ended.
 EXIT_TERMINATED = 128 + signal.SIGTERM
+#: Exit code after Ctrl-C (SIGINT): 128 + 2.
+EXIT_INTERRUPTED = 128 + signal.SIGINT
 
 
 @contextlib.contextmanager
@@ -77,8 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         with _sigterm_raises():
             return _run(argv)
     except Terminated:  # the signal came between _run's own handlers and the end of the block
-        click.echo("ddsgen: terminated", err=True)
-        return EXIT_TERMINATED
+        return _stopped_line(True, None)
 
 
 def _run(argv: list[str] | None) -> int:
@@ -93,25 +116,25 @@ def _run(argv: list[str] | None) -> int:
         where = f"{path}: " if path and path != "ddsgen" else ""
         click.echo(f"ddsgen: error: {where}{error.format_message()}", err=True)
         return 2
-    except click.exceptions.Abort as error:  # click turns a KeyboardInterrupt inside a command into Abort
-        if isinstance(error.__cause__, Terminated):
-            click.echo("ddsgen: terminated", err=True)
-            return EXIT_TERMINATED
-        click.echo("ddsgen: interrupted", err=True)
-        return 130
+    except _Stopped as stop:
+        return _stopped_line(stop.terminated, stop.command)
     except click.exceptions.ClickException as error:
         click.echo(f"ddsgen: error: {error.format_message()}", err=True)
         return error.exit_code
-    except Terminated:
-        click.echo("ddsgen: terminated; re-run the same command to resume", err=True)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        click.echo("ddsgen: interrupted; re-run the same command to resume", err=True)
-        return 130
+    except KeyboardInterrupt as stop:  # while click parsed the command line, before any command ran
+        return _stopped_line(isinstance(stop, Terminated), None)
     except OSError as error:  # a path the system refuses (a file where a folder goes, no space, no permission)
         click.echo(f"ddsgen: error: {_os_line(error)}", err=True)
         return 2
     return 0
+
+
+def _stopped_line(terminated: bool, command: str | None) -> int:
+    """Print the one line of a run stopped by SIGTERM or Ctrl-C; return its exit code (143 / 130)."""
+    what = "terminated" if terminated else "interrupted"
+    hint = "; finished frames are kept, re-run the same command to resume" if command in RESUMABLE_COMMANDS else ""
+    click.echo(f"ddsgen: {what}{hint}", err=True)
+    return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
 
 
 def _os_line(error: OSError) -> str:

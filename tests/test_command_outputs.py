@@ -151,7 +151,9 @@ def test_interrupted_compare_leaves_no_report_nor_save_sim_and_reruns(small, tmp
         raise KeyboardInterrupt
 
     monkeypatch.setattr(ddsgen.fit.compare_outputs, "write_index", interrupted)
+    capsys.readouterr()
     assert main(args) == 130
+    assert capsys.readouterr().err == "ddsgen: interrupted\n"  # one line; compare starts again, it does not resume
     assert not report.exists() and not saved.exists() and leftovers(tmp_path) == []
     monkeypatch.setattr(ddsgen.fit.compare_outputs, "write_index", original)
     assert main(args) == 0  # not refused: "--save-sim: folder is not empty"

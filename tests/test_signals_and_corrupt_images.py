@@ -115,7 +115,8 @@ def test_sigterm_mid_render_ends_every_worker_and_the_run_resumes(inputs, tmp_pa
     stderr = err_path.read_text()
     assert survivors == [], f"processes outlived the command: {survivors}"
     assert returncode == 128 + signal.SIGTERM, stderr
-    assert stderr.strip().splitlines() == ["ddsgen: terminated"], stderr
+    # one line, no empty line before it (click's own Ctrl-C handling prints one), and the way to go on
+    assert stderr == "ddsgen: terminated; finished frames are kept, re-run the same command to resume\n", stderr
 
     from ddsgen.runner import render_dataset
 
