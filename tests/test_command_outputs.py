@@ -275,6 +275,42 @@ def test_atomic_folder_puts_a_folder_in_place_whole_or_leaves_everything_as_it_w
     assert (target / "notes.txt").read_text() == "mine" and leftovers(tmp_path) == []
 
 
+KILLED_MID_BUILD = """
+import sys, time
+from ddsgen.io.atomic import atomic_folder
+with atomic_folder(sys.argv[1], "the report") as building:
+    (building / "half.json").write_text("{}")
+    print("building", flush=True)
+    time.sleep(120)
+"""
+
+
+def test_the_folder_a_killed_process_was_building_is_removed_by_the_next_run(tmp_path):
+    """SIGKILL leaves no chance to clean up: the next build of the same folder removes the hidden folder of the dead
+    process, and leaves those of a live process and of another host alone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from ddsgen.io.atomic import _HOST, atomic_folder
+
+    target = tmp_path / "report"
+    killed = subprocess.Popen([sys.executable, "-c", KILLED_MID_BUILD, str(target)], stdout=subprocess.PIPE, text=True)
+    assert killed.stdout.readline() == "building\n"
+    os.kill(killed.pid, signal.SIGKILL)
+    killed.wait()
+    left = leftovers(tmp_path)
+    assert len(left) == 1 and left[0].startswith(f".report.{_HOST}-{killed.pid}."), left
+    alive = tmp_path / f".report.{_HOST}-{os.getpid()}.x1.partial"  # this process: still building it
+    elsewhere = tmp_path / f".report.otherhost-{killed.pid}.x2.partial"  # the same pid on another host
+    alive.mkdir(), elsewhere.mkdir()
+    with atomic_folder(target, "the report") as building:
+        (building / "index.html").write_text("whole")
+    assert leftovers(tmp_path) == sorted([alive.name, elsewhere.name])
+    assert [p.name for p in target.iterdir()] == ["index.html"]
+
+
 @pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
 def test_a_ctrl_c_while_the_folder_is_put_in_place_waits_for_the_renames(signal_name, tmp_path, monkeypatch):
     """SIGINT, or SIGTERM under the CLI's handler, arriving between the renames of a merge is acted on once the

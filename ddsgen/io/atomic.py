@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
+import socket
 import tempfile
 from pathlib import Path
 
@@ -108,8 +110,10 @@ def atomic_folder(folder: str | Path, what: str, *, merge: bool = True, last: st
     folder = Path(folder)
     target = folder.resolve()
     made = _make_parents(target.parent, folder, what)
+    remove_stale_partials(target)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".partial", dir=target.parent))
+        prefix = f".{target.name}.{_HOST}-{os.getpid()}."
+        tmp = Path(tempfile.mkdtemp(prefix=prefix, suffix=".partial", dir=target.parent))
     except OSError as error:
         _remove_made(made)
         raise InputError(f"{folder}: cannot write {what} there ({error.strerror or error})") from None
@@ -124,6 +128,36 @@ def atomic_folder(folder: str | Path, what: str, *, merge: bool = True, last: st
         raise
     if tmp.exists():  # the replaced entries of a merge
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+#: A hidden ``.NAME.HOST-PID.XXXX.partial`` folder names the host and process building it, so that a later run
+#: can tell the folder of a process that died (SIGKILL, power loss) from one still being built.
+_HOST = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())
+
+
+def remove_stale_partials(target: Path) -> list[Path]:
+    """Delete the hidden folders that a killed process left while building ``target`` (see :func:`atomic_folder`);
+    returns them. Only those of this host whose process is gone: a folder being built by a live process, or on
+    another host sharing the file system, is left alone."""
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.[^/]*\.partial")
+    removed = []
+    with contextlib.suppress(OSError):
+        for entry in target.parent.iterdir():
+            found = pattern.fullmatch(entry.name)
+            if found and found["host"] == _HOST and entry.is_dir() and not _process_alive(int(found["pid"])):
+                shutil.rmtree(entry, ignore_errors=True)
+                removed.append(entry)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def _make_parents(parent: Path, folder: Path, what: str) -> list[Path]:
