@@ -27,6 +27,7 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_path
+from ddsgen.io.bop_writer import scans_folder
 from ddsgen.io.ir_png import encode_ir, ir_white_counts
 from ddsgen.io.png import read_png8, read_png16
 from ddsgen.io.scanfolder import ScanFrame, read_scan_folder
@@ -294,13 +295,23 @@ def draw_sheet(title: str, rows: list[SheetFrame], path: str | Path) -> list[Pan
     return panels
 
 
+def default_sheet_path(folder: str | Path) -> Path:
+    """Where the contact sheet of ``folder`` goes when no path is given: ``folder/preview.png`` for a folder that
+    ``ddsgen render`` wrote (its run.json, under the scans folder in the BOP layout), else ``preview_NAME.png`` in
+    the current folder: a dataset that ddsgen did not make (downloaded, real scans) is never written into."""
+    folder = Path(folder)
+    if (folder / "run.json").is_file() or (scans_folder(folder) / "run.json").is_file():
+        return folder / "preview.png"
+    return Path(f"preview_{folder.resolve().name or 'root'}.png")
+
+
 def write_preview(folder: str | Path, out: str | Path | None = None,
                   frames: int = DEFAULT_FRAMES) -> tuple[Path, list[Panel]]:
-    """Write the contact sheet of the scan folder ``folder`` to ``out`` (default ``folder/preview.png``).
+    """Write the contact sheet of the scan folder ``folder`` to ``out`` (default :func:`default_sheet_path`).
 
     Returns (path written, panels). Raises :class:`InputError` on bad input, before writing anything.
     """
-    out = Path(out) if out is not None else Path(folder) / "preview.png"
+    out = Path(out) if out is not None else default_sheet_path(folder)
     if out.suffix.lower() != ".png":
         raise InputError(f"--out: {out}: the contact sheet is a PNG, name it *.png")
     if out.is_dir():

@@ -215,6 +215,36 @@ def test_preview_of_a_bop_dataset_shows_its_masks_and_boxes(inputs, tmp_path):
                 assert sheet[y, x].max() > 60
 
 
+def test_preview_writes_into_ddsgen_renders_only(inputs, rendered, tmp_path, monkeypatch, capsys):
+    """Without --out the sheet goes into a folder `ddsgen render` wrote (either layout); a dataset ddsgen did not
+    make (here: the BOP render without ddsgen's scans folder, as a downloaded BOP dataset is) is left untouched and
+    the sheet goes to the current folder."""
+    import shutil
+
+    from ddsgen.io.bop_writer import scans_folder
+    from ddsgen.preview import default_sheet_path
+
+    preset, scenes = inputs
+    bop = tmp_path / "bop"
+    assert main(["render", preset, "--scenes", scenes, "-n", "1", "--out", str(bop), "--format", "bop", "--quiet",
+                 "--no-preview"]) == 0  # fmt: skip
+    out = rendered[0]
+    assert default_sheet_path(out) == out / "preview.png"
+    assert default_sheet_path(bop) == bop / "preview.png"
+    downloaded = tmp_path / "downloaded_bop"
+    shutil.copytree(bop, downloaded)
+    shutil.rmtree(scans_folder(downloaded))
+    before = sorted(p.relative_to(downloaded) for p in downloaded.rglob("*"))
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    capsys.readouterr()
+    assert main(["preview", str(downloaded)]) == 0
+    assert sorted(p.relative_to(downloaded) for p in downloaded.rglob("*")) == before
+    assert [p.name for p in work.iterdir()] == ["preview_downloaded_bop.png"]
+    assert "preview_downloaded_bop.png" in capsys.readouterr().out
+
+
 REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 

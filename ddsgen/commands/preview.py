@@ -10,7 +10,8 @@ from ddsgen.preview import DEFAULT_FRAMES, write_preview
 @click.command("preview")
 @click.argument("folder", metavar="OUT")
 @click.option("--out", "sheet", type=click.Path(dir_okay=False), default=None,
-              help="Contact sheet PNG to write [default: OUT/preview.png].")
+              help="Contact sheet PNG to write [default: OUT/preview.png when `ddsgen render` wrote OUT, else "
+                   "preview_NAME.png in the current folder, so a dataset ddsgen did not make is not written into].")
 @click.option("--frames", type=int, default=DEFAULT_FRAMES, show_default=True,
               help="Frames shown, evenly spaced over the dataset (first and last included).")
 def preview(folder, sheet, frames):
