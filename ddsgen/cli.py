@@ -22,6 +22,18 @@ from ddsgen.errors import InputError
 COMMAND_MODULES = ("render", "preview", "pattern", "stereo", "compare", "fit", "diagnose", "refine", "study", "presets")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM as an exception. A KeyboardInterrupt, so that it unwinds exactly as Ctrl-C does: every
+    ``except KeyboardInterrupt`` / ``except BaseException`` clean-up runs (the runner ends its worker processes,
+    atomic writes drop their temporary files), where SIGTERM's default action ended the process on the spot and
+    left the pool's workers and multiprocessing's resource tracker running, re-parented to PID 1."""
+
+
+#: Exit code after SIGTERM: 128 + 15, as a shell reports a process that SIGTERM ended.
+EXIT_TERMINATED = 128 + signal.SIGTERM
+#: Exit code after Ctrl-C (SIGINT): 128 + 2.
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+
 #: Commands that keep their finished work when interrupted and continue it when run again.
 RESUMABLE_COMMANDS = frozenset({"render"})
 
@@ -37,6 +49,12 @@ class _Stopped(BaseException):
 
 
 class _DdsgenGroup(click.Group):
+    def make_context(self, *args, **kwargs) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except KeyboardInterrupt as stop:  # while the command line is parsed
+            raise _Stopped(stop, None) from None
+
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
@@ -57,19 +75,6 @@ def cli():
 for _name in COMMAND_MODULES:
     if importlib.util.find_spec(f"ddsgen.commands.{_name}") is not None:
         cli.add_command(getattr(importlib.import_module(f"ddsgen.commands.{_name}"), _name))
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM as an exception. A KeyboardInterrupt, so that it unwinds exactly as Ctrl-C does: every
-    ``except KeyboardInterrupt`` / ``except BaseException`` clean-up runs (the runner ends its worker processes,
-    atomic writes drop their temporary files), where SIGTERM's default action ended the process on the spot and
-    left the pool's workers and multiprocessing's resource tracker running, re-parented to PID 1."""
-
-
-#: Exit code after SIGTERM: 128 + 15, as a shell reports a process that SIGTERM ended.
-EXIT_TERMINATED = 128 + signal.SIGTERM
-#: Exit code after Ctrl-C (SIGINT): 128 + 2.
-EXIT_INTERRUPTED = 128 + signal.SIGINT
 
 
 @contextlib.contextmanager
@@ -118,10 +123,12 @@ def _run(argv: list[str] | None) -> int:
         return 2
     except _Stopped as stop:
         return _stopped_line(stop.terminated, stop.command)
+    except click.exceptions.Abort as error:  # click's own, for a Ctrl-C between parsing and the command
+        return _stopped_line(isinstance(error.__cause__, Terminated), None)
     except click.exceptions.ClickException as error:
         click.echo(f"ddsgen: error: {error.format_message()}", err=True)
         return error.exit_code
-    except KeyboardInterrupt as stop:  # while click parsed the command line, before any command ran
+    except KeyboardInterrupt as stop:  # before or after click's main
         return _stopped_line(isinstance(stop, Terminated), None)
     except OSError as error:  # a path the system refuses (a file where a folder goes, no space, no permission)
         click.echo(f"ddsgen: error: {_os_line(error)}", err=True)

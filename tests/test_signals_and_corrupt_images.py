@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ddsgen.cli import Terminated, main
 from ddsgen.errors import InputError
 from ddsgen.io.manifest import read_manifest
 from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, written_inputs
@@ -127,6 +128,21 @@ def test_sigterm_mid_render_ends_every_worker_and_the_run_resumes(inputs, tmp_pa
     assert summary.frames_skipped == len(done) and summary.frames_rendered == n - len(done)
     assert [r["frame"] for r in read_manifest(out / "manifest.jsonl")] == list(range(n))
     assert not [p for p in out.rglob(".*") if p.is_file()], "temporary files left behind"
+
+
+@pytest.mark.parametrize("raised, line, code", [(KeyboardInterrupt, "ddsgen: interrupted", 130),
+                                                 (Terminated, "ddsgen: terminated", 143)])
+def test_a_stop_while_the_command_line_is_parsed_is_one_line(raised, line, code, monkeypatch, capsys):
+    """Ctrl-C or SIGTERM before any command runs (click turns it into Abort and prints an empty line first)."""
+    import ddsgen.cli
+
+    def stopped(*args, **kwargs):
+        raise raised()
+
+    monkeypatch.setattr(ddsgen.cli.cli, "parse_args", stopped)
+    capsys.readouterr()
+    assert main(["presets"]) == code
+    assert capsys.readouterr().err == line + "\n"
 
 
 def test_sigterm_handler_is_restored_after_main(capsys):
