@@ -91,6 +91,7 @@ def _stop_workers(pool: cf.ProcessPoolExecutor, pending: dict) -> None:
     for future in pending:
         future.cancel()
     processes = list((getattr(pool, "_processes", None) or {}).values())  # the executor has no public list
+    manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() forgets it; joined below
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         process.terminate()
@@ -99,3 +100,9 @@ def _stop_workers(pool: cf.ProcessPoolExecutor, pending: dict) -> None:
         if process.is_alive():
             process.kill()
             process.join()
+    # The pool's manager thread sees its workers gone and closes its wake-up pipe. At exit, concurrent.futures' own
+    # hook writes to that pipe without a lock: if the thread closes it in between, Python prints "Exception ignored
+    # ... OSError: [Errno 9] Bad file descriptor" after our line (1 SIGTERM in 15 on a loaded machine). Waiting for
+    # the thread here leaves the hook a pipe marked closed, which it skips.
+    if manager is not None:
+        manager.join(timeout=30)

@@ -145,6 +145,35 @@ def test_a_stop_while_the_command_line_is_parsed_is_one_line(raised, line, code,
     assert capsys.readouterr().err == line + "\n"
 
 
+def _slow_batch(job, batch):  # a pool task that is still running when the interrupt comes
+    time.sleep(60)
+    return batch
+
+
+def test_an_interrupted_pool_ends_its_manager_thread_before_unwinding():
+    """Ctrl-C in a pool: when run_in_pool unwinds, its workers and its manager thread are gone. A manager thread still
+    closing its wake-up pipe at interpreter exit raced concurrent.futures' exit hook, which then printed
+    "OSError: [Errno 9] Bad file descriptor" after our one line (3 SIGTERMs in 95 on a loaded machine)."""
+    import threading
+
+    from ddsgen.worker_pool import run_in_pool
+
+    results = run_in_pool(_slow_batch, None, [[0], [1], [2]], 2, "out")
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as Python's own
+    timer = threading.Timer(3.0, os.kill, (os.getpid(), signal.SIGINT))  # the workers are busy sleeping by then
+    timer.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            list(results)
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, previous)
+    assert time.monotonic() - started < 30, "the interrupt waited for the tasks"
+    managers = [t for t in threading.enumerate() if "ExecutorManager" in type(t).__name__ and t.is_alive()]
+    assert managers == []
+
+
 def test_sigterm_handler_is_restored_after_main(capsys):
     """main() installs its SIGTERM handler for the command only: an embedding program keeps its own behaviour."""
     from ddsgen.cli import main
