@@ -28,6 +28,7 @@ import numpy as np
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_path
 from ddsgen.io.bop_writer import scans_folder
+from ddsgen.io.manifest import RUN_FILE
 from ddsgen.io.ir_png import encode_ir, ir_white_counts
 from ddsgen.io.png import read_png8, read_png16
 from ddsgen.io.scanfolder import ScanFrame, read_scan_folder
@@ -300,7 +301,7 @@ def default_sheet_path(folder: str | Path) -> Path:
     ``ddsgen render`` wrote (its run.json, under the scans folder in the BOP layout), else ``preview_NAME.png`` in
     the current folder: a dataset that ddsgen did not make (downloaded, real scans) is never written into."""
     folder = Path(folder)
-    if (folder / "run.json").is_file() or (scans_folder(folder) / "run.json").is_file():
+    if (folder / RUN_FILE).is_file() or (scans_folder(folder) / RUN_FILE).is_file():
         return folder / "preview.png"
     return Path(f"preview_{folder.resolve().name or 'root'}.png")
 

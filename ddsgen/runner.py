@@ -23,13 +23,12 @@ import numpy as np
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_write_text
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
-from ddsgen.io.manifest import append_record, dumps_record, read_manifest, repair_manifest, sorted_records
+from ddsgen.io.manifest import RUN_FILE, append_record, dumps_record, read_manifest, repair_manifest, sorted_records
 from ddsgen.preset import SensorPreset, load_preset, save_preset, source_label
 from ddsgen.scene.scenelist import SceneList, load_scene_list
 from ddsgen.worker_pool import run_in_pool
 
 MANIFEST = "manifest.jsonl"
-RUN_FILE = "run.json"
 OUTPUT_FORMATS = ("ddsgen", "bop")
 
 # Random streams of a frame: rng([seed, frame, STREAM]).

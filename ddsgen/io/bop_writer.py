@@ -41,7 +41,7 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
-from ddsgen.io.manifest import read_manifest
+from ddsgen.io.manifest import RUN_FILE, read_manifest
 
 SCANS_DIR = "ddsgen"
 SPLIT = "train_pbr"
@@ -60,7 +60,7 @@ def check_bop_root(root: str | Path) -> None:
         return
     if not root.is_dir():
         raise InputError(f"{root}: exists and is not a folder; use a new --out folder")
-    if any(root.iterdir()) and not (scans_folder(root) / "run.json").is_file():
+    if any(root.iterdir()) and not (scans_folder(root) / RUN_FILE).is_file():
         raise InputError(f"{root}: folder exists and is not a ddsgen BOP render; use a new --out folder")
 
 

@@ -24,6 +24,10 @@ import numpy as np
 
 from ddsgen.errors import InputError
 
+#: The file ``ddsgen render`` writes beside the manifest: what a resume must match. Its presence marks a folder
+#: (in the BOP layout: the scans folder) as one ddsgen rendered.
+RUN_FILE = "run.json"
+
 MANIFEST_SCHEMA = """\
 One JSON object per line; keys (units: metres, pixels; poses are 4x4 row-major nested lists):
 
