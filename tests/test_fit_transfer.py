@@ -94,6 +94,51 @@ def test_bounds_and_prior_keep_parameters_physical():
     assert at_bound(["range", 5.0, 40.0], 15.0, 5.0) and not at_bound(["range", 5.0, 40.0], 15.0, 25.9)
 
 
+def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeypatch):
+    """The greedy pass keeps beta because, beside the fitted baseline, removing it hurts; then the baseline is
+    reverted and what is kept is worse than the input. The output must be the input (as the summary says), not a
+    preset that keeps beta. Seen on the real cat with `fit --steps 20`: held-out 9.48 mm in, beta 15 -> 14.2 kept,
+    and the line "the output keeps the input's values"."""
+    from ddsgen.fit import revert
+
+    sensor = DepthSensor(preset_from_dict(yaml.safe_load(SMALL_PRESET)))
+    names = ["emitted_intensity", "beta", "baseline"]
+    resolved = resolve_params(sensor, names)
+    start = snapshot(resolved)
+    with torch.no_grad():
+        sensor.log_emitted_intensity.add_(0.1)
+        sensor.log_beta.add_(-0.05)
+        sensor.log_baseline.add_(-0.004)
+    fitted = snapshot(resolved)
+    # The held-out gap (mm) by which of the three groups keep their fitted values (snr, beta, baseline).
+    gaps = {(1, 1, 1): 9.50, (0, 1, 1): 9.50, (0, 0, 1): 9.51, (0, 1, 0): 9.49, (0, 0, 0): 9.48}
+
+    def stand_in_gap(sensor_, frames, **kwargs):
+        changed = tuple(int(not torch.equal(resolved[n][0], start[n][0])) for n in names)
+        return dataclasses.make_dataclass("Gap", ["gap"])(gaps[changed])
+
+    monkeypatch.setattr(revert, "gap", stand_in_gap)
+    outcome = revert_unhelpful(sensor, resolved, start, [], SENSOR_PARAMS)
+    assert not outcome["better"] and outcome["gap_fitted"] == 9.50 and outcome["gap_kept"] == 9.48
+    assert not any(info["kept"] for info in outcome["groups"].values())
+    for name in names:
+        assert torch.equal(resolved[name][0], start[name][0]) and not torch.equal(fitted[name][0], start[name][0])
+    lines = revert.revert_summary(outcome)
+    assert lines[-1] == "nothing the fit changed lowers the held-out gap: the output keeps the input's values"
+    assert not any(line.startswith("kept") for line in lines)
+    assert sum("helped only beside changes that were reverted" in line for line in lines) == 1  # beta
+
+    # When the kept group does beat the input, it stays.
+    gaps[(0, 1, 0)] = 9.40
+    with torch.no_grad():
+        for name in names:
+            resolved[name][0].copy_(fitted[name][0])
+    outcome = revert_unhelpful(sensor, resolved, start, [], SENSOR_PARAMS)
+    assert outcome["better"] and outcome["gap_kept"] == 9.40
+    assert [g for g, info in outcome["groups"].items() if info["kept"]] == [SENSOR_PARAMS["beta"].group]
+    assert torch.equal(resolved["beta"][0], fitted["beta"][0])
+
+
 def test_sandwich_sigma_matches_the_spread_of_independent_minima():
     """Quadratic tile losses a_u (x - m_u)^2 with random centres m_u: the minimiser of the sum is the
     weighted mean of m_u, whose standard error the sandwich must reproduce; a loss that is not

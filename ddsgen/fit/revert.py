@@ -4,7 +4,8 @@ A fit lowers the loss on its own frames by construction; whether a change *trans
 held-out frames. :func:`revert_unhelpful` measures the held-out gap of the fitted sensor and of
 the input sensor, then, group by group (eta_c / sigma, beta, baseline / focal, each effect, the
 CNN: the ``group`` of :data:`ddsgen.fit.parameters.SENSOR_PARAMS`), puts the group's input values
-back and keeps them so when the held-out gap is not higher without the group's change. What
+back and keeps them so when the held-out gap is not higher without the group's change. When what
+remains does not beat the input as a whole, every group goes back to the input's values. What
 remains is reported per group, and the output says plainly when the fit did not beat the input.
 
 The held-out frames choose what is kept, so the final held-out gap is no longer an unbiased
@@ -85,7 +86,17 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
         else:
             _assign(sensor, resolved, fitted, names)
             report[group] = {"params": names, "kept": True, "gap_without_change": without}
-    return {"gap_input": gap_input, "gap_fitted": gap_fitted, "gap_kept": current, "better": current < gap_input,
+    better = current < gap_input
+    if not better:
+        # A group is kept when taking it out hurts *beside the groups still fitted at that point*; groups reverted
+        # after it can leave the kept set no better than the input (e.g. beta kept, then the baseline it
+        # compensated reverted). The output is then the input, as the summary says.
+        _assign(sensor, resolved, start, list(resolved))
+        for info in report.values():
+            if info["kept"]:
+                info.update(kept=False, note="not better as a whole")
+        current = gap_input
+    return {"gap_input": gap_input, "gap_fitted": gap_fitted, "gap_kept": current, "better": better,
             "groups": report}  # fmt: skip
 
 
@@ -100,6 +111,9 @@ def revert_summary(outcome: dict) -> list[str]:
             continue
         if info["kept"]:
             lines.append(f"kept {group} ({', '.join(info['params'])}): without it {info['gap_without_change']:.2f} mm")
+        elif info.get("note") == "not better as a whole":
+            lines.append(f"reverted {group} ({', '.join(info['params'])}) to the input's values with the rest: it "
+                         f"helped only beside changes that were reverted after it")  # fmt: skip
         else:
             lines.append(f"reverted {group} ({', '.join(info['params'])}) to the input's values: the change did not "
                          f"lower the held-out gap ({info['gap_without_change']:.2f} mm without it)")  # fmt: skip
