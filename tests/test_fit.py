@@ -141,6 +141,14 @@ def test_fit_cli_writes_loadable_preset_with_cnn(perturbed, tmp_path, capsys):
     assert report["split"]["kind"] == "frame" and len(report["frames"]["held_out"]) == 1
     assert {(g["frames"], g["region"]) for g in report["gaps_mm"]} == {
         ("fit", "all"), ("fit", "objects"), ("held-out", "all"), ("held-out", "objects")}
+    # Each gap says how many pixels it rests on: the objects are part of the whole region, of one held-out frame.
+    pixels = {(g["frames"], g["region"]): g["pixels"] for g in report["gaps_mm"]}
+    for which in ("fit", "held-out"):
+        assert 0 < pixels[(which, "objects")] < pixels[(which, "all")] <= 160 * 120 * len(report["frames"][
+            "fit" if which == "fit" else "held_out"])
+    gaps_txt = (tmp_path / "fitted_report" / "gaps.txt").read_text().splitlines()
+    assert gaps_txt[1].split()[-1] == "pixels"
+    assert int(gaps_txt[-1].split()[-1]) == pixels[("held-out", "objects")]
     rows = {r["key"]: r for r in report["parameters"]}
     assert rows["softargmax_beta"]["sigma"] > 0 and rows["softargmax_beta"]["bound"] == ["range", 5.0, 40.0]
     # Kept or reverted, the preset holds what the report says, and its comments carry the uncertainty.

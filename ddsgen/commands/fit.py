@@ -237,12 +237,15 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     rows = parameter_rows(physical_values(DepthSensor(camera_preset)), result.after, final_values, uncertainty, kept, result.bounds)
     held_key = ("held-out", region)
     gap_pairs = {k: (before[k].gap, after[k].gap) for k in before}
+    # How many pixels each gap rests on: one frame's halves can put an object almost wholly on one side.
+    gap_pixels = {k: sum(frame["pixels"] for frame in after[k].frames) for k in after}
     summary = {
         "preset": str(preset), "real_dir": str(real_dir), "fitted_preset": str(out_path),
         "split": {"kind": split_kind, "meaning": SPLIT_MEANING[split_kind]},
         "frames": {"fit": [f.name for f in fit_frames], "held_out": [f.name for f in held]},
         "held_out_gap_before": before[held_key].gap, "held_out_gap_after": after[held_key].gap,
-        "gaps_mm": [{"frames": w, "region": r, "before": b, "after": a} for (w, r), (b, a) in gap_pairs.items()],
+        "gaps_mm": [{"frames": w, "region": r, "before": b, "after": a, "pixels": gap_pixels[(w, r)]}
+                    for (w, r), (b, a) in gap_pairs.items()],
         "parameters": rows, "revert": outcome, "revert_summary": revert_lines,
         "fit": result.to_dict(),
     }  # fmt: skip
@@ -260,7 +263,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         write_report(before[held_key], building, "comparison_before")
         write_report(after[held_key], building, "comparison_after")
         plot_residuals([before[held_key], after[held_key]], building / "residuals.png", ["before fit", "after fit"])
-        write_fit_report(building, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs,
+        write_fit_report(building, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs, gap_pixels=gap_pixels,
                          split_kind=split_kind, split_meaning=SPLIT_MEANING[split_kind], revert_lines=revert_lines,
                          history=result.history, before_maps=before[held_key], after_maps=after[held_key])  # fmt: skip
         atomic_write_text(building / "fit_report.json", json.dumps(summary, indent=1, default=float) + "\n")
@@ -270,7 +273,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         save_preset(fitted, out_path, comment="\n".join(comment))
     click.echo(f"split: {split_kind} ({SPLIT_MEANING[split_kind]})")
     for (which, r), (b, a) in gap_pairs.items():
-        click.echo(f"  {which:8s} gap, region {r:7s}: {b:.2f} mm -> {a:.2f} mm")
+        click.echo(f"  {which:8s} gap, region {r:7s}: {b:.2f} mm -> {a:.2f} mm ({gap_pixels[(which, r)]:,} px)")
     for line in revert_lines:
         click.echo(f"  {line}")
     for r in rows:

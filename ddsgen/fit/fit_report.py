@@ -6,7 +6,7 @@ Writes into the report folder:
   (what the output preset holds), its uncertainty (:mod:`ddsgen.fit.uncertainty`), its bounds
   and whether its group was kept or reverted (:mod:`ddsgen.fit.revert`);
 * ``gaps.txt``: the gaps (mm) on the fit and the held-out frames, region ``all`` and
-  ``objects``, before and after, with the split kind and what it means;
+  ``objects``, before and after, the pixels each is measured on, the split kind and what it means;
 * ``loss_curve.png``: the loss terms per Adam step (mm);
 * ``frames/``: real | simulated | difference pictures of the held-out frames before and after
   (:func:`ddsgen.fit.compare_pictures.side_by_side`), and ``index.html`` showing all of it.
@@ -78,13 +78,15 @@ def parameter_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def gap_table(gaps: dict, split_kind: str, split_meaning: str) -> str:
-    """Plain-text table of gaps[(set, region)] = (before, after) in mm."""
+def gap_table(gaps: dict, split_kind: str, split_meaning: str, pixels: dict | None = None) -> str:
+    """Plain-text table of gaps[(set, region)] = (before, after) in mm, with the pixels each gap is measured on
+    (``pixels[(set, region)]``) when given."""
     lines = [f"split: {split_kind} -- {split_meaning}", f"{'frames':10s} {'region':8s} {'input':>9s} {'fitted':>9s} "
-             f"{'ratio':>6s}"]  # fmt: skip
+             f"{'ratio':>6s}" + (f" {'pixels':>9s}" if pixels else "")]  # fmt: skip
     for (which, region), (before, after) in gaps.items():
         ratio = after / before if before else math.nan
-        lines.append(f"{which:10s} {region:8s} {before:9.2f} {after:9.2f} {ratio:6.2f}")
+        lines.append(f"{which:10s} {region:8s} {before:9.2f} {after:9.2f} {ratio:6.2f}"
+                     + (f" {pixels[(which, region)]:9d}" if pixels else ""))  # fmt: skip
     return "\n".join(lines)
 
 
@@ -127,12 +129,14 @@ def held_out_pictures(folder: Path, before, after, max_frames: int = 4) -> list[
 
 
 def write_fit_report(folder: Path, *, title: str, rows: list[dict], gaps: dict, split_kind: str, split_meaning: str,
-                     revert_lines: list[str], history: list[dict], before_maps, after_maps) -> Path:  # fmt: skip
-    """Write parameters.txt, gaps.txt, loss_curve.png, frames/ and index.html into ``folder``; returns index.html."""
+                     revert_lines: list[str], history: list[dict], before_maps, after_maps,
+                     gap_pixels: dict | None = None) -> Path:  # fmt: skip
+    """Write parameters.txt, gaps.txt, loss_curve.png, frames/ and index.html into ``folder``; returns index.html.
+    ``gap_pixels[(set, region)]``: the pixels each gap is measured on (a column of gaps.txt)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     params_text = parameter_table(rows)
-    gaps_text = gap_table(gaps, split_kind, split_meaning)
+    gaps_text = gap_table(gaps, split_kind, split_meaning, gap_pixels)
     atomic_write_text(folder / "parameters.txt", params_text + "\n")
     atomic_write_text(folder / "gaps.txt", gaps_text + "\n")
     plot_loss(history, folder / "loss_curve.png")
