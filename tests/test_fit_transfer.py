@@ -103,7 +103,7 @@ def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeyp
 
     sensor = DepthSensor(preset_from_dict(yaml.safe_load(SMALL_PRESET)))
     names = ["emitted_intensity", "beta", "baseline"]
-    resolved = resolve_params(sensor, names)
+    resolved = resolve_params(sensor, [*names, "speckle_scale"])  # the fit leaves the speckle scale where it was
     start = snapshot(resolved)
     with torch.no_grad():
         sensor.log_emitted_intensity.add_(0.1)
@@ -121,6 +121,8 @@ def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeyp
     outcome = revert_unhelpful(sensor, resolved, start, [], SENSOR_PARAMS)
     assert not outcome["better"] and outcome["gap_fitted"] == 9.50 and outcome["gap_kept"] == 9.48
     assert not any(info["kept"] for info in outcome["groups"].values())
+    assert not any(revert.output_holds_fit(outcome, SENSOR_PARAMS[n].group) for n in names)
+    assert revert.output_holds_fit(outcome, SENSOR_PARAMS["speckle_scale"].group)  # unchanged: not "reverted"
     for name in names:
         assert torch.equal(resolved[name][0], start[name][0]) and not torch.equal(fitted[name][0], start[name][0])
     lines = revert.revert_summary(outcome)

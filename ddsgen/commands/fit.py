@@ -122,7 +122,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     from ddsgen.fit.fitting import fit_sensor, refine_frame_poses
     from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, preset_values, resolve_params
     from ddsgen.fit.priors import Priors
-    from ddsgen.fit.revert import param_group, revert_summary, revert_unhelpful, snapshot
+    from ddsgen.fit.revert import output_holds_fit, param_group, revert_summary, revert_unhelpful, snapshot
     from ddsgen.fit.split import SPLIT_MEANING, split_fit_held_out
     from ddsgen.fit.uncertainty import estimate_uncertainty
     from ddsgen.io.atomic import atomic_write_text
@@ -215,7 +215,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         fit_frames, held = prepare_for(sensor)
         sets.update({"fit": fit_frames, "held-out": held})
         revert_lines = revert_summary(outcome)
-    kept = {n: True if outcome is None else outcome["groups"][param_group(n, SENSOR_PARAMS)]["kept"]
+    kept = {n: True if outcome is None else output_holds_fit(outcome, param_group(n, SENSOR_PARAMS))
             for n in result.params}  # fmt: skip
     after = gaps_now(keep_maps=True)
     final_values = physical_values(sensor)

@@ -100,6 +100,13 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
             "groups": report}  # fmt: skip
 
 
+def output_holds_fit(outcome: dict, group: str) -> bool:
+    """Whether the output preset holds ``group``'s fitted values: the group was kept, or the fit left it where it
+    was (then fitted and input values are one, and calling it "reverted" would misreport it)."""
+    info = outcome["groups"][group]
+    return info["kept"] or info.get("note") == "unchanged"
+
+
 def revert_summary(outcome: dict) -> list[str]:
     """Plain-language lines about what was kept and reverted."""
     lines = []
