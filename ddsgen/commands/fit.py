@@ -263,8 +263,9 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         write_report(before[held_key], building, "comparison_before")
         write_report(after[held_key], building, "comparison_after")
         plot_residuals([before[held_key], after[held_key]], building / "residuals.png", ["before fit", "after fit"])
-        write_fit_report(building, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs, gap_pixels=gap_pixels,
-                         split_kind=split_kind, split_meaning=SPLIT_MEANING[split_kind], revert_lines=revert_lines,
+        write_fit_report(building, title=f"ddsgen fit: {preset} on {real_dir}", rows=rows, gaps=gap_pairs,
+                         gap_pixels=gap_pixels, split_kind=split_kind, split_meaning=SPLIT_MEANING[split_kind],
+                         revert_lines=revert_lines,
                          history=result.history, before_maps=before[held_key], after_maps=after[held_key])  # fmt: skip
         atomic_write_text(building / "fit_report.json", json.dumps(summary, indent=1, default=float) + "\n")
         if weights_path is not None:
