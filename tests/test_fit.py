@@ -211,7 +211,8 @@ def test_a_held_parameter_shows_why_it_has_no_uncertainty():
     held = {"fitted": 1.0, "sigma": math.nan, "method": "held: only the ratio eta_c / sigma is identifiable"}
     assert fitted_line(held) == "1 (held: only the ratio eta_c / sigma is identifiable)"
     assert fitted_line({"fitted": 17.25, "sigma": 0.5, "method": "loss curvature"}) == "17.25 +- 0.5"
-    assert fitted_line({"fitted": 2.0, "sigma": math.inf, "method": "not identified"}) == "2 +- inf"
+    assert fitted_line({"fitted": 2.0, "sigma": math.inf, "method": "not identified"}) == (
+        "2 +- inf (not identified by these frames)")
 
 
 def test_an_effect_the_preset_lacks_is_refused_with_the_way_to_add_it():

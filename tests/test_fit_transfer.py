@@ -141,6 +141,25 @@ def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeyp
     assert torch.equal(resolved["beta"][0], fitted["beta"][0])
 
 
+def test_report_says_when_the_frames_do_not_determine_a_parameter():
+    """A log-fitted parameter whose 1 s.d. exceeds its value (eta_c on the real cat with the beam fall-off fitted
+    beside it: 1.25e6 +- 5.6e7), or any infinite s.d., is flagged in the command's line and parameters.txt; a
+    well-determined one, a held one and a linear one near zero are not."""
+    from ddsgen.fit.fit_report import fitted_line, parameter_table
+
+    def row(fitted, sigma, bound, method="curvature"):
+        return {"param": "p", "key": "k", "before": 1.0, "fitted": fitted, "after": fitted, "sigma": sigma,
+                "method": method, "bound": bound, "kept": True, "at_bound": False}  # fmt: skip
+
+    flat = row(1.25e6, 5.6e7, ["factor", 0.25, 4.0])
+    assert fitted_line(flat) == "1.25e+06 +- 5.6e+07 (not identified by these frames)"
+    assert parameter_table([flat]).endswith("curvature; NOT IDENTIFIED")
+    assert fitted_line(row(3.0, math.inf, ["range", 0.0, 12.0])).endswith("+- inf (not identified by these frames)")
+    for fine in (row(1.25e6, 7.1e4, ["factor", 0.25, 4.0]), row(0.001, 0.01, ["range", -1.0, 1.0]),
+                 row(1.0, math.nan, None, method="held: off")):  # fmt: skip
+        assert "not identified" not in fitted_line(fine) and "NOT IDENTIFIED" not in parameter_table([fine])
+
+
 def test_sandwich_sigma_matches_the_spread_of_independent_minima():
     """Quadratic tile losses a_u (x - m_u)^2 with random centres m_u: the minimiser of the sum is the
     weighted mean of m_u, whose standard error the sandwich must reproduce; a loss that is not

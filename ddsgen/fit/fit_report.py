@@ -28,12 +28,24 @@ def format_value(value: float, sigma: float | None = None) -> str:
     return text + (" +- inf" if math.isinf(sigma) else f" +- {sigma:.2g}")
 
 
+def not_identified(row: dict) -> bool:
+    """Whether the frames leave a :func:`parameter_rows` row's parameter undetermined: an infinite 1 s.d., or, for a
+    positive parameter fitted by its logarithm (a ``factor`` bound), a 1 s.d. at least as large as the value (the
+    loss is flat over a factor of e and more; "+- 5.6e+07" on 1.2e+06 would read as if negative values fitted)."""
+    sigma, bound = row["sigma"], row.get("bound")
+    if not isinstance(sigma, (int, float)) or math.isnan(sigma):
+        return False
+    return math.isinf(sigma) or (bool(bound) and bound[0] == "factor" and sigma >= abs(row["fitted"]))
+
+
 def fitted_line(row: dict) -> str:
     """A :func:`parameter_rows` row's fitted value with its 1 s.d., or, where the parameter has none (held or
-    switched off: ``sigma`` is NaN), with the reason."""
+    switched off: ``sigma`` is NaN), with the reason; says so when the frames do not determine it."""
     text = format_value(row["fitted"], row["sigma"])
     held = isinstance(row["sigma"], float) and math.isnan(row["sigma"])
-    return text + (f" ({row['method']})" if held else "")
+    if held:
+        return text + f" ({row['method']})"
+    return text + (" (not identified by these frames)" if not_identified(row) else "")
 
 
 def parameter_rows(before: dict, fitted: dict, after: dict, uncertainty: dict, kept: dict[str, bool],
@@ -74,7 +86,8 @@ def parameter_table(rows: list[dict]) -> str:
         before = "" if r["before"] is None else f"{r['before']:.6g}"
         lines.append(f"{r['key']:26s} {before:>12s} {format_value(r['fitted'], r['sigma']):>24s} {r['after']:12.6g}  "
                      f"{bound_text:14s} "
-                     f"{'yes ' if r['kept'] else 'no  '}  {r['method']}" + ("; AT A BOUND" if r["at_bound"] else ""))  # fmt: skip
+                     f"{'yes ' if r['kept'] else 'no  '}  {r['method']}" + ("; AT A BOUND" if r["at_bound"] else "")
+                     + ("; NOT IDENTIFIED" if not_identified(r) else ""))  # fmt: skip
     return "\n".join(lines)
 
 
