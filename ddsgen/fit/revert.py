@@ -20,6 +20,11 @@ import torch
 from ddsgen.fit.compare import gap
 from ddsgen.fit.device_keys import apply_mirrors
 
+#: A group's ``note`` in :func:`revert_unhelpful`'s report: the fit left it at the input's values.
+UNCHANGED = "unchanged"
+#: A group's ``note``: kept in the pass, then reverted with the rest because the kept groups did not beat the input.
+NOT_BETTER_AS_A_WHOLE = "not better as a whole"
+
 
 def param_group(name: str, table: dict) -> str:
     """The revert group of a fitted parameter name (see the module docstring)."""
@@ -76,7 +81,7 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
     for group, names in groups.items():
         changed = any(not torch.equal(a, b) for n in names for a, b in zip(start[n], fitted[n]))
         if not changed:
-            report[group] = {"params": names, "kept": False, "gap_without_change": current, "note": "unchanged"}
+            report[group] = {"params": names, "kept": False, "gap_without_change": current, "note": UNCHANGED}
             continue
         _assign(sensor, resolved, start, names)
         without = held_gap()
@@ -94,7 +99,7 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
         _assign(sensor, resolved, start, list(resolved))
         for info in report.values():
             if info["kept"]:
-                info.update(kept=False, note="not better as a whole")
+                info.update(kept=False, note=NOT_BETTER_AS_A_WHOLE)
         current = gap_input
     return {"gap_input": gap_input, "gap_fitted": gap_fitted, "gap_kept": current, "better": better,
             "groups": report}  # fmt: skip
@@ -104,7 +109,7 @@ def output_holds_fit(outcome: dict, group: str) -> bool:
     """Whether the output preset holds ``group``'s fitted values: the group was kept, or the fit left it where it
     was (then fitted and input values are one, and calling it "reverted" would misreport it)."""
     info = outcome["groups"][group]
-    return info["kept"] or info.get("note") == "unchanged"
+    return info["kept"] or info.get("note") == UNCHANGED
 
 
 def revert_summary(outcome: dict) -> list[str]:
@@ -114,11 +119,11 @@ def revert_summary(outcome: dict) -> list[str]:
         lines.append(f"the fitted preset is NOT better than the input on the held-out frames "
                      f"({outcome['gap_fitted']:.2f} mm vs {outcome['gap_input']:.2f} mm)")  # fmt: skip
     for group, info in outcome["groups"].items():
-        if info.get("note") == "unchanged":
+        if info.get("note") == UNCHANGED:
             continue
         if info["kept"]:
             lines.append(f"kept {group} ({', '.join(info['params'])}): without it {info['gap_without_change']:.2f} mm")
-        elif info.get("note") == "not better as a whole":
+        elif info.get("note") == NOT_BETTER_AS_A_WHOLE:
             lines.append(f"reverted {group} ({', '.join(info['params'])}) to the input's values with the rest: it "
                          f"helped only beside changes that were reverted after it")  # fmt: skip
         else:
