@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from ddsgen.diagnose import DiagnoseConfig, diagnose  # noqa: E402
-from ddsgen.fit.simulate import prepare_frames, simulate  # noqa: E402
+from ddsgen.realscan.simulate import prepare_frames, simulate  # noqa: E402
 from ddsgen.io.scanfolder import read_scan_folder  # noqa: E402
 from ddsgen.preset import save_preset  # noqa: E402
 from ddsgen.runner import render_dataset  # noqa: E402

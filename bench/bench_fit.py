@@ -11,7 +11,7 @@ Prints `bench: NAME VALUE UNIT` lines:
 Target (issue 14): fit_100_steps_4_frames <= 120 s on 2 cores. Pass --steps N to run fewer steps
 (the time printed is then scaled to 100 steps and says so). The frames show large boxes (the
 fitted offset is seen on the objects only: the table plane is fitted to the real depth and absorbs
-a disparity offset, see ddsgen/fit/plane_depth.py), so the fit runs on the objects' region.
+a disparity offset, see ddsgen/realscan/plane_depth.py), so the fit runs on the objects' region.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from ddsgen.fit.fitting import fit_sensor  # noqa: E402
-from ddsgen.fit.simulate import prepare_frames, simulate  # noqa: E402
+from ddsgen.realscan.simulate import prepare_frames, simulate  # noqa: E402
 from ddsgen.io.scanfolder import read_scan_folder  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
 from ddsgen.runner import render_dataset  # noqa: E402

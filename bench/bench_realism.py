@@ -2,7 +2,7 @@
 
 Prints `bench: NAME VALUE UNIT` lines (``ddsgen.depth_statistics.realism_statistics``):
   real_cat_*        the real LineMOD cat frame (../shared/data/linemod_bop/test/000006) in the compare region
-                    (ddsgen.fit.compare_region: the pixels the modelled scene can explain; it depends on the
+                    (ddsgen.realscan.region: the pixels the modelled scene can explain; it depends on the
                     preset through the block size and the device's blind left columns)
   sim_cat_*         the same frame simulated at its ground-truth pose (ddsgen compare's region and seed 0)
   real_icbin_*      the nine real IC-BIN PrimeSense frames, whole image (min and max over the frames)
@@ -91,8 +91,8 @@ def cat_frame(preset_name: str, pictures: Path | None) -> None:
     if not scene.is_dir():
         print(f"# {scene} absent: cat frame skipped", flush=True)
         return
-    from ddsgen.fit.inputs import load_inputs
-    from ddsgen.fit.simulate import simulate
+    from ddsgen.realscan.inputs import load_inputs
+    from ddsgen.realscan.simulate import simulate
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     _, camera_preset, _, frames = load_inputs(preset_name, str(scene), progress=False)

@@ -213,8 +213,8 @@ def linemod_cat(perturbations: int = 20, gradient: str = "sensor") -> dict | Non
     the published pose being a few mm / deg off itself)."""
     if not LINEMOD.is_dir():
         return None
-    from ddsgen.fit.inputs import adopt_camera
-    from ddsgen.fit.simulate import _load_object_mesh
+    from ddsgen.realscan.inputs import adopt_camera
+    from ddsgen.realscan.simulate import _load_object_mesh
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.scene_gradients.scan import refine_scan_frame
 

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 from unpaired_hidden_device import scene_list_a  # noqa: E402
 from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool  # noqa: E402
-from ddsgen.fit.unpaired.realfolder import round_like  # noqa: E402
+from ddsgen.realscan.realfolder import round_like  # noqa: E402
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths  # noqa: E402
 from ddsgen.preset import load_preset  # noqa: E402
 from ddsgen.scene.scenelist import load_scene_list, scene_list_from_dict  # noqa: E402

@@ -4,7 +4,7 @@
    at random within their bounds (log-uniform where the search is in log space; a choice of
    the table's values for the clean-up sizes).
 2. New frames of the hidden device (scene list A: procedural shapes, closer camera, other
-   objects): the paired gap (ddsgen.fit.compare.gap) of the stock preset and of the *hidden
+   objects): the paired gap (ddsgen.realscan.gap.gap) of the stock preset and of the *hidden
    device itself* on them. The hidden device's own gap is the floor no fit can go below (two
    noise draws of one device differ). A draw whose floor is above REACHABLE x the stock's gap
    differs from the stock by less than one draw's noise: no fit can reach 0.6x on it, so it
@@ -79,8 +79,8 @@ def hidden_values(seed: int, width: int = 0) -> dict:
 
 
 def paired_gap(preset_path: Path, scan_dir: Path) -> float:
-    from ddsgen.fit.compare import gap
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.gap import gap
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.sensor.depth_sensor import DepthSensor
 

@@ -38,10 +38,10 @@ def no_work(monkeypatch):
     def work_started(*args, **kwargs):
         raise AssertionError("the command started its work before checking its outputs")
 
-    import ddsgen.fit.inputs
+    import ddsgen.realscan.inputs
     import ddsgen.scene_gradients.scan
 
-    monkeypatch.setattr(ddsgen.fit.inputs, "load_inputs", work_started)
+    monkeypatch.setattr(ddsgen.realscan.inputs, "load_inputs", work_started)
     monkeypatch.setattr(ddsgen.scene_gradients.scan, "refine_scan_frame", work_started)
     monkeypatch.setattr(ddsgen.scene_gradients.scan, "refine_static_scan", work_started)
 
@@ -140,22 +140,22 @@ def test_refine_writes_a_new_folder_whole_and_an_interrupted_refine_leaves_none(
 
 
 def test_interrupted_compare_leaves_no_report_nor_save_sim_and_reruns(small, tmp_path, capsys, monkeypatch):
-    import ddsgen.fit.compare_outputs
+    import ddsgen.realscan.outputs
 
     report, saved = tmp_path / "o" / "r", tmp_path / "o" / "s"
     args = ["compare", str(small["stock"]), str(small["real"]), "--report", str(report), "--save-sim", str(saved),
             "--quiet"]  # fmt: skip
-    original = ddsgen.fit.compare_outputs.write_index
+    original = ddsgen.realscan.outputs.write_index
 
     def interrupted(*a, **k):  # every frame, comparison.json and the plots are written; the index page is next
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(ddsgen.fit.compare_outputs, "write_index", interrupted)
+    monkeypatch.setattr(ddsgen.realscan.outputs, "write_index", interrupted)
     capsys.readouterr()
     assert main(args) == 130
     assert capsys.readouterr().err == "ddsgen: interrupted\n"  # one line; compare starts again, it does not resume
     assert not report.exists() and not saved.exists() and leftovers(tmp_path) == []
-    monkeypatch.setattr(ddsgen.fit.compare_outputs, "write_index", original)
+    monkeypatch.setattr(ddsgen.realscan.outputs, "write_index", original)
     assert main(args) == 0  # not refused: "--save-sim: folder is not empty"
     assert (report / "index.html").is_file() and (saved / "manifest.jsonl").is_file()
     assert len(json.loads((report / "comparison.json").read_text())["frames"]) == 2
@@ -167,7 +167,7 @@ def test_interrupted_compare_leaves_no_report_nor_save_sim_and_reruns(small, tmp
     (report / "notes.txt").write_text("mine")
     before = (report / "comparison.json").read_text()
     calls = []
-    original_call = ddsgen.fit.compare_outputs.FrameOutputs.__call__
+    original_call = ddsgen.realscan.outputs.FrameOutputs.__call__
 
     def second_frame_interrupted(self, *a, **k):
         calls.append(1)
@@ -175,12 +175,12 @@ def test_interrupted_compare_leaves_no_report_nor_save_sim_and_reruns(small, tmp
             raise KeyboardInterrupt
         return original_call(self, *a, **k)
 
-    monkeypatch.setattr(ddsgen.fit.compare_outputs.FrameOutputs, "__call__", second_frame_interrupted)
+    monkeypatch.setattr(ddsgen.realscan.outputs.FrameOutputs, "__call__", second_frame_interrupted)
     rerun = ["compare", str(small["stock"]), str(small["real"]), "--report", str(report), "--quiet", "--seed", "1"]
     assert main(rerun) == 130
     assert (report / "comparison.json").read_text() == before and (report / "index.html").is_file()
     assert sorted(p.name for p in (report / "frames").iterdir()) == ["000000.png", "000001.png"]
-    monkeypatch.setattr(ddsgen.fit.compare_outputs.FrameOutputs, "__call__", original_call)
+    monkeypatch.setattr(ddsgen.realscan.outputs.FrameOutputs, "__call__", original_call)
     assert main(rerun) == 0
     assert (report / "comparison.json").read_text() != before  # another seed: another gap
     assert (report / "notes.txt").read_text() == "mine" and (report / "index.html").is_file()

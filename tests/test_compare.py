@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from ddsgen.cli import main
-from ddsgen.fit.compare import gap
-from ddsgen.fit.simulate import prepare_frames, simulate
+from ddsgen.realscan.gap import gap
+from ddsgen.realscan.simulate import prepare_frames, simulate
 from ddsgen.io.scanfolder import read_scan_folder
 from ddsgen.preset import load_preset
 from ddsgen.sensor.depth_sensor import DepthSensor
@@ -120,7 +120,7 @@ def test_noise_floor_is_what_a_perfect_model_scores_against_a_unit_it_does_not_k
     that shared them (as before) told the user that a perfect model had a large gap left to explain."""
     import dataclasses
 
-    from ddsgen.fit.simulate import sensor_unit
+    from ddsgen.realscan.simulate import sensor_unit
     from effects_geometry import small_preset
 
     device = small_preset(160, 120)  # kinect_v1 scaled down: speckle fixed to the scene, dots off the lattice
@@ -148,7 +148,7 @@ def test_floor_of_few_frames_averages_several_units(small):
     """One unit's floor on one frame scatters by tens of percent (the real cat's object region: 0.40-1.50 mm over
     eight units), so a comparison of few frames averages at least four unit draws: one frame gets four twins, each
     another unit with its own speckle and dots; four frames or more get one each."""
-    from ddsgen.fit.simulate import FLOOR_DRAWS, twin_draws
+    from ddsgen.realscan.simulate import FLOOR_DRAWS, twin_draws
     from effects_geometry import small_preset
 
     assert FLOOR_DRAWS == 4
@@ -222,7 +222,7 @@ def test_linemod_cat_lands_on_measured_depth(linemod):
 def test_compare_save_sim_pictures_and_realism_statistics(small, tmp_path, capsys):
     import cv2
 
-    from ddsgen.fit.compare_pictures import BAR_PX, GAP_PX, TOP_PX
+    from ddsgen.realscan.pictures import BAR_PX, GAP_PX, TOP_PX
     from ddsgen.io.exr import read_exr
 
     report, saved = tmp_path / "report", tmp_path / "sim"
@@ -299,7 +299,7 @@ def test_compare_save_sim_pictures_and_realism_statistics(small, tmp_path, capsy
 def test_full_frame_pastes_a_crop_back():
     from types import SimpleNamespace
 
-    from ddsgen.fit.realism import full_frame
+    from ddsgen.realscan.realism import full_frame
     from ddsgen.preset import Intrinsics
 
     frame = SimpleNamespace(crop=(3, 2, 4, 5), full_intrinsics=Intrinsics(10, 8, 5.0, 5.0, 5.0, 4.0))
@@ -359,7 +359,7 @@ def test_compare_real_cat_cropped_statistics_on_whole_frames(linemod, tmp_path, 
 
 def test_crop_box_never_exceeds_the_image():
     """An object box plus margin taller than the image is clipped to it (the window's size is its arrays' size)."""
-    from ddsgen.fit.simulate import _crop_box
+    from ddsgen.realscan.simulate import _crop_box
 
     instance = np.zeros((120, 160), np.uint16)
     instance[2:118, 40:60] = 1
@@ -377,7 +377,7 @@ FB = 572.41 * 0.075  # f b of the Kinect V1 (px m)
 def test_unmodelled_shadow_has_the_projector_geometry():
     """An unmodelled box 0.6 m away in front of a modelled wall at 1 m shadows f b (1/0.6 - 1/1) = 28.6 px to its
     left (the projector is at +b); a surface behind the wall shadows nothing; widening moves only the far edge."""
-    from ddsgen.fit.compare_region import disparity, unmodelled_shadow
+    from ddsgen.realscan.region import disparity, unmodelled_shadow
 
     clean = np.full((3, 200), 1.0)
     real = clean.copy()
@@ -395,7 +395,7 @@ def test_unmodelled_shadow_has_the_projector_geometry():
 def test_the_support_plane_is_the_one_the_objects_rest_on_not_the_largest():
     """Two planes in view, a table under the object and a larger floor 0.7 m below it: RANSAC alone takes the
     floor (more inliers); with the object's points it takes the table, whatever the seed."""
-    from ddsgen.fit.support_plane import fit_support_plane
+    from ddsgen.realscan.support_plane import fit_support_plane
     from ddsgen.preset import Intrinsics
 
     intr = Intrinsics(640, 480, 572.4, 572.4, 319.5, 239.5)  # the Kinect's: 0.5 px of disparity is ~2 % of z
@@ -423,7 +423,7 @@ def test_the_cat_frames_support_plane_does_not_depend_on_the_seed(linemod):
     """The real cat frame holds the table (6209 inliers) and the floor 0.73 m below it (6150): before the objects
     chose the plane, seeds 1 and 2 modelled the floor and the real frame's isolated dropouts in the compare region
     went 12 -> 3."""
-    from ddsgen.fit.inputs import load_inputs
+    from ddsgen.realscan.inputs import load_inputs
 
     offsets = []
     for seed in (0, 1, 2):
@@ -436,7 +436,7 @@ def test_plane_footprint_is_the_real_table_closed_and_filled():
     """The table's real extent: its on-plane pixels with their holes (a dark patch) filled, gaps narrower than a
     block closed, the posed objects with their modelled shadows (here at the table's edge) in; beyond the table's
     edge, where the real frame sees the floor, out; an invalid far part with no sign of another surface, in."""
-    from ddsgen.fit.compare_region import plane_footprint
+    from ddsgen.realscan.region import plane_footprint
     from ddsgen.sensor.output_window import OutputWindow
 
     on_plane = np.zeros((100, 120), bool)
@@ -472,7 +472,7 @@ def test_plane_footprint_is_the_real_table_closed_and_filled():
 def test_comparison_region_keeps_what_the_scene_explains():
     """Real-valid plausible pixels always count; real-invalid pixels count on posed objects and the table's real
     extent (its holes, the object's shadow), not beyond the table's edge nor in an unmodelled object's shadow."""
-    from ddsgen.fit.compare_region import comparison_region
+    from ddsgen.realscan.region import comparison_region
 
     clean = np.full((100, 200), 1.0)  # the fitted support plane (fronto-parallel at 1 m) covers the image
     objects = np.zeros(clean.shape, bool)
@@ -543,7 +543,7 @@ def test_a_real_folders_other_output_window_is_pointed_out():
     when only one frame is given (its empty border may be the scene's)."""
     from types import SimpleNamespace
 
-    from ddsgen.fit.inputs import output_window_hint
+    from ddsgen.realscan.inputs import output_window_hint
     from ddsgen.preset import load_preset
 
     preset = load_preset("kinect_v1_paper").replace(width_px=80, height_px=60, focal_px=71.5, focal_y_px=71.5,

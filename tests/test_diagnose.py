@@ -90,7 +90,7 @@ def scans(tmp_path_factory):
 def stock():
     """The Kinect V1 preset with the device's 1/8 px sub-pixel steps, measuring to the driver's 10 m. Two rules make
     the far floor harmless: its depth beyond 4.14 m, where one 1/8-px step is more than the depth term's 50 mm clip,
-    is not compared (:func:`ddsgen.fit.losses.resolved_depth_m`), and candidates are judged against the floor over
+    is not compared (:func:`ddsgen.realscan.losses.resolved_depth_m`), and candidates are judged against the floor over
     the reported units (:func:`ddsgen.diagnose.acceptance.judged_floors`). With neither, the disparity_offset case
     tied with depth_scale (credited falls 43.0 % each, depth_scale named first; session 46 pinned 4 m here)."""
     return small_preset(640, 480, subpixel_level=3)
@@ -113,7 +113,7 @@ def render_scans(root, name: str, effects: list[dict], perturb: bool = True, see
 
 
 def prepared(folder):
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
 
     return prepare_frames(stock(), read_scan_folder(folder))
@@ -184,7 +184,7 @@ class _Frame:
     resolved_depth_m: float = math.inf
 
     def noise_seed(self, seed: int = 0) -> list[int]:  # as FrameData's
-        from ddsgen.fit.simulate import SIM_STREAM
+        from ddsgen.realscan.simulate import SIM_STREAM
 
         return [int(seed), int(self.index), SIM_STREAM]
 
@@ -201,7 +201,7 @@ def test_replane_recovers_the_plane_a_disparity_offset_was_added_to():
     """A plane seen with a disparity offset is still a plane (1/z shifts by offset / (f b)); prepare_frames fits
     that biased plane to the real depth, and a model with the offset would bias it twice. One re-planing step
     under that model recovers the true plane."""
-    from ddsgen.fit.support_plane import Plane
+    from ddsgen.realscan.support_plane import Plane
     from ddsgen.sensor.depth_sensor import SensorOutput
     from effects_geometry import plane_geometry, tilted_normal
 
@@ -301,7 +301,7 @@ def test_the_real_frames_output_window_is_measured_and_used_before_the_base_fit(
 
 def _plane_frame(width: int = 160, height: int = 120):
     """A tilted support plane seen by the small Kinect preset, real depth = clean depth (a _Frame)."""
-    from ddsgen.fit.support_plane import Plane
+    from ddsgen.realscan.support_plane import Plane
     from effects_geometry import plane_geometry, tilted_normal
 
     intr = small_preset(width, height).intrinsics
@@ -464,7 +464,7 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path):
     (validity stages actually computed, i.e. not served by the caches; front ends at most 5 % more)."""
     from ddsgen.diagnose.loop import SCREEN_FRACTION
     from ddsgen.diagnose.match_cache import counting_computed_stages
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.runner import render_dataset
 
@@ -596,7 +596,7 @@ def blind_geometry(tmp_path_factory):
 
 
 def prepared_blind(folder):
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
 
     return prepare_frames(blind_stock(), read_scan_folder(folder), progress=False)
@@ -703,8 +703,8 @@ def test_reported_floor_averages_several_units_and_the_rule_judges_against_the_s
     """Reported gaps beyond the floor average the floor over several units (as compare does), and the acceptance
     rule compares two models' floors over the same units when both have them (else over the one unit both have)."""
     from ddsgen.diagnose.evaluation import evaluate
-    from ddsgen.fit.compare import frame_gap_mm
-    from ddsgen.fit.simulate import simulate, simulate_twin
+    from ddsgen.realscan.losses import frame_gap_mm
+    from ddsgen.realscan.simulate import simulate, simulate_twin
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     frame = _plane_frame()

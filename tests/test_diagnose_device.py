@@ -37,7 +37,7 @@ def test_edge_keeping_is_found_on_scans_of_a_device_that_keeps_its_edges(tmp_pat
     around every object left, and the search tells the device's value from a wrong one."""
     from effects_geometry import small_preset
 
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.preset import save_preset
     from ddsgen.runner import render_dataset

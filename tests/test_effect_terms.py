@@ -17,7 +17,7 @@ from test_effects import RECT, _fd_check, ctx_for, run
 
 from ddsgen.errors import InputError
 from ddsgen.fit.fitting import fit_sensor
-from ddsgen.fit.simulate import FrameData
+from ddsgen.realscan.simulate import FrameData
 from ddsgen.preset import load_preset, save_preset
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.effects import REGISTRY, build_effects, library_names, validate_effects

@@ -21,11 +21,11 @@ import torch
 from test_compare import LINEMOD, render, write_presets
 
 from ddsgen.cli import main
-from ddsgen.fit.compare import gap
+from ddsgen.realscan.gap import gap
 from ddsgen.fit.fit_report import fitted_line
 from ddsgen.fit.fitting import fit_sensor, split_frames
 from ddsgen.fit.parameters import values_to_write
-from ddsgen.fit.simulate import prepare_frames
+from ddsgen.realscan.simulate import prepare_frames
 from ddsgen.io.scanfolder import read_scan_folder
 from ddsgen.preset import load_preset
 from ddsgen.sensor.depth_sensor import DepthSensor

@@ -16,16 +16,16 @@ import torch
 from test_compare import SMALL_PRESET, render
 
 from ddsgen.errors import InputError
-from ddsgen.fit.compare import gap
+from ddsgen.realscan.gap import gap
 from ddsgen.fit.device_keys import search_grid, set_key
-from ddsgen.fit.losses import FIT_WEIGHTS, LossWeights, without_plane_pose
-from ddsgen.fit.plane_depth import plane_depth_for, undo_disparity_effects
+from ddsgen.realscan.losses import FIT_WEIGHTS, LossWeights, without_plane_pose
+from ddsgen.realscan.plane_depth import plane_depth_for, undo_disparity_effects
 from ddsgen.fit.fit_report import at_bound
 from ddsgen.fit.fitting import fit_sensor
 from ddsgen.fit.parameters import SENSOR_PARAMS, resolve_params
 from ddsgen.fit.priors import Priors
 from ddsgen.fit.revert import revert_unhelpful, snapshot
-from ddsgen.fit.simulate import prepare_frames, simulate
+from ddsgen.realscan.simulate import prepare_frames, simulate
 from ddsgen.fit.tiles import step_tiles
 from ddsgen.fit.split import scene_of, split_fit_held_out
 from ddsgen.fit.uncertainty import estimate_uncertainty, sandwich_sigma
@@ -231,7 +231,7 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     """Fit on scene list A, judge on scene list B (other shapes, other views).
 
     The design is not noise-dominated: each sensor is judged on held-out frames whose support planes are
-    fitted where *its* disparity errors put them (ddsgen.fit.plane_depth; with planes fitted to the raw
+    fitted where *its* disparity errors put them (ddsgen.realscan.plane_depth; with planes fitted to the raw
     real depth the true device scored 21.4 mm and the stock one 18.6 -- the planes had absorbed the
     distortion) and the gap is averaged over two simulation noise seeds. Fit on 8 views of one layout of
     list A, 80 steps (session 14, 1 thread): true device 10.55 mm, stock 18.55, fitted and kept 14.31 (0.77x);

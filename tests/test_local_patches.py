@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddsgen.fit.local_patches import MIN_PATCH_WINDOWS, find_patches, local_offset
+from ddsgen.realscan.local_patches import MIN_PATCH_WINDOWS, find_patches, local_offset
 
 LINEMOD = Path(__file__).resolve().parents[2] / "shared" / "data" / "linemod_bop"
 WINDOW = 15
@@ -122,7 +122,7 @@ def test_compare_reports_the_patches_of_the_real_cats_scene_and_none_on_the_obje
 def test_compare_picture_outlines_the_patches_on_the_difference_only(tmp_path):
     import cv2
 
-    from ddsgen.fit.compare_pictures import BAR_PX, GAP_PX, side_by_side
+    from ddsgen.realscan.pictures import BAR_PX, GAP_PX, side_by_side
 
     rng = np.random.default_rng(11)
     real = (1.0 + 0.002 * rng.standard_normal((60, 80))).astype(np.float32)
@@ -150,7 +150,7 @@ def test_several_frames_each_get_their_own_patches_and_the_gap_without_them():
 
     from ddsgen.diagnose.evaluation import evaluate
     from ddsgen.diagnose.local_patches import local_reading
-    from ddsgen.fit.inputs import load_inputs
+    from ddsgen.realscan.inputs import load_inputs
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     _, camera, _, (frame,) = load_inputs("kinect_v1", LINEMOD, support_plane=True, plausible_px=2.0, seed=0,

@@ -1,4 +1,4 @@
-"""The loss terms' fast forms against their plain definitions (ddsgen.fit.losses).
+"""The loss terms' fast forms against their plain definitions (ddsgen.realscan.losses).
 
 The fit and the diagnosis evaluate :func:`frame_loss` hundreds of times per run, so its terms are computed
 without boolean indexing and with the real side memoised; these tests hold them to the textbook formulas.
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from ddsgen.fit import losses
-from ddsgen.fit.losses import CLIP_MM, LossWeights, binned_roughness_gap, frame_loss, without_plane_pose
+from ddsgen.realscan import losses
+from ddsgen.realscan.losses import CLIP_MM, LossWeights, binned_roughness_gap, frame_loss, without_plane_pose
 
 
 def _plane_frame(seed: int, height: int = 48, width: int = 64):

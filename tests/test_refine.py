@@ -63,7 +63,7 @@ def test_the_depth_loss_counts_depth_only_where_the_sensor_resolves_it():
     """A wall at 2 m beside one at 6 m, the simulation at the clean depth. Beyond the resolved depth (kinect_v1:
     one 1/8-px quantum is 50 mm at 4.14 m, 105 mm at 6 m) the real depth is one quantum level or another whatever
     the pose, so a 20 mm error there moves neither the loss nor the compared pixels; on the near wall it does."""
-    from ddsgen.fit.losses import resolved_depth_m
+    from ddsgen.realscan.losses import resolved_depth_m
     from ddsgen.scene_gradients.refine import robust_depth_loss
 
     preset = load_preset("kinect_v1")
@@ -429,8 +429,8 @@ def test_real_cat_perturbed_3_deg_8_mm_comes_back_to_the_published_pose(draw):
     rotation wander into a worse pose, and the decayed steps did not bring it back); at 5e-3 every start ends
     within 1.51 deg. (Single starts scatter by ~0.4 deg about the ~1.1 deg by which the published pose itself
     disagrees with this frame's depth and outline: 2 deg, not 1.5, per start.)"""
-    from ddsgen.fit.inputs import adopt_camera
-    from ddsgen.fit.simulate import _load_object_mesh
+    from ddsgen.realscan.inputs import adopt_camera
+    from ddsgen.realscan.simulate import _load_object_mesh
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.scene_gradients.scan import refine_scan_frame
 

@@ -374,8 +374,8 @@ def test_registered_corners_and_left_band_match_the_real_cat_frame():
     if not scene.is_dir():
         pytest.skip(f"{scene} absent (real data is not part of a fresh checkout)")
     from ddsgen.depth_statistics import realism_statistics
-    from ddsgen.fit.inputs import load_inputs
-    from ddsgen.fit.simulate import simulate
+    from ddsgen.realscan.inputs import load_inputs
+    from ddsgen.realscan.simulate import simulate
 
     _, preset, _, frames = load_inputs("kinect_v1", str(scene), progress=False)
     frame = frames[0]
@@ -410,8 +410,8 @@ def test_replaning_a_registered_frame_moves_the_plane_in_the_image_and_in_the_ir
     """diagnose re-estimates the support plane in the image's frame; a registered frame's sensor geometry is the
     IR camera's view, so the plane must move there too (offset d - n_x b_r, principal point s px left)."""
     from ddsgen.diagnose.plane import replane
-    from ddsgen.fit.simulate import FrameData
-    from ddsgen.fit.support_plane import Plane
+    from ddsgen.realscan.simulate import FrameData
+    from ddsgen.realscan.support_plane import Plane
     from ddsgen.sensor.depth_sensor import SensorOutput
 
     preset = _strip(rows=64)

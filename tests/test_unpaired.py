@@ -11,7 +11,7 @@ import pytest
 
 from ddsgen.errors import InputError
 from ddsgen.fit.unpaired.features import NOISE_BIN_PX, distance_terms, frame_features, pool
-from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
+from ddsgen.realscan.realfolder import read_depth_folder, round_like
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FB = 572.41 * 0.075  # f b of kinect_v1 (px m)
@@ -206,7 +206,7 @@ def _scene_list(classes: tuple[str, ...], distance: list[float], wall: bool):
 def _real_like_frames(device, n_frames: int = 8, seed: int = 11) -> list:
     """Frames a hidden ``device`` renders of scene list A (boxes, cans, mugs at 0.7-1.4 m), rounded like a
     millimetre PNG: the "real" folder of the hidden-device tests."""
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.realscan.realfolder import RealDepthFrame
     from ddsgen.fit.unpaired.search import cast_scenes, render_depths
 
     scenes_a = _scene_list(("box", "can", "mug"), [0.7, 1.4], wall=False)
@@ -415,7 +415,7 @@ def test_a_key_the_frames_do_not_constrain_does_not_unsettle_an_independent_one(
 @pytest.fixture(scope="module")
 def registered_device():
     """kinect_v1 (registered to its RGB camera) at 320x240 with an IR-frame window, 6 frames on scene list A."""
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.realscan.realfolder import RealDepthFrame
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
     from ddsgen.preset import load_preset
 
@@ -479,7 +479,7 @@ def test_the_fit_reads_registered_frames_with_the_registration_and_plain_frames_
     """Model choice by measurement: frames of the registered device are closer to the registered reading;
     the same device without registration (the window as its own output's) is closer to the plain one."""
     from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
-    from ddsgen.fit.unpaired.realfolder import RealDepthFrame
+    from ddsgen.realscan.realfolder import RealDepthFrame
     from ddsgen.fit.unpaired.search import cast_scenes, render_depths
     from ddsgen.scene.default_scenes import default_scene_list_dict
     from ddsgen.scene.scenelist import scene_list_from_dict

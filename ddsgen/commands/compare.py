@@ -43,10 +43,10 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     """
     import contextlib
 
-    from ddsgen.fit.compare import gap, table
-    from ddsgen.fit.inputs import load_inputs
-    from ddsgen.fit.compare_outputs import FrameOutputs
-    from ddsgen.fit.save_sim import SimFolderWriter, check_target
+    from ddsgen.realscan.gap import gap, table
+    from ddsgen.realscan.inputs import load_inputs
+    from ddsgen.realscan.outputs import FrameOutputs
+    from ddsgen.realscan.save_sim import SimFolderWriter, check_target
     from ddsgen.io.atomic import atomic_folder, check_can_create_folder, overlap
     from ddsgen.sensor.depth_sensor import DepthSensor
 

@@ -67,8 +67,8 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     REPORT/report.html (one sentence per step; residual profiles before/after each step and
     full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """
-    from ddsgen.fit.compare import BELOW_FLOOR
-    from ddsgen.fit.inputs import load_inputs
+    from ddsgen.realscan.gap_report import BELOW_FLOOR
+    from ddsgen.realscan.inputs import load_inputs
     from ddsgen.diagnose import DiagnoseConfig
     from ddsgen.diagnose import diagnose as run_diagnosis
     from ddsgen.diagnose.report import write_diagnosis

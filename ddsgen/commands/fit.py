@@ -10,7 +10,7 @@ import click
 from ddsgen.commands import (POSITIVE, REPRODUCIBLE_THREADS_HELP, common_options, echo_stderr, split_names,
                              threads_option, use_threads)
 from ddsgen.fit import DEFAULT_TILE_PX
-from ddsgen.fit.inputs import load_inputs
+from ddsgen.realscan.inputs import load_inputs
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.errors import InputError
 from ddsgen.io.atomic import atomic_folder, check_can_create_folder
@@ -112,12 +112,12 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         return
     import dataclasses
 
-    from ddsgen.fit.compare import gap, write_report
-    from ddsgen.fit.compare_plots import plot_residuals
+    from ddsgen.realscan.gap import gap, write_report
+    from ddsgen.realscan.plots import plot_residuals
     from ddsgen.fit.device_keys import device_key_values
-    from ddsgen.fit.losses import FIT_WEIGHTS
-    from ddsgen.fit.plane_depth import plane_depth_for
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.losses import FIT_WEIGHTS
+    from ddsgen.realscan.plane_depth import plane_depth_for
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.fit.fit_report import fitted_line, parameter_rows, write_fit_report
     from ddsgen.fit.fitting import fit_sensor, refine_frame_poses
     from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, preset_values, resolve_params

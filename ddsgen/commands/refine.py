@@ -110,7 +110,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
 
 def _camera_preset(base, frames):
     """The preset with the frames' camera (one line naming the first frame if it does not fit)."""
-    from ddsgen.fit.inputs import adopt_camera
+    from ddsgen.realscan.inputs import adopt_camera
 
     try:
         return adopt_camera(base, frames)[0]

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.plane import replaned
-from ddsgen.fit.compare import frame_gap_mm
-from ddsgen.fit.losses import local_window, masked_local_mean
-from ddsgen.fit.simulate import simulate, simulate_twin
+from ddsgen.realscan.losses import frame_gap_mm
+from ddsgen.realscan.losses import local_window, masked_local_mean
+from ddsgen.realscan.simulate import simulate, simulate_twin
 
 
 @dataclasses.dataclass
@@ -87,7 +87,7 @@ def validity_log_likelihood(sim, frame) -> float:
 def frame_evaluation(sensor, frame, seed: int, floor_draws: int = 1) -> tuple[float, list[float], float]:
     """(gap, noise floors, validity log-likelihood) of one frame: the gap between the simulation (noise draw
     ``seed``) and the real scan and between that simulation and ``floor_draws`` twins (other units of the
-    same sensor: :func:`~ddsgen.fit.simulate.simulate_twin`, draws 0, 1, ...), as ``compare`` measures
+    same sensor: :func:`~ddsgen.realscan.simulate.simulate_twin`, draws 0, 1, ...), as ``compare`` measures
     them, and :func:`validity_log_likelihood` of the real scan. A diagnosis evaluates hundreds of models
     and judges them by the gap itself against one twin each; only the gaps it reports beyond the floor
     average several."""

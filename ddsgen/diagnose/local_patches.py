@@ -2,7 +2,7 @@
 
 A sensor effect is smooth along the image and with depth: the axes of :mod:`ddsgen.diagnose.residuals`
 see it. When no structure remains along them but the held-out gap is still well beyond its noise floor,
-the disagreement is *local*: patches (:mod:`ddsgen.fit.local_patches`) where the real surface lies at another
+the disagreement is *local*: patches (:mod:`ddsgen.realscan.local_patches`) where the real surface lies at another
 depth than the modelled one, several windows wide, with edges of their own. That is what a scene the model
 lacks produces (a support that is not one plane, objects that are not modelled, their fringes), not a
 sensor. This module finds them on the held-out data and measures how much of the gap they carry, so the
@@ -16,14 +16,14 @@ import dataclasses
 import numpy as np
 import torch
 
-from ddsgen.fit.local_patches import FramePatches, patch_count, patch_share, patches_against
-from ddsgen.fit.losses import local_window
-from ddsgen.fit.simulate import simulate, simulate_twin
+from ddsgen.realscan.local_patches import FramePatches, patch_count, patch_share, patches_against
+from ddsgen.realscan.losses import local_window
+from ddsgen.realscan.simulate import simulate, simulate_twin
 
 
 def frame_patches(sensor, frames, seed: int) -> list[FramePatches]:
-    """The patches (:func:`~ddsgen.fit.local_patches.patches_against`) of every frame in ``frames`` (prepared, whole
-    frames) under ``sensor``, noise draw ``seed``; the twin is unit 1 (:func:`~ddsgen.fit.simulate.simulate_twin`
+    """The patches (:func:`~ddsgen.realscan.local_patches.patches_against`) of every frame in ``frames`` (prepared, whole
+    frames) under ``sensor``, noise draw ``seed``; the twin is unit 1 (:func:`~ddsgen.realscan.simulate.simulate_twin`
     draw 0)."""
     out = []
     with torch.no_grad():

@@ -6,7 +6,7 @@ The loop (:func:`diagnose`):
    measured and used by the model when they differ from the preset's (not an effect: a format).
 1. **Base fit.** The base sensor parameters are fitted on the fit frames with the fit
    machinery (:func:`ddsgen.fit.fitting.fit_sensor`); the held-out gap (the ``compare``
-   metric, :func:`ddsgen.fit.compare.gap`, and its noise floor) of that model is the baseline.
+   metric, :func:`ddsgen.realscan.gap.gap`, and its noise floor) of that model is the baseline.
 2. **Residual analysis** (:mod:`ddsgen.diagnose.residuals`): bias and validity disagreement
    binned by depth, incidence angle, image radius, row, column, distance to depth edges and
    IR signal; per axis the structure beyond noise (bootstrap over frames).
@@ -51,7 +51,7 @@ Two things make the comparison fair to every candidate:
   floor. So a candidate is credited, per frame and with the same noise draws for every model,
   with the fall of its gap minus any fall of its floor (:func:`~ddsgen.diagnose.acceptance.frame_falls`), and gets
   nothing for making its own draws disagree more. The floor is the mean over the same several units as the
-  reported one (at least four in all, :func:`~ddsgen.fit.simulate.twin_draws`): a model that changes the depth
+  reported one (at least four in all, :func:`~ddsgen.realscan.simulate.twin_draws`): a model that changes the depth
   changes its draws, and against one unit the floor's own scatter was charged to it (at a 10 m range a disparity
   offset's floor fell 0.13 mm by chance and its credited fall tied with a depth scale's, 43.0 % each).
 * **Gaps are reported beyond the noise floor.** ``diagnosis.json``'s gaps are ``compare``'s
@@ -107,7 +107,7 @@ from ddsgen.diagnose.sentences import format_values, step_sentence, structure_su
 from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.fitting import fit_sensor, split_frames
 from ddsgen.fit.parameters import DEFAULT_PARAMS
-from ddsgen.fit.simulate import simulate, twin_draws
+from ddsgen.realscan.simulate import simulate, twin_draws
 from ddsgen.sensor.effects import REGISTRY, library_names
 
 #: Base parameters fitted first. Not the baseline: fit_sensor estimates it from the disparity quantisation
@@ -225,7 +225,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
 
     Args:
         preset: the starting sensor preset (with the scans' camera).
-        frames: :func:`ddsgen.fit.simulate.prepare_frames` output (split into fit / held-out here).
+        frames: :func:`ddsgen.realscan.simulate.prepare_frames` output (split into fit / held-out here).
         config: settings.
         echo: receives one line per stage (progress output).
         progress: tqdm bars of the fits.

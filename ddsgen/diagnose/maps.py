@@ -12,8 +12,8 @@ import numpy as np
 import torch
 
 from ddsgen.diagnose.plane import replaned
-from ddsgen.fit.local_patches import residual_mm
-from ddsgen.fit.simulate import simulate
+from ddsgen.realscan.local_patches import residual_mm
+from ddsgen.realscan.simulate import simulate
 
 #: Held-out frames whose residual maps go into the report.
 MAP_FRAMES = 3

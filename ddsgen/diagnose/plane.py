@@ -1,6 +1,6 @@
 """The support plane as a nuisance of the comparison: re-estimated under each sensor model.
 
-The plane of :func:`ddsgen.fit.simulate.prepare_frames` is fitted to the real depth, so it already
+The plane of :func:`ddsgen.realscan.simulate.prepare_frames` is fitted to the real depth, so it already
 contains any bias that keeps planes planar (a disparity offset, a depth scale error); a model with
 that effect would apply it twice.
 """
@@ -12,13 +12,13 @@ import dataclasses
 import numpy as np
 import torch
 
-from ddsgen.fit.simulate import simulate
+from ddsgen.realscan.simulate import simulate
 
 
 def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
     """``frame`` with its support plane re-estimated under the model that produced ``sim``.
 
-    The support plane of :func:`ddsgen.fit.simulate.prepare_frames` is fitted to the *real*
+    The support plane of :func:`ddsgen.realscan.simulate.prepare_frames` is fitted to the *real*
     depth, so it already contains every bias that keeps a plane a plane (a disparity offset:
     1/z shifts by a constant; a depth scale error) -- simulating a sensor that has the effect
     on that plane would apply it twice. The plane is a nuisance of the comparison, so it is
@@ -29,7 +29,7 @@ def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
 
     Returns ``frame`` itself when it has no plane or too few plane pixels.
     """
-    from ddsgen.fit.support_plane import Plane
+    from ddsgen.realscan.support_plane import Plane
 
     if frame.plane is None:
         return frame

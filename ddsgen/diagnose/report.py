@@ -10,7 +10,7 @@ import numpy as np
 
 from ddsgen.diagnose.acceptance import RULE
 from ddsgen.diagnose.maps import ResidualMap, crop_zoom, region_box
-from ddsgen.fit.compare import BELOW_FLOOR
+from ddsgen.realscan.gap_report import BELOW_FLOOR
 from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
 from ddsgen.io.atomic import atomic_folder
 

@@ -1,6 +1,6 @@
 """Residual analysis: where do simulation and measurement disagree, and along which axis?
 
-For every pixel of a frame's comparison region (:mod:`ddsgen.fit.simulate`) two residuals:
+For every pixel of a frame's comparison region (:mod:`ddsgen.realscan.simulate`) two residuals:
 
 * depth error ``sim - real`` (mm) where both are valid and the sensor resolves depth (nearer than
   the frame's ``resolved_depth_m``, as the gap's depth terms; clipped to +-:data:`CLIP_MM`, so a
@@ -17,7 +17,7 @@ image, counts). Statistics are kept per frame (sums per bin), so profiles pool f
 bootstrap over frames gives their sampling noise.
 
 The **structure** of an axis is the weighted RMS deviation of its bias profile from its mean,
-combined with that of its validity profile (scaled by :data:`~ddsgen.fit.losses.VALIDITY_MM`,
+combined with that of its validity profile (scaled by :data:`~ddsgen.realscan.losses.VALIDITY_MM`,
 so both are in mm): ``S = sqrt(S_bias^2 + S_valid^2)``. Its **noise** is the same quantity
 expected from sampling noise alone, ``sqrt(sum_b w_b SE_b^2)`` with bin standard errors from a
 bootstrap over frames; the **excess** ``sqrt(max(S^2 - noise^2, 0))`` is what the axis
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import VALIDITY_MM, depth_compared
+from ddsgen.realscan.losses import VALIDITY_MM, depth_compared
 from ddsgen.sensor.effects.features import edge_distance, local_signal, normalised_coordinates
 
 #: Depth errors are clipped to +- this (mm) before averaging.

@@ -10,7 +10,7 @@ model uses it from the start; the report says so.
 
 from __future__ import annotations
 
-from ddsgen.fit.inputs import differing_output_window
+from ddsgen.realscan.inputs import differing_output_window
 from ddsgen.sensor.output_window import OutputWindow
 
 

@@ -9,7 +9,7 @@ Writes into the report folder:
   ``objects``, before and after, the pixels each is measured on, the split kind and what it means;
 * ``loss_curve.png``: the loss terms per Adam step (mm);
 * ``frames/``: real | simulated | difference pictures of the held-out frames before and after
-  (:func:`ddsgen.fit.compare_pictures.side_by_side`), and ``index.html`` showing all of it.
+  (:func:`ddsgen.realscan.pictures.side_by_side`), and ``index.html`` showing all of it.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from ddsgen.fit.compare_pictures import side_by_side, write_index
+from ddsgen.realscan.pictures import side_by_side, write_index
 from ddsgen.io.atomic import atomic_path, atomic_write_text
 
 

@@ -2,7 +2,7 @@
 
 :func:`fit_sensor` fits the parameters named in ``params`` on the prepared fit frames:
 
-* **Adam** (default lr 1e-3, the paper's) on the loss of :mod:`ddsgen.fit.losses` for every
+* **Adam** (default lr 1e-3, the paper's) on the loss of :mod:`ddsgen.realscan.losses` for every
   parameter that the depth images constrain through a usable gradient: the soft-argmax
   temperature beta, focal length, effect parameters, the post-processing CNN. Parameters
   stored as logarithms (eta_c, noise, beta, baseline, focal scale) and effects' unbounded
@@ -49,10 +49,10 @@ import torch
 
 from ddsgen.errors import InputError
 from ddsgen.fit.device_keys import is_device_key, search_device_keys
-from ddsgen.fit.losses import LossWeights, frame_loss, snr_search_weights
+from ddsgen.realscan.losses import LossWeights, frame_loss, snr_search_weights
 from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, resolve_params
 from ddsgen.fit.priors import DEFAULT_PRIOR_MM, Priors
-from ddsgen.fit.simulate import FrameData, simulate
+from ddsgen.realscan.simulate import FrameData, simulate
 from ddsgen.fit.tiles import step_tiles
 
 LOG_LR_SCALE = 30.0
@@ -160,7 +160,7 @@ def search_snr(sensor, frames: list[FrameData], which: str, seed: int = 0, evalu
                plane_nuisance: bool = False, span: float | None = None) -> dict:  # fmt: skip
     """Golden-section search of log(eta_c) (``which="emitted_intensity"``) or log(sigma)
     (``"read_noise_std"``) minimising the validity + noise-texture terms on ``frames`` (with
-    ``plane_nuisance``, the texture on the objects: :func:`ddsgen.fit.losses.texture_pixels`).
+    ``plane_nuisance``, the texture on the objects: :func:`ddsgen.realscan.losses.texture_pixels`).
 
     ``span``: search only within this factor of the current value (a refit near a fitted optimum), on a
     coarse grid of the same spacing (:data:`SNR_COARSE_POINTS`) and with the same golden-section steps after it;
@@ -218,7 +218,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
 
     Args:
         sensor: :class:`~ddsgen.sensor.depth_sensor.DepthSensor` built from the preset to start from.
-        frames: fit frames from :func:`ddsgen.fit.simulate.prepare_frames` (keep held-out frames apart).
+        frames: fit frames from :func:`ddsgen.realscan.simulate.prepare_frames` (keep held-out frames apart).
         params: names (see :func:`resolve_params`); default: the paper's four sensor parameters
             eta_c (``emitted_intensity``), IR read-noise std, soft-argmax beta, baseline.
         steps: Adam steps (0: searches only).
@@ -358,12 +358,12 @@ def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool =
         static_views: 0 refines every frame alone; K > 0 refines the frames of each static scene
             (:func:`ddsgen.scene_gradients.scan.static_scenes`) together, one correction per object
             found on at most K of its frames and applied to all of them (``fit --static-scene``).
-        prepare_options: passed to :func:`ddsgen.fit.simulate.prepare_frames` (support_plane, crop, ...).
+        prepare_options: passed to :func:`ddsgen.realscan.simulate.prepare_frames` (support_plane, crop, ...).
 
     Returns:
         (the new FrameData list, per frame {frame, objects: [{id, rotation_deg, translation_mm}]}).
     """
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.scene_gradients.refine import RefineSettings
     from ddsgen.scene_gradients.scan import object_changes, refine_scan_frame, refine_static_scan, static_scenes
 

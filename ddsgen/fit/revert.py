@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from ddsgen.fit.compare import gap
+from ddsgen.realscan.gap import gap
 from ddsgen.fit.device_keys import apply_mirrors
 
 #: A group's ``note`` in :func:`revert_unhelpful`'s report: the fit left it at the input's values.
@@ -56,7 +56,7 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
         resolved: name -> tensors (``parameters.resolve_params`` of the fitted names).
         start: :func:`snapshot` of the same names taken before the fit.
         held: held-out FrameData, or a callable sensor -> FrameData preparing them for the sensor as it is
-            (support planes where its disparity errors put them, :mod:`ddsgen.fit.plane_depth`);
+            (support planes where its disparity errors put them, :mod:`ddsgen.realscan.plane_depth`);
             region/seed: as ``compare.gap``.
 
     Returns:

@@ -46,7 +46,7 @@ def split_fit_held_out(frames: list, holdout: float, seed: int = 0) -> tuple[lis
     """(fit frames, held-out frames, kind) -- see the module docstring.
 
     Args:
-        frames: :class:`~ddsgen.fit.simulate.FrameData` in folder order.
+        frames: :class:`~ddsgen.realscan.simulate.FrameData` in folder order.
         holdout: fraction in [0, 1) of scenes (or frames) held out.
         seed: permutation seed.
 

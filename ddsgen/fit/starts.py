@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ddsgen.fit.simulate import simulate
+from ddsgen.realscan.simulate import simulate
 from ddsgen.sensor.effects.distortion import GRID_COLS, GRID_KEYS, GRID_ROWS, X_EXTENT, Y_EXTENT, fit_distortion_grid
 from ddsgen.sensor.effects.features import normalised_coordinates
 
@@ -69,7 +69,7 @@ def start_distortion_grid(sensor, frames, seed: int = 0) -> dict:
     # Trim before the solve (flying pixels, mismatches): the ridge rows must not be trimmed themselves.
     residual = np.concatenate(targets)
     keep = np.abs(residual - np.median(residual)) <= TRIM_PX
-    # The support plane's pose is a nuisance (it was fitted to the real depth, ddsgen.fit.plane_depth):
+    # The support plane's pose is a nuisance (it was fitted to the real depth, ddsgen.realscan.plane_depth):
     # per frame, a + b x + c y on its plane pixels is solved jointly and discarded.
     frame_of = np.concatenate([np.full(len(t), k) for k, t in enumerate(targets)])[keep]
     plane_px = np.concatenate(on_plane)[keep]

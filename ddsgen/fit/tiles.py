@@ -5,7 +5,7 @@ pixel, most of which carry the same evidence as their neighbours. A step on a ra
 ``tile x tile`` window of each frame is a stochastic gradient of the same loss at a fraction
 of the price (a 192-px tile is 12 % of a 640 x 480 frame); over the steps the windows cover the
 frames. A sub-window of a pinhole image is a pinhole image with a shifted principal point
-(:func:`ddsgen.fit.simulate.crop_intrinsics`), so a tile is simulated like ``compare --crop``
+(:func:`ddsgen.realscan.simulate.crop_intrinsics`), so a tile is simulated like ``compare --crop``
 simulates a crop: the same geometry, parameters and noise law; only the placement of the dot
 pattern on the window differs (the pattern is centred on each window), which no sensor
 parameter depends on.
@@ -23,7 +23,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from ddsgen.fit.simulate import FrameData, crop_intrinsics
+from ddsgen.realscan.simulate import FrameData, crop_intrinsics
 
 #: The noise stream of tile positions (distinct from the IR noise streams).
 TILE_STREAM = 4099

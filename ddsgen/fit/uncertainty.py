@@ -29,8 +29,8 @@ import math
 import torch
 
 from ddsgen.fit.device_keys import integer_key, is_device_key, set_key, stored
-from ddsgen.fit.losses import LossWeights, frame_loss, local_window, snr_search_weights
-from ddsgen.fit.simulate import simulate
+from ddsgen.realscan.losses import LossWeights, frame_loss, local_window, snr_search_weights
+from ddsgen.realscan.simulate import simulate
 from ddsgen.fit.tiles import crop_frame
 
 #: Tile side in loss windows (15 px at 640 x 480 -> 90 px tiles).

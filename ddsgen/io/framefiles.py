@@ -1,6 +1,6 @@
 """The files of one simulated frame in ddsgen's scan layout (DESIGN.md §3), written atomically.
 
-Shared by ``render`` (ddsgen/runner.py) and ``compare --save-sim`` (ddsgen/fit/save_sim.py), so
+Shared by ``render`` (ddsgen/runner.py) and ``compare --save-sim`` (ddsgen/realscan/save_sim.py), so
 both write the same files under the same names and a saved folder reads back with
 :func:`ddsgen.io.scanfolder.read_scan_folder`.
 """

@@ -10,7 +10,7 @@ Robustness to what the scene does not model (clutter, hands, occluders, a wall):
 where the real depth lies within ``band_m`` of the rendered clean depth (a far-off surface is not the
 modelled one), and the residual goes through a Huber loss of width ``huber_m`` (mixed pixels at edges
 and the sensor's outliers pull linearly, not quadratically). Pixels whose rendered depth is beyond the depth the
-sensor resolves (:func:`ddsgen.fit.losses.resolved_depth_m`: one disparity quantum is a depth step of more than 50
+sensor resolves (:func:`ddsgen.realscan.losses.resolved_depth_m`: one disparity quantum is a depth step of more than 50
 mm, 4.14 m for the Kinect V1) do not count, as in ``fit``: there the residual is 0 or a whole step, whatever the pose.
 """
 
@@ -22,7 +22,7 @@ import math
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import resolved_depth_m
+from ddsgen.realscan.losses import resolved_depth_m
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.scene import RefinableScene
@@ -271,7 +271,7 @@ class _View:
 def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
     from tqdm import tqdm
 
-    from ddsgen.fit.simulate import frame_camera
+    from ddsgen.realscan.simulate import frame_camera
 
     views = [_View(i, scene, real, s) for i, scene, real in zip(range(len(scenes)), scenes, reals)]
     all_poses = [v.scene.poses for v in views]

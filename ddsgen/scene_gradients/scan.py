@@ -56,7 +56,7 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
     """Refine every annotated object's pose (and the fitted support plane) of one scan frame.
 
     Args:
-        preset: the sensor preset with the frame's camera (:func:`ddsgen.fit.inputs.adopt_camera`).
+        preset: the sensor preset with the frame's camera (:func:`ddsgen.realscan.inputs.adopt_camera`).
         frame: a :class:`~ddsgen.io.scanfolder.ScanFrame` (from ``read_scan_folder``).
         index: the frame's position in its folder (seeds the support-plane RANSAC).
         settings: :class:`RefineSettings`.
@@ -93,7 +93,7 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
         ``cam_T_obj``}} for every frame of the scene).
     """
     from ddsgen.errors import InputError
-    from ddsgen.fit.simulate import frame_scene
+    from ddsgen.realscan.simulate import frame_scene
     from ddsgen.scene_gradients.static_scene import refine_static_scene
     from ddsgen.sensor.depth_sensor import DepthSensor
 
@@ -153,7 +153,7 @@ class _ScanView:
     """One scan frame made ready to refine: its window, scene at the annotated poses, real depth."""
 
     def __init__(self, preset, frame, index, s, support_plane, crop_margin_px, baseline_m):
-        from ddsgen.fit.simulate import frame_scene, prepare_frame
+        from ddsgen.realscan.simulate import frame_scene, prepare_frame
 
         prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
                                  crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip

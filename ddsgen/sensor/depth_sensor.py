@@ -121,7 +121,7 @@ class DepthSensor(nn.Module):
     ``unit`` (int, 0 by default) says which unit of the device model this is. Every unit has the same
     parameters; each has its own scene-fixed random patterns: the laser speckle a static scene shows and the
     dots' sub-pixel positions. A real scan was taken by a unit whose patterns the model cannot know, so the
-    noise floor of a comparison is measured against another unit (:func:`ddsgen.fit.simulate.simulate_twin`).
+    noise floor of a comparison is measured against another unit (:func:`ddsgen.realscan.simulate.simulate_twin`).
     Renders use unit 0.
     """
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool
-from ddsgen.fit.unpaired.realfolder import RealDepthFrame, round_like
+from ddsgen.realscan.realfolder import RealDepthFrame, round_like
 from ddsgen.sensor.output_window import OutputWindow, measure_device_window
 from ddsgen.sensor.registration import is_registered
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from ddsgen.errors import InputError
 from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
-from ddsgen.fit.unpaired.realfolder import read_depth_folder, round_like
+from ddsgen.realscan.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths

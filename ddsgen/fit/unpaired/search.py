@@ -44,7 +44,7 @@ import torch
 from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool
 from ddsgen.fit.unpaired.joint import design_offsets, joint_uncertainty
 from ddsgen.fit.unpaired.parameters import UnpairedParameter, parameters_for
-from ddsgen.fit.unpaired.realfolder import RealDepthFrame, round_like
+from ddsgen.realscan.realfolder import RealDepthFrame, round_like
 from ddsgen.fit.unpaired.spread import scene_content_interval, scene_content_scale, search_std
 
 #: Noise stream of the fit's renders (never render's 1 or simulate's 7919).

@@ -40,14 +40,14 @@ def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausi
     """(original preset, preset with the scans' camera, scan frames, prepared FrameData list).
 
     The support plane of each frame is fitted to the real depth with the preset's disparity effects undone
-    (:mod:`ddsgen.fit.plane_depth`), so a preset that models its device's disparity errors is compared on
+    (:mod:`ddsgen.realscan.plane_depth`), so a preset that models its device's disparity errors is compared on
     the table where that device saw it.
 
     ``echo`` (e.g. ``click.echo`` to stderr) is told when the scans' camera replaces the preset's, and (if
     ``window_hint``) when the real frames' output window differs from the preset's.
     """
-    from ddsgen.fit.plane_depth import plane_depth_for
-    from ddsgen.fit.simulate import prepare_frames
+    from ddsgen.realscan.plane_depth import plane_depth_for
+    from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.preset import load_preset
     from ddsgen.sensor.depth_sensor import DepthSensor
@@ -60,7 +60,7 @@ def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausi
     if adopted and progress and echo is not None:
         c = scans[0].intrinsics
         echo(f"using the scans' camera ({c.width}x{c.height} px, fx {c.fx:.2f} px) instead of the preset's")
-    # The support plane where the preset's own disparity errors put it (ddsgen.fit.plane_depth).
+    # The support plane where the preset's own disparity errors put it (ddsgen.realscan.plane_depth).
     plane_depth = plane_depth_for(DepthSensor(camera_preset)) if support_plane else None
     frames = prepare_frames(camera_preset, scans, support_plane=support_plane, crop=crop, plausible_px=plausible_px,
                             seed=seed, progress=progress, plane_depth=plane_depth)  # fmt: skip

@@ -1,9 +1,9 @@
 """What ``compare`` makes of each simulated frame besides the gap: statistics, pictures, a saved copy.
 
-:class:`FrameOutputs` is the ``on_frame`` hook of :func:`ddsgen.fit.compare.gap`: for each
-frame it computes the realism statistics of real and sim (:mod:`ddsgen.fit.realism`), draws the
-full-resolution real | simulated | difference picture (:mod:`ddsgen.fit.compare_pictures`) and
-hands the frame to a :class:`~ddsgen.fit.save_sim.SimFolderWriter` when one is given. Nothing is
+:class:`FrameOutputs` is the ``on_frame`` hook of :func:`ddsgen.realscan.gap.gap`: for each
+frame it computes the realism statistics of real and sim (:mod:`ddsgen.realscan.realism`), draws the
+full-resolution real | simulated | difference picture (:mod:`ddsgen.realscan.pictures`) and
+hands the frame to a :class:`~ddsgen.realscan.save_sim.SimFolderWriter` when one is given. Nothing is
 kept per frame but a few numbers (the flat residuals by depth go into bounded pools,
 :class:`~ddsgen.surface_roughness.FlatRoughnessPool`), so long folders stream. :meth:`FrameOutputs.finish` adds the
 statistics to the report and writes ``comparison.json``, the plots and ``index.html``.
@@ -11,12 +11,15 @@ statistics to the report and writes ``comparison.json``, the plots and ``index.h
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
-from ddsgen.fit import realism
-from ddsgen.fit.compare_pictures import side_by_side, write_index
+from ddsgen.realscan import realism
+from ddsgen.realscan.gap import region_mask, table, write_report
+from ddsgen.realscan.gap_report import region_rule
+from ddsgen.realscan.pictures import side_by_side, write_index
 
 FRAMES_FOLDER = "frames"
 
@@ -29,9 +32,9 @@ class FrameOutputs:
         report_dir: folder the report is written to (pictures go to ``report_dir/frames/NNNNNN.png``); ``compare``
             passes the temporary folder it builds the report in (:func:`ddsgen.io.atomic.atomic_folder`).
         region: ``"all"`` or ``"objects"`` (the compare region of the statistics and pictures).
-        sim_writer: a :class:`~ddsgen.fit.save_sim.SimFolderWriter` inside its ``with``, or None.
+        sim_writer: a :class:`~ddsgen.realscan.save_sim.SimFolderWriter` inside its ``with``, or None.
         crop_border_px: with ``--crop``, the crop window's border the matcher cannot reach (see
-            :func:`ddsgen.fit.realism.frame_realism`); 0 without crop.
+            :func:`ddsgen.realscan.realism.frame_realism`); 0 without crop.
         baseline_m: the sensor's baseline (the roughness statistics are in its disparity); None: without them.
     """
 
@@ -48,8 +51,6 @@ class FrameOutputs:
         self.pictures: list[tuple[str, str]] = []
 
     def __call__(self, frame, sim, patches=None) -> None:
-        from ddsgen.fit.compare import region_mask
-
         scan = self.scans[frame.index]
         real = np.asarray(scan.depth, dtype=np.float32)
         real = np.where(np.isfinite(real) & (real > 0), real, 0.0).astype(np.float32)
@@ -71,10 +72,6 @@ class FrameOutputs:
 
     def finish(self, report, title: str) -> list[Path]:
         """Add the statistics to ``report``; write comparison.json, the plots and index.html. Returns the files."""
-        import textwrap
-
-        from ddsgen.fit.compare import region_rule, table, write_report
-
         report.realism = realism.aggregate(self.statistics, self.roughness)
         written = write_report(report, self.report_dir)
         plots = [p.relative_to(self.report_dir).as_posix() for p in written[1:]]

@@ -1,16 +1,13 @@
 """The ``compare`` report's figures: bias, spread and validity binned along depth, incidence angle and image radius
 (:func:`plot_bins`), and full-resolution residual maps sim - real (:func:`plot_residuals`, also ``fit``'s
-before/after figure). Both take :class:`~ddsgen.fit.compare.GapReport` s; matplotlib's Agg backend, no display."""
+before/after figure). Both take :class:`~ddsgen.realscan.gap_report.GapReport` s; matplotlib's Agg backend, no display."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:
-    from ddsgen.fit.compare import GapReport
+from ddsgen.realscan.gap_report import GapReport
 
 
 def plot_bins(report: GapReport, path: Path) -> Path:

@@ -1,7 +1,7 @@
 """Losses between a simulated frame and a real one (torch, differentiable in the simulation).
 
 All terms are computed on one frame's comparison region (see
-:mod:`ddsgen.fit.simulate`) and are in **millimetres** (validity terms: rates x
+:mod:`ddsgen.realscan.simulate`) and are in **millimetres** (validity terms: rates x
 :data:`VALIDITY_MM`), so they add up and read like depth errors.
 
 * :func:`huber` -- the paper's robust penalty, ~e^2/(2 delta) below delta, ~|e| above.
@@ -155,7 +155,7 @@ def roughness(depth_error_mm: torch.Tensor, mask: torch.Tensor) -> tuple[torch.T
 def without_plane_pose(err_mm: torch.Tensor, frame, both: torch.Tensor) -> torch.Tensor:
     """The depth error (H, W, mm) with, on the support plane's pixels, its part affine in disparity removed.
 
-    The table plane is not known: it was fitted to the real depth (:mod:`ddsgen.fit.simulate`), and a
+    The table plane is not known: it was fitted to the real depth (:mod:`ddsgen.realscan.simulate`), and a
     plane stays a plane in (u, v, disparity) space, so any disparity error affine in (u, v) -- an
     offset, a tilt -- is explained as well by moving the plane as by the sensor (the plane's pose is a
     nuisance). On the plane's pixels (``both`` & instance 0) the error in disparity units, ``err / z^2``
@@ -263,7 +263,7 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
 
     Args:
         sim: :class:`~ddsgen.sensor.depth_sensor.SensorOutput` (H, W).
-        frame: :class:`~ddsgen.fit.simulate.FrameData` of the same (H, W).
+        frame: :class:`~ddsgen.realscan.simulate.FrameData` of the same (H, W).
         weights: term weights.
 
     Returns:
@@ -303,3 +303,16 @@ def frame_loss(sim, frame, weights: LossWeights = LossWeights()) -> dict[str, to
     terms["total"] = (weights.depth * terms["depth"] + weights.gradient * terms["gradient"]
                       + weights.validity * terms["validity"] + weights.pixel * terms["pixel"])  # fmt: skip
     return terms
+
+
+#: The gap's terms: depth, gradient and validity at weight 1 (the per-pixel term is reported, not summed).
+GAP_WEIGHTS = LossWeights(depth=1.0, gradient=1.0, validity=1.0, pixel=0.0)
+
+
+def frame_gap_mm(sim, frame) -> float:
+    """The headline gap (mm) of one simulated frame (a ``SensorOutput``) against its real frame (a
+    :class:`~ddsgen.realscan.simulate.FrameData`), as :func:`ddsgen.realscan.gap.frame_gap` reports it, without its
+    parts."""
+    with torch.no_grad():
+        total = float(frame_loss(sim, frame, GAP_WEIGHTS)["total"])
+    return round(total, 4) if math.isfinite(total) else 0.0

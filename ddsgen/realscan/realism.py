@@ -27,7 +27,7 @@ import math
 import numpy as np
 
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
-from ddsgen.fit.unpaired.realfolder import round_like
+from ddsgen.realscan.realfolder import round_like
 from ddsgen.silhouette_edges import edge_statistics
 from ddsgen.surface_roughness import FlatRoughnessPool, flat_residuals_by_depth, surface_residuals
 
@@ -51,7 +51,7 @@ def full_frame(array, frame, fill=0) -> np.ndarray:
     """(H, W) of the uncropped image: a prepared frame's (h, w) array pasted at its crop box.
 
     Args:
-        array: (h, w) tensor or array of a :class:`~ddsgen.fit.simulate.FrameData` (cropped or not).
+        array: (h, w) tensor or array of a :class:`~ddsgen.realscan.simulate.FrameData` (cropped or not).
         frame: the FrameData (its ``crop`` and ``full_intrinsics``).
         fill: value outside the crop.
     """
@@ -70,7 +70,7 @@ def frame_realism(frame, sim, region: np.ndarray, real_depth_m: np.ndarray, real
     """The statistics of one frame, real and simulated (see the module docstring).
 
     Args:
-        frame: :class:`~ddsgen.fit.simulate.FrameData`.
+        frame: :class:`~ddsgen.realscan.simulate.FrameData`.
         sim: its :class:`~ddsgen.sensor.depth_sensor.SensorOutput` (depth, valid (h, w)).
         region: bool (h, w), the compare region of ``frame``.
         real_depth_m: float32 (H, W) the whole real image, metres, 0 = invalid.

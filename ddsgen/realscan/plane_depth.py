@@ -1,6 +1,6 @@
 """The real depth a support plane is fitted to: the real scan with the sensor's own disparity errors undone.
 
-:func:`ddsgen.fit.support_plane.fit_support_plane` fits the table the objects stand on to the real
+:func:`ddsgen.realscan.support_plane.fit_support_plane` fits the table the objects stand on to the real
 depth. But that depth is the real sensor's: if the device adds a disparity error e(u, v, d)
 (an offset, a distortion field), the plane fitted to it already carries the error -- and a
 simulation that adds e again counts it twice. Worse, a plane stays a plane in (u, v, d) space,
@@ -63,5 +63,5 @@ def undo_disparity_effects(sensor, depth_m: np.ndarray, intrinsics) -> np.ndarra
 
 
 def plane_depth_for(sensor):
-    """The ``plane_depth`` callable of :func:`ddsgen.fit.simulate.prepare_frames` for ``sensor``."""
+    """The ``plane_depth`` callable of :func:`ddsgen.realscan.simulate.prepare_frames` for ``sensor``."""
     return lambda depth, intrinsics: undo_disparity_effects(sensor, depth, intrinsics)

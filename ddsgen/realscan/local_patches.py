@@ -10,7 +10,7 @@ A patch is a connected set (one sign) of pixels whose *local offset* -- the mean
 depth (mm) over the ``compare`` window (15 px at the Kinect's focal length), where both are valid -- is
 larger than another unit of the same simulated sensor shows on all but 0.1 % of its pixels: the threshold is
 the :data:`TWIN_QUANTILE` quantile of the same local offset between the simulation and its twin
-(:func:`~ddsgen.fit.simulate.simulate_twin`), at least :data:`MIN_OFFSET_MM`. Patches smaller than
+(:func:`~ddsgen.realscan.simulate.simulate_twin`), at least :data:`MIN_OFFSET_MM`. Patches smaller than
 :data:`MIN_PATCH_WINDOWS` windows are dropped. Only depth offsets are read; holes in one map and not
 the other are not patches.
 """
@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import torch
 
-from ddsgen.fit.losses import depth_compared, masked_local_mean
+from ddsgen.realscan.losses import depth_compared, frame_gap_mm, masked_local_mean
 
 #: The twin's local offsets exceed the patch threshold on this fraction of the pixels at most.
 TWIN_QUANTILE = 0.999
@@ -105,7 +105,7 @@ def residual_mm(sim, region: torch.Tensor, depth: torch.Tensor, valid: torch.Ten
 
 def patches_against(sim, frame, twin, window: int) -> FramePatches:
     """:func:`find_patches` of ``frame`` (FrameData; the pixels whose depth is compared:
-    :func:`~ddsgen.fit.losses.depth_compared`) from its simulation ``sim`` and one twin ``twin`` (SensorOutputs)."""
+    :func:`~ddsgen.realscan.losses.depth_compared`) from its simulation ``sim`` and one twin ``twin`` (SensorOutputs)."""
     compared = depth_compared(frame)
     return find_patches(frame.name, residual_mm(sim, compared, frame.real_depth, frame.real_valid),
                         residual_mm(sim, compared, twin.depth, twin.valid), window)  # fmt: skip
@@ -134,7 +134,6 @@ class PatchGap:
 def patch_gap(sim, frame, twins: list, window: int) -> PatchGap:
     """:func:`find_patches` of one frame (``frame.region``: the pixels compared) against its first twin, and the
     ``compare`` gap and floors without them. ``twins``: SensorOutputs of other units (at least one)."""
-    from ddsgen.fit.compare import frame_gap_mm  # compare uses this module
 
     patches = patches_against(sim, frame, twins[0], window)
     outside = dataclasses.replace(frame, region=frame.region & ~torch.from_numpy(patches.mask))

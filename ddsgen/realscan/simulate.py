@@ -6,7 +6,7 @@ builds a :class:`FrameData`:
 1. a :class:`~ddsgen.scene.sampling.FrameScene` in the camera frame (``world_T_cam`` = I)
    holding the listed meshes at ``cam_T_obj`` (scaled to metres by ``mesh_scale``);
 2. optionally a **support plane** fitted by RANSAC to the real depth outside the objects'
-   silhouettes (the table the objects stand on, :mod:`ddsgen.fit.support_plane`), added as a
+   silhouettes (the table the objects stand on, :mod:`ddsgen.realscan.support_plane`), added as a
    large background quad, so that the table and the objects' projector shadows on it are
    modelled too;
 3. one ray cast (embreex) with the sensor's baseline and shadow bias -> the constant
@@ -15,7 +15,7 @@ builds a :class:`FrameData`:
 4. optionally a **crop** to the objects' bounding box plus a margin (a sub-window of a
    pinhole image is a pinhole image with a shifted principal point, so the crop is
    simulated exactly; it only makes fitting cheaper);
-5. the **comparison region** (:mod:`ddsgen.fit.compare_region`): pixels where the modelled
+5. the **comparison region** (:mod:`ddsgen.realscan.region`): pixels where the modelled
    geometry is visible (clean depth hit) and plausible: the real depth agrees with the clean
    depth within ``plausible_px`` px of disparity f*b/z (things that are not modelled -- hands,
    other objects, a wall -- are far off and left out), or it is invalid where the modelled
@@ -37,8 +37,8 @@ import numpy as np
 import torch
 
 from ddsgen.errors import InputError
-from ddsgen.fit.losses import resolved_depth_m
-from ddsgen.fit.support_plane import Plane, fit_support_plane, plane_pose
+from ddsgen.realscan.losses import resolved_depth_m
+from ddsgen.realscan.support_plane import Plane, fit_support_plane, plane_pose
 from ddsgen.preset import Intrinsics, SensorPreset
 
 #: Default IR reflectance of modelled surfaces (the scene-list default for objects). eta_c and
@@ -70,7 +70,7 @@ class FrameData:
     clean_depth: float32 m, the image's ray-cast depth (0 = no hit); hit: bool. For a device registered to an
         RGB camera the geometry is the IR camera's view, these are the image's; default: the geometry's.
     resolved_depth_m: the depth values of pixels beyond this clean depth do not count, their validity does
-        (:func:`ddsgen.fit.losses.resolved_depth_m`; inf: all count).
+        (:func:`ddsgen.realscan.losses.resolved_depth_m`; inf: all count).
     """
 
     name: str
@@ -199,7 +199,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         pose_error = float(np.median(np.abs(real[both] - hits.depth[both])) * 1000.0)
 
     # Comparison region, on the whole frame (the support plane's real extent is a whole-frame notion).
-    from ddsgen.fit.compare_region import comparison_region
+    from ddsgen.realscan.region import comparison_region
     from ddsgen.sensor.output_window import OutputWindow
 
     region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px,
@@ -262,7 +262,7 @@ def prepare_frames(preset: SensorPreset, scan_frames, *, support_plane: bool = T
         crop: crop each frame to its objects' bounding box plus ``crop_margin_px``.
         seed: seeds RANSAC (and, via :meth:`FrameData.noise_seed`, the simulated IR noise).
         plane_depth: optional ``(real depth (H, W) m, intrinsics) -> depth`` the support plane is fitted
-            to instead of the raw real depth (:mod:`ddsgen.fit.plane_depth`: the sensor's errors undone).
+            to instead of the raw real depth (:mod:`ddsgen.realscan.plane_depth`: the sensor's errors undone).
         progress: show a progress bar.
 
     Returns:

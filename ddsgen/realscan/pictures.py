@@ -50,7 +50,7 @@ def side_by_side(path: str | Path, title: str, real_m: np.ndarray, sim_m: np.nda
     Args:
         real_m, sim_m: float32 (H, W) depth in metres, 0 = invalid (full frames).
         sim_valid: bool (H, W); region: bool (H, W) the compare region.
-        patches: bool (H, W) local patches (:mod:`ddsgen.fit.local_patches`), outlined on the difference, or None.
+        patches: bool (H, W) local patches (:mod:`ddsgen.realscan.local_patches`), outlined on the difference, or None.
 
     Returns:
         ``{"path", "depth_range_m", "difference_limit_mm"}``.

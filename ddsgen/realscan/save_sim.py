@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.fit.realism import full_frame
+from ddsgen.realscan.realism import full_frame
 from ddsgen.io.atomic import atomic_folder, check_new_folder
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import append_record
@@ -66,7 +66,7 @@ class SimFolderWriter:
 
     def add(self, frame, sim, scan) -> dict:
         """Write the simulation ``sim`` (SensorOutput) of ``frame`` (FrameData) of the real ``scan`` (ScanFrame)."""
-        from ddsgen.fit.simulate import frame_scene
+        from ddsgen.realscan.simulate import frame_scene
         from ddsgen.raycast import object_labels
 
         index = self.count

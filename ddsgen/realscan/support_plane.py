@@ -2,7 +2,7 @@
 
 :func:`fit_support_plane` fits a :class:`Plane` to the valid real depth outside the objects' silhouettes, with the
 inlier test in disparity (the tolerance follows the sensor's depth resolution), and takes the plane the posed objects
-rest on when a frame holds two large ones (a table and the floor below it). :func:`ddsgen.fit.simulate.prepare_frame`
+rest on when a frame holds two large ones (a table and the floor below it). :func:`ddsgen.realscan.simulate.prepare_frame`
 adds it to the frame's scene as a large background quad posed by :func:`plane_pose`, so that the table and the
 objects' projector shadows on it are modelled too.
 """

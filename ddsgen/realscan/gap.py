@@ -3,13 +3,13 @@
 The headline metric (``gap``, millimetres)
 ------------------------------------------
 For each frame, on its comparison region R (modelled geometry visible and plausible, see
-:mod:`ddsgen.fit.simulate`), with the simulation run at a fixed noise seed:
+:mod:`ddsgen.realscan.simulate`), with the simulation run at a fixed noise seed:
 
     gap_f = D_f + G_f + V_f                                    (mm)
 
 * D_f -- **systematic depth error**: mean Huber (delta 5 mm) of the masked local mean of
   sim - real (clipped to +-50 mm) over pixels valid in both, in a window spanning 1.5 deg of
-  view (15 px at 640 x 480, at least 5 px; :func:`ddsgen.fit.losses.local_window`). The
+  view (15 px at 640 x 480, at least 5 px; :func:`ddsgen.realscan.losses.local_window`). The
   local mean keeps what is systematic (bias, scale, distortion, edge and shadow structure,
   pixel locking over a surface) and averages away what is independent from one scan to the
   next (noise, whose blobs are a matching block wide, and isolated mismatches), which no
@@ -21,17 +21,17 @@ For each frame, on its comparison region R (modelled geometry visible and plausi
   has none, the disagreement costs like a gross depth error.
 
 D_f counts only the pixels of R nearer than the depth the sensor resolves
-(:func:`ddsgen.fit.losses.resolved_depth_m`: beyond it one disparity quantum is a depth step larger
+(:func:`ddsgen.realscan.losses.resolved_depth_m`: beyond it one disparity quantum is a depth step larger
 than the 50 mm clip; Kinect V1 at 1/8 px: 4.14 m). There a depth error is 0 or clipped whatever
 the sensor does, and its noise, growing as z^2, would outweigh the near surfaces' evidence; G_f and
 V_f still count those pixels.
 
     gap = mean over frames of gap_f.
 
-These are exactly the loss terms of :mod:`ddsgen.fit.losses` (so ``fit`` minimises what
+These are exactly the loss terms of :mod:`ddsgen.realscan.losses` (so ``fit`` minimises what
 ``compare`` reports). Two independent noise draws of the *same* sensor do not score 0:
 ``noise_floor`` is the gap between the simulation and twins of it
-(:func:`~ddsgen.fit.simulate.simulate_twin`: other units of the same model, each with its own noise
+(:func:`~ddsgen.realscan.simulate.simulate_twin`: other units of the same model, each with its own noise
 draw and its own scene-fixed speckle and dot positions, as the real unit has), averaged over at
 least four units in all (one frame: four twins; four frames or more: one each), since one unit's
 draw on one frame scatters by tens of percent; ``excess = gap - noise_floor`` is the part a
@@ -40,7 +40,7 @@ better model could remove.
 Parts reported besides: bias (median) and spread (1.4826 MAD) of sim - real, and of real -
 clean and sim - clean, binned by clean depth, incidence angle and image radius; validity
 confusion (both valid / real only / sim only / neither) as fractions of R; and the local patches
-(:mod:`ddsgen.fit.local_patches`: where the real depth lies off by more than another unit's) with the gap, floor
+(:mod:`ddsgen.realscan.local_patches`: where the real depth lies off by more than another unit's) with the gap, floor
 and excess without them.
 """
 
@@ -48,16 +48,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ddsgen.errors import InputError
-from ddsgen.fit.local_patches import patch_gap, patch_line, patch_summary
-from ddsgen.fit.losses import LossWeights, depth_compared, frame_loss, local_window
-from ddsgen.fit.simulate import FrameData, simulate, simulate_twin, twin_draws
+from ddsgen.realscan.gap_report import BELOW_FLOOR, GapReport, round_or_none as _r
+from ddsgen.realscan.local_patches import patch_gap, patch_line, patch_summary
+from ddsgen.realscan.losses import GAP_WEIGHTS, depth_compared, frame_loss, local_window
+from ddsgen.realscan.simulate import FrameData, simulate, simulate_twin, twin_draws
 
 DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
 INCIDENCE_EDGES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.01)
@@ -65,74 +65,11 @@ RADIUS_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.01)
 MIN_BIN_PIXELS = 20
 
 
-@dataclasses.dataclass
-class GapReport:
-    """Result of :func:`gap`.
-
-    gap: headline (mm); noise_floor: gap between the simulation and other units' (mm, NaN if not computed),
-    averaged over ``len(noise_floor_draws)`` units per frame; noise_floor_draws: the floor against each of them
-    (mean over frames, mm), whose spread is the floor's own scatter;
-    frames: per-frame dicts (name, gap, depth_mm, gradient_mm, validity_mm, bias_mm, spread_mm,
-    confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
-    real depth, region) numpy arrays when requested (for residual plots); realism: the hole and
-    quantisation statistics of real and sim (:mod:`ddsgen.fit.realism`), when computed.
-    """
-
-    gap: float
-    noise_floor: float
-    frames: list[dict]
-    parts: dict
-    region: str = "all"
-    maps: list[dict] = dataclasses.field(default_factory=list)
-    realism: dict | None = None
-    noise_floor_draws: list[float] = dataclasses.field(default_factory=list)
-    local: dict | None = None  # the local patches (ddsgen.fit.local_patches.patch_summary), with the floor
-
-    @property
-    def excess(self) -> float:
-        return self.gap - self.noise_floor if math.isfinite(self.noise_floor) else float("nan")
-
-    def to_dict(self) -> dict:
-        return {"gap": _r(self.gap), "noise_floor": _r(self.noise_floor), "excess": _r(self.excess),
-                "noise_floor_draws": [_r(v) for v in self.noise_floor_draws], "units": "mm", "region": self.region, "definition": DEFINITION, "region_rule": region_rule(self.region),
-                "frames": self.frames,
-                "parts": self.parts, **({"realism": self.realism} if self.realism else {}),
-                **({"local_patches": self.local} if self.local else {})}  # fmt: skip
-
-
-DEFINITION = (
-    "gap = mean over frames of D + G + V (mm) on the modelled, plausible region: D = mean Huber(5 mm) of the local "
-    "mean of sim - real (both valid, clipped to +-50 mm) over a window of 1.5 deg of view (15 px at 640 x 480, "
-    "at least 5 px); G = Huber of the difference of mean |Sobel(depth - clean)| of sim and real per 0.25 m depth "
-    "bin; D only where one disparity quantum is a depth step of at most 50 mm (Kinect V1 at 1/8 px: nearer than "
-    "4.14 m); V = 100 mm x mean squared difference of the local valid rates (same window). "
-    "noise_floor = the same between the simulation and another unit of the same sensor model (its own noise draw, "
-    "laser speckle and dot positions, as the real unit has its own); excess = gap - noise_floor."
-)
-
-
-#: Said wherever a gap beyond the noise floor comes out negative.
-BELOW_FLOOR = ("below the floor: the real scans are as close to the simulation as another simulated unit is "
-               "(the floor scatters from unit to unit, by tens of percent on one frame or a small region)")
-
-
-def _r(x, nd=4):
-    x = float(x)
-    return round(x, nd) if math.isfinite(x) else None
-
-
 def _robust(values: np.ndarray) -> tuple[float, float]:
     if values.size == 0:
         return float("nan"), float("nan")
     med = float(np.median(values))
     return med, float(1.4826 * np.median(np.abs(values - med)))
-
-
-def region_rule(region: str) -> str:
-    """The compare region's rule in words (comparison.json and the report state it)."""
-    from ddsgen.fit.compare_region import RULE
-
-    return RULE + ("; --region objects: only the posed objects' pixels of it" if region == "objects" else "")
 
 
 def region_mask(frame: FrameData, region: str) -> torch.Tensor:
@@ -155,16 +92,6 @@ def _confusion(sim_valid, real_valid, region) -> dict:
         "sim_only": _r(int((region & sim_valid & ~real_valid).sum()) / n),
         "neither": _r(int((region & ~sim_valid & ~real_valid).sum()) / n),
     }
-
-
-#: The gap's terms: depth, gradient and validity at weight 1 (the per-pixel term is reported, not summed).
-GAP_WEIGHTS = LossWeights(depth=1.0, gradient=1.0, validity=1.0, pixel=0.0)
-
-
-def frame_gap_mm(sim, frame: FrameData) -> float:
-    """The headline gap (mm) of one simulated frame, as :func:`frame_gap` reports it, without its parts."""
-    with torch.no_grad():
-        return _r(frame_loss(sim, frame, GAP_WEIGHTS)["total"]) or 0.0
 
 
 def frame_gap(sim, frame: FrameData, region: str = "all") -> dict:
@@ -215,11 +142,11 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
 
     Args:
         sensor: a :class:`~ddsgen.sensor.depth_sensor.DepthSensor` (not modified).
-        frames: from :func:`ddsgen.fit.simulate.prepare_frames`.
+        frames: from :func:`ddsgen.realscan.simulate.prepare_frames`.
         region: ``"all"`` (every modelled, plausible pixel) or ``"objects"`` (only the objects').
-        seed: noise seed of the simulation (the floor's twin: see :func:`~ddsgen.fit.simulate.simulate_twin`).
+        seed: noise seed of the simulation (the floor's twin: see :func:`~ddsgen.realscan.simulate.simulate_twin`).
         noise_floor: also compute the gap between the simulation and other units of ``sensor``: at least
-            ``FLOOR_DRAWS`` unit draws in all (:func:`~ddsgen.fit.simulate.twin_draws` per frame).
+            ``FLOOR_DRAWS`` unit draws in all (:func:`~ddsgen.realscan.simulate.twin_draws` per frame).
         keep_maps: keep per-frame depth maps in ``GapReport.maps`` (for residual plots).
         progress: show a progress bar.
         on_frame: called as ``on_frame(frame, sim, patches)`` (FrameData, SensorOutput, (H, W) bool mask of the
@@ -323,7 +250,7 @@ def table(report: GapReport, title: str = "") -> str:
         lines.append(f"  {b['low']:.1f}-{b['high']:.1f}  {b['pixels']:7d} {_f(b['gap_bias_mm']):>7} "
                      f"{_f(b['gap_spread_mm']):>7}   {b['real_valid_rate']:.3f}     {b['sim_valid_rate']:.3f}")  # fmt: skip
     if report.realism:
-        from ddsgen.fit.realism import table as realism_table
+        from ddsgen.realscan.realism import table as realism_table
 
         lines.append(realism_table(report.realism))
     return "\n".join(lines)
@@ -346,7 +273,7 @@ def write_report(report: GapReport, folder: str | Path, name: str = "comparison"
     folder.mkdir(parents=True, exist_ok=True)
     out = [folder / f"{name}.json"]
     atomic_write_text(out[0], json.dumps(report.to_dict(), indent=1) + "\n")
-    from ddsgen.fit.compare_plots import plot_bins, plot_residuals
+    from ddsgen.realscan.plots import plot_bins, plot_residuals
 
     out.append(plot_bins(report, folder / f"{name}_bins.png"))
     if report.maps:
