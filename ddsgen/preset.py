@@ -17,6 +17,7 @@ from typing import Any
 
 import yaml
 
+from ddsgen.atomic import atomic_write_text
 from ddsgen.errors import InputError, did_you_mean, where
 from ddsgen.yamlfile import read_yaml
 
@@ -387,8 +388,6 @@ def load_preset(path: str | Path) -> SensorPreset:
 
 def save_preset(preset: SensorPreset, path: str | Path, comment: str | None = None) -> None:
     """Write a resolved preset as YAML (loadable by :func:`load_preset`); atomic."""
-    from ddsgen.io.atomic import atomic_write_text
-
     header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
     body = yaml.safe_dump(preset.to_dict(), sort_keys=False, default_flow_style=None)
     atomic_write_text(path, header + body)

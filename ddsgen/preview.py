@@ -26,12 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_path
+from ddsgen.atomic import atomic_path
 from ddsgen.io.bop_writer import scans_folder
 from ddsgen.io.manifest import RUN_FILE
 from ddsgen.io.ir_png import encode_ir, ir_white_counts
 from ddsgen.io.png import read_png8, read_png16
-from ddsgen.io.scanfolder import ScanFrame, read_scan_folder
+from ddsgen.io.scan_frame import ScanFrame
+from ddsgen.io.scanfolder import read_scan_folder
 
 #: Frames shown by default (evenly spaced over the dataset, first and last included).
 DEFAULT_FRAMES = 4

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_write_text
+from ddsgen.atomic import atomic_write_text
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import RUN_FILE, append_record, dumps_record, read_manifest, repair_manifest, sorted_records
 from ddsgen.preset import SensorPreset, load_preset, save_preset, source_label
@@ -183,7 +183,7 @@ def _os_reason(error: OSError) -> str:
 
 
 def remove_stale_temporaries(out: Path) -> int:
-    """Delete temporary files that a killed process left behind (``.NAME.XXXX.tmp.EXT``, see io/atomic.py).
+    """Delete temporary files that a killed process left behind (``.NAME.XXXX.tmp.EXT``, see atomic.py).
 
     Call only when no process is writing into ``out`` (the end of a run). Returns how many were removed.
     """

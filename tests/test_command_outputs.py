@@ -250,7 +250,7 @@ def test_an_interrupted_diagnosis_report_leaves_no_folder(tmp_path, monkeypatch)
 
 def test_atomic_folder_puts_a_folder_in_place_whole_or_leaves_everything_as_it_was(tmp_path):
     from ddsgen.errors import InputError
-    from ddsgen.io.atomic import atomic_folder
+    from ddsgen.atomic import atomic_folder
 
     target = tmp_path / "a" / "b" / "report"
     with pytest.raises(KeyboardInterrupt):
@@ -277,7 +277,7 @@ def test_atomic_folder_puts_a_folder_in_place_whole_or_leaves_everything_as_it_w
 
 KILLED_MID_BUILD = """
 import sys, time
-from ddsgen.io.atomic import atomic_folder
+from ddsgen.atomic import atomic_folder
 with atomic_folder(sys.argv[1], "the report") as building:
     (building / "half.json").write_text("{}")
     print("building", flush=True)
@@ -293,7 +293,7 @@ def test_the_folder_a_killed_process_was_building_is_removed_by_the_next_run(tmp
     import subprocess
     import sys
 
-    from ddsgen.io.atomic import _HOST, atomic_folder
+    from ddsgen.atomic import _HOST, atomic_folder
 
     target = tmp_path / "report"
     killed = subprocess.Popen([sys.executable, "-c", KILLED_MID_BUILD, str(target)], stdout=subprocess.PIPE, text=True)
@@ -320,7 +320,7 @@ def test_a_ctrl_c_while_the_folder_is_put_in_place_waits_for_the_renames(signal_
     import signal
 
     from ddsgen.cli import _sigterm_raises
-    from ddsgen.io.atomic import atomic_folder
+    from ddsgen.atomic import atomic_folder
 
     target = tmp_path / "report"
     target.mkdir()

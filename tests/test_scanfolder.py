@@ -13,7 +13,8 @@ from ddsgen.errors import InputError
 from ddsgen.io.exr import write_exr
 from ddsgen.io.manifest import append_record
 from ddsgen.io.png import write_depth_png, write_png8, write_png16
-from ddsgen.io.scanfolder import ScanFrame, detect_layout, read_scan_folder
+from ddsgen.io.scan_frame import ScanFrame
+from ddsgen.io.scanfolder import detect_layout, read_scan_folder
 from ddsgen.preset import Intrinsics
 
 LINEMOD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "linemod_bop"

@@ -47,7 +47,7 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     from ddsgen.realscan.inputs import load_inputs
     from ddsgen.realscan.outputs import FrameOutputs
     from ddsgen.realscan.save_sim import SimFolderWriter, check_target
-    from ddsgen.io.atomic import atomic_folder, check_can_create_folder, overlap
+    from ddsgen.atomic import atomic_folder, check_can_create_folder, overlap
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     # Every output location is checked before any work.

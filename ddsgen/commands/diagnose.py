@@ -10,7 +10,7 @@ import click
 from ddsgen.commands import POSITIVE, SEED, echo_stderr, split_names, threads_option, use_threads
 from ddsgen.errors import InputError
 from ddsgen.fit import DEFAULT_TILE_PX
-from ddsgen.io.atomic import check_can_create_folder
+from ddsgen.atomic import check_can_create_folder
 
 
 @click.command("diagnose")

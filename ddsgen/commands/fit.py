@@ -13,7 +13,7 @@ from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.realscan.inputs import load_inputs
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_folder, check_can_create_folder
+from ddsgen.atomic import atomic_folder, check_can_create_folder
 
 
 @click.command("fit")
@@ -125,7 +125,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     from ddsgen.fit.revert import output_holds_fit, param_group, revert_summary, revert_unhelpful, snapshot
     from ddsgen.fit.split import SPLIT_MEANING, split_fit_held_out
     from ddsgen.fit.uncertainty import estimate_uncertainty
-    from ddsgen.io.atomic import atomic_write_text
+    from ddsgen.atomic import atomic_write_text
     from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
     from ddsgen.sensor.depth_sensor import DepthSensor
     from ddsgen.sensor.postprocess import save_postprocess

@@ -10,7 +10,7 @@ import numpy as np
 
 from ddsgen.commands import SEED, FiniteFloat
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_write_bytes, check_can_create_folder
+from ddsgen.atomic import atomic_write_bytes, check_can_create_folder
 from ddsgen.preset import load_preset
 from ddsgen.sensor.pattern import generate_pattern, load_pattern, pattern_requirements, pattern_statistics
 

@@ -50,7 +50,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     """
     from tqdm import tqdm
 
-    from ddsgen.io.atomic import atomic_folder, check_new_folder
+    from ddsgen.atomic import atomic_folder, check_new_folder
     from ddsgen.io.pose_writer import write_refined_poses
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.preset import load_preset

@@ -37,7 +37,7 @@ def _read_grey(path: str) -> np.ndarray:
 def _check_output(option: str, path: str, suffix: str, what: str, why: str) -> None:
     """Before any work: ``path`` ends in ``suffix`` (the format written; never EXR bytes in a .png file) and its
     folder can be created (not below a plain file)."""
-    from ddsgen.io.atomic import check_can_create_folder
+    from ddsgen.atomic import check_can_create_folder
 
     if Path(path).suffix.lower() != suffix:
         raise InputError(f"{option}: {path}: {why}; give a name ending in {suffix}")
@@ -50,7 +50,7 @@ def _check_output(option: str, path: str, suffix: str, what: str, why: str) -> N
 def _colour_png(path: Path, disparity: np.ndarray, valid: np.ndarray, max_disparity: float) -> None:
     import cv2
 
-    from ddsgen.io.atomic import atomic_path
+    from ddsgen.atomic import atomic_path
 
     scaled = np.clip(disparity / max(max_disparity, 1e-6), 0.0, 1.0)
     colour = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)

@@ -83,7 +83,7 @@ def noise(preset, z_text, angles_text, frames, out, seed, rows, albedo, lateral,
     write_noise_json(points, out_dir / "noise.json", lateral=edges)
     table = noise_table(points)
     quant = quantisation_table(points, sensor, real)
-    from ddsgen.io.atomic import atomic_write_text
+    from ddsgen.atomic import atomic_write_text
 
     notes = "".join(f"- {m}\n" for m in real.messages)
     lateral_section = "" if edges is None else f"\n## Lateral noise\n\n{lateral_table(edges, sensor.intrinsics.fx)}"

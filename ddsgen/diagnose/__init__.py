@@ -19,7 +19,8 @@ Modules, in the order the loop uses them:
 
 from ddsgen.diagnose.acceptance import BOOTSTRAP_QUANTILE, RULE, bootstrap_fall, relative_fall
 from ddsgen.diagnose.evaluation import Evaluation
-from ddsgen.diagnose.loop import DiagnoseConfig, diagnose
+from ddsgen.diagnose.config import DiagnoseConfig
+from ddsgen.diagnose.loop import diagnose
 from ddsgen.diagnose.plane import replane
 from ddsgen.diagnose.results import Diagnosis
 

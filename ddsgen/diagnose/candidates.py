@@ -8,14 +8,13 @@ search refines either (:func:`fit_candidate`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import math
 
 import numpy as np
 import torch
 
 from ddsgen.diagnose.acceptance import relative_fall
+from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.device_candidates import BEHAVIOURS, fit_behaviour, is_device, sensor_like, with_behaviour
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.plane import replaned
@@ -23,8 +22,6 @@ from ddsgen.sensor.effects import REGISTRY
 from ddsgen.sensor.effects.distortion import GRID_KEYS, fit_distortion_grid
 from ddsgen.sensor.effects.features import normalised_coordinates
 
-if TYPE_CHECKING:
-    from ddsgen.diagnose.loop import DiagnoseConfig
 
 #: Coarse search grids (first parameter) per library effect; a local search refines the best point.
 GRIDS: dict[str, list[dict]] = {

@@ -17,17 +17,14 @@ Measured on the real LineMOD cat, objects' region (``ddsgen compare``, one key o
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
-
 import torch
 
 from ddsgen.diagnose.acceptance import relative_fall
+from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.plane import replaned
 from ddsgen.sensor.effects.base import EffectParam
 
-if TYPE_CHECKING:
-    from ddsgen.diagnose.loop import DiagnoseConfig
 
 
 @dataclasses.dataclass(frozen=True)

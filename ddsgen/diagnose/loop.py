@@ -78,20 +78,19 @@ frame and judged again (the others cannot be accepted, so the answer is the full
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from ddsgen.diagnose.acceptance import (
-    MIN_RELATIVE_GAIN,
     UNEXPLAINED_MIN_MM,
     bootstrap_fall,
     relative_fall,
     unexplained_axes,
 )
 from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axis_candidate, label, split_label
+from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.candidates import changes_depth, copy_of, fit_any, spec
 from ddsgen.diagnose.device_candidates import device_candidates, is_device
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
@@ -104,38 +103,9 @@ from ddsgen.diagnose.split import split_note, split_single_frame
 from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.diagnose.sentences import format_values, step_sentence, structure_summary
-from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.fitting import fit_sensor, split_frames
-from ddsgen.fit.parameters import DEFAULT_PARAMS
 from ddsgen.realscan.simulate import simulate, twin_draws
 from ddsgen.sensor.effects import REGISTRY, library_names
-
-#: Base parameters fitted first. Not the baseline: fit_sensor estimates it from the disparity quantisation
-#: lattice of the real depth, which a depth scale error rescales just like a baseline error would, so a
-#: fitted baseline would hide that effect (b itself cancels from z = f b / d).
-BASE_PARAMS = tuple(p for p in DEFAULT_PARAMS if p != "baseline")
-
-
-@dataclasses.dataclass
-class DiagnoseConfig:
-    """Settings of :func:`diagnose` (defaults sized for a dozen 640x480 frames on 2 cores)."""
-
-    holdout: float = 1.0 / 3.0
-    base_params: tuple = BASE_PARAMS
-    base_steps: int = 15  # Adam steps of the base fit (after its 1-D searches)
-    refit_steps: int = 10  # Adam steps of the refit after accepting an effect
-    tile_px: int | None = DEFAULT_TILE_PX  # each Adam step on a random tile of each frame, as ddsgen fit (None: whole)
-    refine_rounds: int = 2  # halving rounds of the local search around a candidate's best grid point
-    lr: float = 1e-3
-    batch_frames: int | None = 2
-    candidates: tuple | None = None  # effect names; default: the whole library
-    max_steps: int = 4
-    seed: int = 0
-    grid_frames: int = 4  # fit frames used by the candidates' searches
-    min_relative_gain: float = MIN_RELATIVE_GAIN
-    axis_terms: bool = True  # try generic axis terms when no named effect clears the rule
-    screen_frames: int = 1  # each candidate is searched on this many fit frames first (0: no screening)
-
 
 #: Screening rule (speed, issue 15). Each candidate's search runs first on the first ``screen_frames`` fit frames of
 #: its search set (a quarter to a fifth of the work) and is judged on the held-out frames at the values found there.

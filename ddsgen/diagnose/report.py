@@ -12,7 +12,7 @@ from ddsgen.diagnose.acceptance import RULE
 from ddsgen.diagnose.maps import ResidualMap, crop_zoom, region_box
 from ddsgen.realscan.gap_report import BELOW_FLOOR
 from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
-from ddsgen.io.atomic import atomic_folder
+from ddsgen.atomic import atomic_folder
 
 
 #: Where the report's figures go, relative to the report folder (report.html references them).
@@ -31,7 +31,7 @@ def _figure(width_px: int, height_px: int):
 
 
 def _save(fig, path: Path) -> None:
-    from ddsgen.io.atomic import atomic_path
+    from ddsgen.atomic import atomic_path
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
@@ -160,7 +160,7 @@ def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title
 
 
 def write_json(path: Path, result: dict) -> None:
-    from ddsgen.io.atomic import atomic_write_text
+    from ddsgen.atomic import atomic_write_text
 
     atomic_write_text(path, json.dumps(result, indent=1) + "\n")
 
@@ -180,7 +180,7 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
                maps: list[tuple[str, str]] = ()) -> None:  # fmt: skip
     """``steps``: dicts with effect, sentence, params, gap_before, gap_after, axis, figure (PNG path relative to
     the report); ``overview`` and ``maps``: (caption, PNG path relative to the report)."""
-    from ddsgen.io.atomic import atomic_write_text
+    from ddsgen.atomic import atomic_write_text
 
     e = html.escape
     parts = [
@@ -245,7 +245,7 @@ def generic_term(sensor, label: str):
 def write_diagnosis(diagnosis, folder: str | Path, title: str, notes: list[str] | None = None) -> list[Path]:
     """Write ``diagnosis.json``, ``report.html`` and ``plots/`` of a :class:`~ddsgen.diagnose.Diagnosis` into
     ``folder``; returns the first two. The report is built under a temporary name and put in place whole
-    (:func:`ddsgen.io.atomic.atomic_folder`): an interrupted run leaves no half-written report."""
+    (:func:`ddsgen.atomic.atomic_folder`): an interrupted run leaves no half-written report."""
     with atomic_folder(folder, "the report", last="report.html") as building:
         _write_diagnosis(diagnosis, building, title, notes)
     return [Path(folder) / "diagnosis.json", Path(folder) / "report.html"]

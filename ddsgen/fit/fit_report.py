@@ -18,7 +18,7 @@ import math
 from pathlib import Path
 
 from ddsgen.realscan.pictures import side_by_side, write_index
-from ddsgen.io.atomic import atomic_path, atomic_write_text
+from ddsgen.atomic import atomic_path, atomic_write_text
 
 
 def format_value(value: float, sigma: float | None = None) -> str:

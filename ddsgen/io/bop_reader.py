@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.scanfolder import (
+from ddsgen.io.scan_frame import (
     ScanFrame,
     ScanObject,
     depth_image_size,

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from ddsgen.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from ddsgen.io.manifest import RUN_FILE, read_manifest
 
 SCANS_DIR = "ddsgen"

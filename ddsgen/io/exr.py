@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_path
+from ddsgen.atomic import atomic_path
 
 #: Channel names accepted by :func:`read_exr`, in order of preference.
 PREFERRED_CHANNELS = ("Z", "Y", "R", "depth", "Depth", "G", "B")

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_write_bytes
+from ddsgen.atomic import atomic_write_bytes
 from ddsgen.io.images import read_image
 
 #: cv2.imencode parameters. Empty = OpenCV's defaults, measured fastest here

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
-from ddsgen.io.atomic import atomic_write_text
+from ddsgen.atomic import atomic_write_text
 from ddsgen.io.manifest import OPTIONAL_PATH_KEYS, dumps_record
 
 
@@ -28,12 +28,12 @@ def write_refined_poses(frames, refined: dict, out: str | Path, final: str | Pat
     """Write the refined poses of ``frames`` under ``out``; returns the files written (under ``final``).
 
     Args:
-        frames: the :class:`~ddsgen.io.scanfolder.ScanFrame` list read from one folder (one layout).
+        frames: the :class:`~ddsgen.io.scan_frame.ScanFrame` list read from one folder (one layout).
         refined: frame name -> {object id (ScanObject.id) -> (4, 4) refined ``cam_T_obj`` (m)}.
             Frames or objects not in it keep their poses.
         out: output folder.
         final: where ``out`` will be once complete, when it is built under a temporary name
-            (:func:`ddsgen.io.atomic.atomic_folder`): the manifest's paths to the source files are relative to it.
+            (:func:`ddsgen.atomic.atomic_folder`): the manifest's paths to the source files are relative to it.
             Default: ``out``.
     """
     out = Path(out)

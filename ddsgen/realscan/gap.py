@@ -267,7 +267,7 @@ def _mm(x, spec: str) -> str:
 
 def write_report(report: GapReport, folder: str | Path, name: str = "comparison") -> list[Path]:
     """Write ``NAME.json`` and the PNG plots (binned bias/spread/validity; residual maps) into ``folder``."""
-    from ddsgen.io.atomic import atomic_write_text
+    from ddsgen.atomic import atomic_write_text
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -28,9 +28,9 @@ class FrameOutputs:
     """Per-frame outputs of a compare run.
 
     Args:
-        scans: the real :class:`~ddsgen.io.scanfolder.ScanFrame` list; FrameData ``index`` i is scans[i].
+        scans: the real :class:`~ddsgen.io.scan_frame.ScanFrame` list; FrameData ``index`` i is scans[i].
         report_dir: folder the report is written to (pictures go to ``report_dir/frames/NNNNNN.png``); ``compare``
-            passes the temporary folder it builds the report in (:func:`ddsgen.io.atomic.atomic_folder`).
+            passes the temporary folder it builds the report in (:func:`ddsgen.atomic.atomic_folder`).
         region: ``"all"`` or ``"objects"`` (the compare region of the statistics and pictures).
         sim_writer: a :class:`~ddsgen.realscan.save_sim.SimFolderWriter` inside its ``with``, or None.
         crop_border_px: with ``--crop``, the crop window's border the matcher cannot reach (see

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.io.atomic import atomic_path, atomic_write_text
+from ddsgen.atomic import atomic_path, atomic_write_text
 
 DEPTH_CMAP = "viridis"
 DIFF_CMAP = "RdBu_r"

@@ -19,7 +19,7 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.realscan.realism import full_frame
-from ddsgen.io.atomic import atomic_folder, check_new_folder
+from ddsgen.atomic import atomic_folder, check_new_folder
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import append_record
 from ddsgen.preset import SensorPreset, save_preset
@@ -37,7 +37,7 @@ class SimFolderWriter:
     """Collects simulated frames into a scan folder; use as a context manager.
 
     ``with SimFolderWriter(out, preset, seed) as writer: writer.add(frame, sim, scan)`` -- the frames go to a
-    hidden temporary folder (:func:`ddsgen.io.atomic.atomic_folder`) that a clean exit renames to ``out``; an
+    hidden temporary folder (:func:`ddsgen.atomic.atomic_folder`) that a clean exit renames to ``out``; an
     exception (Ctrl-C included) removes it, so an unfinished command leaves no ``out`` and can be re-run.
     """
 

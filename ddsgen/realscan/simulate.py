@@ -1,6 +1,6 @@
 """Simulate the views of a folder of scans: meshes at their ground-truth poses, ray cast once.
 
-For each :class:`~ddsgen.io.scanfolder.ScanFrame` (real or rendered), :func:`prepare_frames`
+For each :class:`~ddsgen.io.scan_frame.ScanFrame` (real or rendered), :func:`prepare_frames`
 builds a :class:`FrameData`:
 
 1. a :class:`~ddsgen.scene.sampling.FrameScene` in the camera frame (``world_T_cam`` = I)
@@ -255,7 +255,7 @@ def prepare_frames(preset: SensorPreset, scan_frames, *, support_plane: bool = T
     Args:
         preset: the sensor preset (its baseline and shadow bias are used for the ray cast and
             its baseline for the plausibility test in disparity).
-        scan_frames: list of :class:`~ddsgen.io.scanfolder.ScanFrame` (from ``read_scan_folder``).
+        scan_frames: list of :class:`~ddsgen.io.scan_frame.ScanFrame` (from ``read_scan_folder``).
         support_plane: add a RANSAC plane fitted to the real depth outside the objects.
         albedo: IR reflectance given to every modelled surface.
         plausible_px: plausibility threshold (px of disparity) of the comparison region.

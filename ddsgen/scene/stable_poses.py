@@ -16,7 +16,7 @@ import io
 import numpy as np
 
 from ddsgen.cache import cache_dir
-from ddsgen.io.atomic import atomic_write_bytes
+from ddsgen.atomic import atomic_write_bytes
 
 
 def _digest(mesh, center_mass: np.ndarray) -> str:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.io.atomic import atomic_path, atomic_write_text
+from ddsgen.atomic import atomic_path, atomic_write_text
 
 
 def frame_summary(refinement) -> dict:

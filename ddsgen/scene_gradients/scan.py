@@ -57,7 +57,7 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
 
     Args:
         preset: the sensor preset with the frame's camera (:func:`ddsgen.realscan.inputs.adopt_camera`).
-        frame: a :class:`~ddsgen.io.scanfolder.ScanFrame` (from ``read_scan_folder``).
+        frame: a :class:`~ddsgen.io.scan_frame.ScanFrame` (from ``read_scan_folder``).
         index: the frame's position in its folder (seeds the support-plane RANSAC).
         settings: :class:`RefineSettings`.
         support_plane: fit a RANSAC plane to the real depth outside the objects and refine it too.

@@ -67,7 +67,7 @@ def save_postprocess(module: PostProcessCNN, path: str | Path) -> None:
     """Write the weights (atomic)."""
     import io
 
-    from ddsgen.io.atomic import atomic_write_bytes
+    from ddsgen.atomic import atomic_write_bytes
 
     buffer = io.BytesIO()
     torch.save({"format": "ddsgen-postprocess-v1", "state_dict": module.state_dict()}, buffer)

@@ -67,7 +67,7 @@ def write_noise_json(points: list[NoisePoint], path: Path | str, lateral: list |
     """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...], "verdict": ...}``
     (:func:`verdict`), atomically; with ``lateral`` (:class:`~ddsgen.study.lateral.LateralPoint` list) also
     ``"lateral": [{z, angle_deg, lateral_px, left_px, right_px, nguyen_px}, ...]``."""
-    from ddsgen.io.atomic import atomic_write_text
+    from ddsgen.atomic import atomic_write_text
 
     data = {"points": [p.as_json() for p in points], "verdict": verdict(points)}
     if lateral is not None:
@@ -169,7 +169,7 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ddsgen.io.atomic import atomic_path
+    from ddsgen.atomic import atomic_path
 
     angles = sorted({p.angle_deg for p in points})
     zs = sorted({p.z for p in points})

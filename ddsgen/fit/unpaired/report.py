@@ -28,7 +28,7 @@ import numpy as np
 
 from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
 from ddsgen.fit.unpaired.features import DEPTH_EDGES, ISOLATED_CLASSES, NOISE_BIN_PX, RADIUS_EDGES, summary
-from ddsgen.io.atomic import atomic_path, atomic_write_text
+from ddsgen.atomic import atomic_path, atomic_write_text
 from ddsgen.surface_roughness import flat_residuals_by_depth, pooled_flat_roughness, surface_residuals
 
 COLOURS = {"real": "black", "stock": "tab:orange", "fitted": "tab:blue"}

@@ -16,7 +16,7 @@ from ddsgen.realscan.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
-from ddsgen.io.atomic import atomic_folder
+from ddsgen.atomic import atomic_folder
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
