@@ -559,3 +559,35 @@ def test_a_real_folders_other_output_window_is_pointed_out():
     assert "output_right_border_px: 9" in hint and "output_top_border_px: 4" in hint and "left" not in hint
     assert output_window_hint(preset.replace(output_right_border_px=9, output_top_border_px=4), scans) is None
     assert output_window_hint(preset, scans[:1]) is None
+
+
+def test_compare_leads_with_what_its_gap_is_made_of():
+    """The first line says the gap is mostly scene the model lacks only when it is: local patches carry most of the
+    excess, or the annotated objects alone are much closer than the whole region."""
+    from ddsgen.realscan.gap import lead_lines
+    from ddsgen.realscan.gap_report import GapReport
+
+    def report(carried, objects_excess, region="all"):
+        objects = {"gap": objects_excess + 0.4, "noise_floor": 0.4, "excess": objects_excess, "frames": 1}
+        return GapReport(gap=9.6, noise_floor=0.2, frames=[], parts={}, region=region, local={"carried": carried},
+                         objects=objects)  # fmt: skip
+
+    mostly_scene = lead_lines(report(carried=0.68, objects_excess=0.29))
+    assert len(mostly_scene) == 1 and "68 % of the excess" in mostly_scene[0] and "0.69 mm" in mostly_scene[0]
+    assert "much closer" in lead_lines(report(carried=0.1, objects_excess=1.0))[0]  # 1.0 of 9.4 mm excess
+    assert lead_lines(report(carried=0.1, objects_excess=9.0)) == []  # the objects are as far off: the sensor
+    assert lead_lines(report(carried=0.9, objects_excess=0.2, region="objects")) == []
+
+
+def test_real_cat_compare_gives_the_objects_only_figure_first(linemod, tmp_path, capsys):
+    """On the real cat most of the whole region's gap is scene the model lacks: compare says so before the figures,
+    with the gap of the cat's own pixels, which is what --region objects measures."""
+    whole, objects = tmp_path / "whole", tmp_path / "objects"
+    assert main(["compare", "kinect_v1", str(linemod), "--report", str(whole), "--quiet"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].startswith("most of this gap is not the sensor")
+    assert main(["compare", "kinect_v1", str(linemod), "--report", str(objects), "--quiet", "--region", "objects"]) == 0
+    only = json.loads((whole / "comparison.json").read_text())["objects_only"]
+    measured = json.loads((objects / "comparison.json").read_text())
+    assert (only["gap"], only["noise_floor"]) == (measured["gap"], measured["noise_floor"])
+    assert f"{only['gap']:.2f} mm" in lines[1]

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -162,6 +163,7 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
         raise InputError(f"--region objects: no annotated object is visible in any of the {len(frames)} frame(s) "
                          f"({frames[0].name}{', ...' if len(frames) > 1 else ''}): check the poses")  # fmt: skip
     per_frame, floors, maps, patches = [], [], [], []
+    objects_only = []  # with region "all": (gap, floor) of the annotated objects alone, per frame that shows one
     draws = twin_draws(len(frames))
     rows = {k: [] for k in ("depth", "incidence", "radius", "sim", "real", "clean", "sim_valid", "real_valid")}
     totals = {"both_valid": 0, "real_only": 0, "sim_only": 0, "neither": 0}
@@ -177,6 +179,8 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
                     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
                     floors[-1].append(frame_gap(sim, twin, region)["gap"] or 0.0)
                 patches.append(patch_gap(sim, _with_region(frame, region), others, local_window(frame.intrinsics.fx)))
+                if region == "all" and bool(frame.object_region.any()):
+                    objects_only.append(_objects_only(sim, frame, others))
             if on_frame is not None:
                 on_frame(frame, sim, patches[-1].patches.mask if noise_floor else None)
             mask = region_mask(frame, region)
@@ -215,8 +219,24 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
     headline = float(np.mean([f["gap"] or 0.0 for f in per_frame])) if per_frame else float("nan")
     floor_draws = [float(v) for v in np.mean(floors, axis=0)] if floors else []
     floor = float(np.mean(floor_draws)) if floors else float("nan")
+    objects = None
+    if objects_only:
+        object_gap, object_floor = (float(np.mean(v)) for v in zip(*objects_only))
+        objects = {"gap": _r(object_gap), "noise_floor": _r(object_floor), "excess": _r(object_gap - object_floor),
+                   "frames": len(objects_only)}  # fmt: skip
     return GapReport(gap=headline, noise_floor=floor, frames=per_frame, parts=parts, region=region, maps=maps,
-                     noise_floor_draws=floor_draws, local=patch_summary(patches, headline, floor) if patches else None)
+                     noise_floor_draws=floor_draws, local=patch_summary(patches, headline, floor) if patches else None,
+                     objects=objects)  # fmt: skip
+
+
+def _objects_only(sim, frame: FrameData, others) -> tuple[float, float]:
+    """(gap, noise floor) of one frame on its annotated objects' pixels alone (mm), from the simulation and the
+    twins already made for the whole region."""
+    floor = []
+    for other in others:
+        twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
+        floor.append(frame_gap(sim, twin, "objects")["gap"] or 0.0)
+    return frame_gap(sim, frame, "objects")["gap"] or 0.0, float(np.mean(floor))
 
 
 # ------------------------------------------------------------------------------------------ output
@@ -227,6 +247,7 @@ def table(report: GapReport, title: str = "") -> str:
     p = report.parts
     c = p["confusion"]
     lines = [title] if title else []
+    lines += lead_lines(report)
     draws = report.noise_floor_draws
     over = f" over {len(draws)} units: {min(draws):.2f}-{max(draws):.2f}" if len(draws) > 1 else ""
     lines += [
@@ -254,6 +275,26 @@ def table(report: GapReport, title: str = "") -> str:
 
         lines.append(realism_table(report.realism))
     return "\n".join(lines)
+
+
+#: Share of the excess the local patches must carry for compare to lead with "scene the model lacks".
+MOSTLY_SCENE = 0.5
+
+
+def lead_lines(report: GapReport) -> list[str]:
+    """What the gap is made of, said before the figures: when local patches (scene the model lacks: clutter,
+    surfaces the scene list does not hold) carry most of the excess, or the annotated objects alone are much
+    closer than the whole region, the first line says so and gives the objects-only figure."""
+    if report.region != "all" or report.objects is None or not math.isfinite(report.excess) or report.excess <= 0:
+        return []
+    objects, carried = report.objects, (report.local or {}).get("carried", 0.0)
+    if carried < MOSTLY_SCENE and objects["excess"] > MOSTLY_SCENE * report.excess:
+        return []
+    why = (f"local patches (scene the model lacks) carry {100 * carried:.0f} % of the excess" if carried >= MOSTLY_SCENE
+           else "the annotated objects alone are much closer")  # fmt: skip
+    return [f"most of this gap is not the sensor: {why}; on the annotated objects alone the gap is "
+            f"{objects['gap']:.2f} mm (noise floor {objects['noise_floor']:.2f} mm, excess {objects['excess']:.2f} mm; "
+            f"--region objects measures only them)"]  # fmt: skip
 
 
 def _f(x):

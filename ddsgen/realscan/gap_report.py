@@ -37,6 +37,7 @@ class GapReport:
     realism: dict | None = None
     noise_floor_draws: list[float] = dataclasses.field(default_factory=list)
     local: dict | None = None  # the local patches (ddsgen.realscan.local_patches.patch_summary), with the floor
+    objects: dict | None = None  # region "all": gap, noise_floor, excess (mm) of the annotated objects' pixels alone
 
     @property
     def excess(self) -> float:
@@ -47,7 +48,8 @@ class GapReport:
                 "noise_floor_draws": [round_or_none(v) for v in self.noise_floor_draws], "units": "mm", "region": self.region, "definition": DEFINITION, "region_rule": region_rule(self.region),
                 "frames": self.frames,
                 "parts": self.parts, **({"realism": self.realism} if self.realism else {}),
-                **({"local_patches": self.local} if self.local else {})}  # fmt: skip
+                **({"local_patches": self.local} if self.local else {}),
+                **({"objects_only": self.objects} if self.objects else {})}  # fmt: skip
 
 
 DEFINITION = (
