@@ -203,27 +203,40 @@ def test_scheduler_address_form_is_checked_before_connecting(address, problem):
 
 
 def test_malformed_scheduler_is_one_line_at_once(inputs, tmp_path):
-    """It was the right line, then 40 s of waiting and a Client.__del__ traceback at exit."""
+    """It was the right line, then 40 s of waiting and a Client.__del__ traceback at exit (how long it takes now:
+    bench/bench_edges.py)."""
     pytest.importorskip("distributed")
     preset, scenes = inputs
-    start = time.monotonic()
     result = run_cli("render", preset, "--scenes", scenes, "-n", "2", "--scheduler", "notaurl", "--out", tmp_path / "o" / "x")
-    assert time.monotonic() - start < 20, "waited for something after the error"
     assert_one_error_line(result, "--scheduler", "notaurl", "no port number")
     assert not (tmp_path / "o").exists()
 
 
+def test_malformed_scheduler_is_refused_before_any_connection(inputs, tmp_path, monkeypatch, capsys):
+    """The address's form is checked first: no Client is ever built for it (a half-built one is what waited)."""
+    pytest.importorskip("distributed")
+    import ddsgen.distributed
+
+    connections = []
+    monkeypatch.setattr(ddsgen.distributed, "connect", lambda *args, **kwargs: connections.append(args))
+    preset, scenes = inputs
+    code = main(["render", preset, "--scenes", scenes, "-n", "2", "--scheduler", "notaurl", "--out",
+                 str(tmp_path / "o" / "x"), "--quiet"])  # fmt: skip
+    assert code == 2 and "no port number" in capsys.readouterr().err
+    assert connections == []
+
+
 def test_failed_connection_leaves_no_half_built_client(tmp_path):
     """A well-formed address whose Client fails to start: one InputError, then a clean and quick exit (the half-built
-    Client's __del__ used to wait 2 x the timeout at exit and print an 'Exception ignored' traceback)."""
+    Client's __del__ used to wait 2 x the timeout at exit and print an 'Exception ignored' traceback; how long it
+    takes now: bench/bench_edges.py)."""
     pytest.importorskip("distributed")
     code = ("from ddsgen.distributed import connect\n"
             "from ddsgen.errors import InputError\n"
             "try:\n    connect('inproc://192.0.2.1/1/1', timeout=3)\n"
             "except InputError as error:\n    print(error)\n")  # fmt: skip
-    start = time.monotonic()
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert time.monotonic() - start < 15 and result.returncode == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("--scheduler: cannot connect to inproc://"), result.stdout
     assert result.stderr == "", result.stderr
 
@@ -340,26 +353,24 @@ def test_read_image_reasons_and_fd2_restored(tmp_path, capfd):
     assert capfd.readouterr().err == "another thread's line\nafter\n"
 
 
-def test_png_check_is_cheap_against_the_decode():
-    """The structural check reads each chunk's CRC only: a small fraction of the decode it guards."""
-    import cv2
-
+def test_png_check_reads_the_structure_without_decompressing(monkeypatch):
+    """The structural check reads each chunk's CRC only, never inflating the image data: a small fraction of the
+    decode it guards (measured in bench/bench_edges.py, png_check_vs_decode)."""
+    from ddsgen.io import images
     from ddsgen.io.images import png_problem
 
-    data = np.frombuffer(_depth_png_bytes(480, 640), np.uint8)
-    assert png_problem(data) is None
+    good, flipped, bad_filter = (np.frombuffer(make(), np.uint8) for make in
+                                 (lambda: _depth_png_bytes(480, 640), _flipped_png, _bad_filter_png))  # fmt: skip
 
-    def best_of(function, repeat=30):
-        times = []
-        for _ in range(repeat):
-            start = time.perf_counter()
-            function()
-            times.append(time.perf_counter() - start)
-        return min(times)
+    def no_inflating(*args, **kwargs):
+        raise AssertionError("png_problem decompressed the image data")
 
-    check = best_of(lambda: png_problem(data))
-    decode = best_of(lambda: cv2.imdecode(data, cv2.IMREAD_UNCHANGED))
-    assert check < 0.1 * decode, (check, decode)
+    monkeypatch.setattr(images.zlib, "decompress", no_inflating)
+    monkeypatch.setattr(images.zlib, "decompressobj", no_inflating)
+    assert png_problem(good) is None
+    assert png_problem(flipped).startswith("corrupt: CRC error in its IDAT chunk")
+    # the bad filter bytes sit inside intact compressed data: only the decode sees them
+    assert png_problem(bad_filter) is None
 
 
 # ---------------------------------------------------------------- 4-6. pattern and stereo: inputs and outputs first
