@@ -79,8 +79,8 @@ def scheduler_figures() -> None:
     bench("cli_import_s", imports, "s")
     with tempfile.TemporaryDirectory() as tmp:
         argv = ["render", "kinect_v1", "-n", "2", "--scheduler", "notaurl", "--out", str(Path(tmp) / "x")]
-        malformed, result = seconds_of(f"from ddsgen.cli import entry_point; import sys; sys.argv = {['ddsgen', *argv]!r}; "
-                                       "entry_point()")  # fmt: skip
+        code = f"import sys; from ddsgen.cli import entry_point; sys.argv = {['ddsgen', *argv]!r}; entry_point()"
+        malformed, result = seconds_of(code)
     if result.returncode != 2:
         print(f"# malformed --scheduler: exit {result.returncode}, {result.stderr.strip()[-200:]}", flush=True)
     bench("scheduler_malformed_s", malformed, "s")

@@ -20,6 +20,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
+from torch_threads import torch_threads
 from ddsgen.sensor import matcher as M
 from ddsgen.sensor.matcher import kernel, reference, torch_path
 from ddsgen.sensor.matcher.kernel import SEARCH_LANES
@@ -246,18 +247,14 @@ def test_c_refinement_does_not_depend_on_the_thread_count(sloped):
     if M.integer_search_backend() != "c":
         pytest.skip("no C compiler")
     observed, phases, pad, _ = sloped
-    before = torch.get_num_threads()
     out = []
-    try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
+    for threads in (1, 2):
+        with torch_threads(threads):
             obs = observed.clone().requires_grad_(True)
             beta = torch.tensor(15.0, requires_grad=True)
             result = match(obs, phases, pad, 8, 30, 9, beta, 2, 16, 0.05, quantize=False)
             (result.disparity * torch.linspace(0, 1, obs.shape[1])).sum().backward()
             out.append((result.disparity.detach(), obs.grad, beta.grad))
-    finally:
-        torch.set_num_threads(before)
     for a, b in zip(*out):
         assert torch.equal(a, b)
 
