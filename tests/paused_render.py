@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
@@ -60,8 +61,6 @@ def paused_after_records(k: int):
 
 def wait_for_pause(flag: Path, process, stderr_of) -> None:
     """Wait until the paused render of ``process`` created ``flag``; fail clearly if it ended or took too long."""
-    import time
-
     deadline = time.monotonic() + PAUSE_TIMEOUT_S
     while not flag.exists():
         if process.poll() is not None:
@@ -76,8 +75,6 @@ def main() -> None:
     assert separator == "--", "usage: paused_render.py K FLAG -- ddsgen ARGS"
 
     def on_pause():
-        import time
-
         Path(flag).touch()
         while True:  # until a signal ends the process
             time.sleep(3600)

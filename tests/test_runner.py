@@ -226,10 +226,10 @@ def test_unreachable_scheduler_is_one_line_exit_2(inputs, tmp_path, capsys, monk
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
 def test_sigkill_render_then_rerun_is_byte_identical(inputs, reference, tmp_path, workers):
-    preset, scenes = inputs
-    out = tmp_path / "out"
     """SIGKILL to the command and its workers once the manifest holds 3 records (the render paused there; the workers
     may be anywhere in the frames they hold): a re-run keeps those 3 and ends with the reference's bytes."""
+    preset, scenes = inputs
+    out = tmp_path / "out"
     argv = ["ddsgen", "render", preset, "--scenes", scenes, "-n", str(N_FRAMES), "--out", str(out),
             "--seed", str(SEED), "--workers", str(workers), "--quiet"]  # fmt: skip
     env = dict(os.environ, DDSGEN_NO_COMPILE="1", PYTHONWARNINGS="ignore")
