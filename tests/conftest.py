@@ -16,7 +16,7 @@ import pytest
 @pytest.fixture
 def set_torch_threads():
     """``set_torch_threads(n)``: torch runs with n intra-op threads for the rest of the test, then as before."""
-    import torch
+    import torch  # here, not at the top: collecting the tests that never use torch does not import it
 
     before = torch.get_num_threads()
     yield torch.set_num_threads
