@@ -16,19 +16,19 @@ import shutil
 from pathlib import Path
 
 import pytest
-import torch
 
+from torch_threads import torch_threads
 from ddsgen.cli import main
 from test_compare import render, write_presets
 
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    torch.set_num_threads(2)
-    root = tmp_path_factory.mktemp("outputs")
-    paths = write_presets(root)
-    paths["real"] = render(paths["stock"], paths["scenes"], root / "real", 2)
-    return paths
+    with torch_threads(2):
+        root = tmp_path_factory.mktemp("outputs")
+        paths = write_presets(root)
+        paths["real"] = render(paths["stock"], paths["scenes"], root / "real", 2)
+        yield paths
 
 
 @pytest.fixture

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_threads import torch_threads
 from ddsgen.cli import main
 from ddsgen.realscan.gap import gap
 from ddsgen.realscan.simulate import prepare_frames, simulate
@@ -83,11 +84,11 @@ def render(preset: Path, scenes: Path, out: Path, n: int, seed: int = 3) -> Path
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    torch.set_num_threads(2)
-    root = tmp_path_factory.mktemp("compare")
-    paths = write_presets(root)
-    paths["real"] = render(paths["stock"], paths["scenes"], root / "real", 3)
-    return paths
+    with torch_threads(2):
+        root = tmp_path_factory.mktemp("compare")
+        paths = write_presets(root)
+        paths["real"] = render(paths["stock"], paths["scenes"], root / "real", 3)
+        yield paths
 
 
 def test_identical_settings_at_noise_floor_perturbed_clearly_larger(small):

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_threads import torch_threads
 from ddsgen.depth_statistics import depth_step_at_1m, isolated_dropouts
 from ddsgen.preset import load_preset
 from ddsgen.sensor.cleanup import device_cleanup, fill_narrow_gaps, fill_small_holes, remove_valid_specks
@@ -491,14 +492,9 @@ def test_device_frame_is_the_same_bytes_whatever_the_thread_count():
     geometry = plane_geometry(_device(160, 120).intr, 1.7, tilt_deg=35.0)
     geometry.shadow[:, 70:78] = True
     outputs = []
-    threads = torch.get_num_threads()
-    try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            with torch.no_grad():
-                outputs.append(_device(160, 120)(geometry, seed=[5, 2, 1]))
-    finally:
-        torch.set_num_threads(threads)
+    for n in (1, 2):
+        with torch_threads(n), torch.no_grad():
+            outputs.append(_device(160, 120)(geometry, seed=[5, 2, 1]))
     assert torch.equal(outputs[0].depth, outputs[1].depth) and torch.equal(outputs[0].ir, outputs[1].ir)
 
 

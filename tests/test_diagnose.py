@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_threads import torch_threads
 from ddsgen.diagnose import (
     BOOTSTRAP_QUANTILE,
     DiagnoseConfig,
@@ -65,10 +66,8 @@ TABLE: list[str] = []
 @pytest.fixture(scope="module", autouse=True)
 def one_thread():
     """Many small simulations: one torch thread is much faster on a shared machine."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+    with torch_threads(1):
+        yield
     if TABLE:
         print("\n" + "\n".join(["case                 named                     held-out gap before -> after"] + TABLE))
 
@@ -108,7 +107,6 @@ def render_scans(root, name: str, effects: list[dict], perturb: bool = True, see
     save_preset(truth, preset_path)
     out = root / name
     render_dataset(str(preset_path), str(SCENES), n, str(out), workers=1, seed=seed, progress=False)
-    torch.set_num_threads(1)  # the in-process renderer pins torch to one thread too; keep it explicit
     return out
 
 
@@ -473,7 +471,6 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path):
     save_preset(truth, tmp_path / "truth.yaml")
     render_dataset(str(tmp_path / "truth.yaml"), str(SCENES), 6, str(tmp_path / "scans"), workers=1, seed=11,
                    progress=False)  # fmt: skip
-    torch.set_num_threads(1)
     frames = prepare_frames(base, read_scan_folder(tmp_path / "scans"), progress=False)
     # Not depth_scale: at 320 x 240 with 2 held-out frames it beats the offset with or without screening (measured:
     # 5.68 -> 2.58 mm both ways); the 640 x 480 cases separate the two.
@@ -591,7 +588,6 @@ def blind_geometry(tmp_path_factory):
     preset_path = root / "stock.yaml"
     save_preset(blind_stock(), preset_path)
     render_dataset(str(preset_path), str(SCENES), BLIND_FRAMES, str(root / "scenes"), workers=1, seed=41, progress=False)
-    torch.set_num_threads(1)
     return root / "scenes", prepared_blind(root / "scenes")
 
 

@@ -31,7 +31,7 @@ def test_behaviours_are_candidates_only_where_the_preset_switches_them_off():
     assert not any(p.requires_grad for p in switched.parameters())
 
 
-def test_edge_keeping_is_found_on_scans_of_a_device_that_keeps_its_edges(tmp_path):
+def test_edge_keeping_is_found_on_scans_of_a_device_that_keeps_its_edges(tmp_path, set_torch_threads):
     """Scans of a device that keeps windows straddling depth edges (confirmed_match_zncc 0.35), judged from a model
     without it: switching the behaviour on at a value near the device's removes most of the gap the ring of holes
     around every object left, and the search tells the device's value from a wrong one."""
@@ -42,13 +42,12 @@ def test_edge_keeping_is_found_on_scans_of_a_device_that_keeps_its_edges(tmp_pat
     from ddsgen.preset import save_preset
     from ddsgen.runner import render_dataset
 
-    torch.set_num_threads(1)
+    set_torch_threads(1)
     device = small_preset(640, 480)
     save_preset(device, tmp_path / "device.yaml")
     scenes = Path(__file__).with_name("diagnose_scenes.yaml")
     render_dataset(str(tmp_path / "device.yaml"), str(scenes), 2, str(tmp_path / "scans"), workers=1, seed=4,
                    progress=False)  # fmt: skip
-    torch.set_num_threads(1)
     model = device.replace(confirmed_match_zncc=1.0)  # no edge keeping: a ring of holes at every depth edge
     frames = prepare_frames(model, read_scan_folder(tmp_path / "scans"), progress=False)
     from ddsgen.sensor.depth_sensor import DepthSensor

@@ -15,6 +15,7 @@ import torch
 from effects_geometry import plane_geometry, small_preset, tilted_normal
 from test_effects import RECT, _fd_check, ctx_for, run
 
+from torch_threads import torch_threads
 from ddsgen.errors import InputError
 from ddsgen.fit.fitting import fit_sensor
 from ddsgen.realscan.simulate import FrameData
@@ -403,10 +404,8 @@ def matcher_once(monkeypatch):
         return cache[key]
 
     monkeypatch.setattr(depth_sensor, "match", match)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # many small steps: one thread is faster on a shared machine
-    yield cache
-    torch.set_num_threads(threads)
+    with torch_threads(1):  # many small steps: one thread is faster on a shared machine
+        yield cache
 
 
 def frames_with(truth, geometries, seed: int = 7) -> list[FrameData]:

@@ -20,6 +20,7 @@ import pytest
 import torch
 from test_compare import LINEMOD, render, write_presets
 
+from torch_threads import torch_threads
 from ddsgen.cli import main
 from ddsgen.realscan.gap import gap
 from ddsgen.fit.fit_report import fitted_line
@@ -34,11 +35,11 @@ from ddsgen.sensor.postprocess import PostProcessCNN, parameter_count
 
 @pytest.fixture(scope="module")
 def perturbed(tmp_path_factory):
-    torch.set_num_threads(2)
-    root = tmp_path_factory.mktemp("fit")
-    paths = write_presets(root)
-    paths["real"] = render(paths["perturbed"], paths["scenes"], root / "real", 4, seed=5)
-    return paths
+    with torch_threads(2):
+        root = tmp_path_factory.mktemp("fit")
+        paths = write_presets(root)
+        paths["real"] = render(paths["perturbed"], paths["scenes"], root / "real", 4, seed=5)
+        yield paths
 
 
 def test_parameter_recovery_and_held_out_gap(perturbed):
@@ -175,8 +176,8 @@ def linemod():
     return LINEMOD
 
 
-def test_fit_lowers_object_gap_on_real_linemod_frame(linemod):
-    torch.set_num_threads(2)
+def test_fit_lowers_object_gap_on_real_linemod_frame(linemod, set_torch_threads):
+    set_torch_threads(2)
     preset = load_preset("kinect_v1")
     frames = prepare_frames(preset, read_scan_folder(linemod), crop=True)
     sensor = DepthSensor(preset)

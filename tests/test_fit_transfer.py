@@ -15,6 +15,7 @@ import pytest
 import torch
 from test_compare import SMALL_PRESET, render
 
+from torch_threads import torch_threads
 from ddsgen.errors import InputError
 from ddsgen.realscan.gap import gap
 from ddsgen.fit.device_keys import search_grid, set_key
@@ -227,7 +228,7 @@ def hidden_device(rng) -> tuple[str, dict]:
 
 
 @pytest.mark.slow
-def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
+def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path, set_torch_threads):
     """Fit on scene list A, judge on scene list B (other shapes, other views).
 
     The design is not noise-dominated: each sensor is judged on held-out frames whose support planes are
@@ -241,7 +242,7 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
     the same fit gives 0.78x but eta_c 4.24e6 +- 0.20e6 (3.6 s.d.: the sandwich s.d. of a searched
     parameter is optimistic where eta_c trades against the distortion field).
     """
-    torch.set_num_threads(2)
+    set_torch_threads(2)
     text, truth = hidden_device(np.random.default_rng(14))
     stock_text = SMALL_PRESET + "effects:\n  - {name: disparity_distortion, alpha0: 0.0, alpha1: 0.02}\n"
     for name, content in (("hidden.yaml", text), ("stock.yaml", stock_text), ("a.yaml", SCENES_A.replace("frames: 3", "frames: 8")),
@@ -288,14 +289,14 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path):
 def steep_beam(tmp_path_factory):
     """Two 160 x 120 frames of a device whose projector beam falls off as cos^6 off its axis (stock: flat),
     prepared with the stock preset."""
-    torch.set_num_threads(2)
-    tmp_path = tmp_path_factory.mktemp("device_keys")
-    (tmp_path / "device.yaml").write_text(SMALL_PRESET + "projector_falloff_exponent: 6.0\nvignetting_exponent: 0.0\n")
-    (tmp_path / "stock.yaml").write_text(SMALL_PRESET)
-    (tmp_path / "a.yaml").write_text(SCENES_A)
-    render(tmp_path / "device.yaml", tmp_path / "a.yaml", tmp_path / "A", 2, seed=5)
-    stock = load_preset(tmp_path / "stock.yaml")
-    return stock, prepare_frames(stock, read_scan_folder(tmp_path / "A"))
+    with torch_threads(2):
+        tmp_path = tmp_path_factory.mktemp("device_keys")
+        (tmp_path / "device.yaml").write_text(SMALL_PRESET + "projector_falloff_exponent: 6.0\nvignetting_exponent: 0.0\n")
+        (tmp_path / "stock.yaml").write_text(SMALL_PRESET)
+        (tmp_path / "a.yaml").write_text(SCENES_A)
+        render(tmp_path / "device.yaml", tmp_path / "a.yaml", tmp_path / "A", 2, seed=5)
+        stock = load_preset(tmp_path / "stock.yaml")
+        yield stock, prepare_frames(stock, read_scan_folder(tmp_path / "A"))
 
 
 def test_device_keys_are_fitted_by_a_search_reported_and_reverted(steep_beam):
@@ -419,7 +420,7 @@ def test_tile_losses_on_crops_equal_the_whole_frame_masked(steep_beam):
         assert np.allclose(cropped, whole, rtol=1e-3, atol=1e-6)
 
 
-def test_edge_keeping_is_found_from_a_model_without_it(tmp_path):
+def test_edge_keeping_is_found_from_a_model_without_it(tmp_path, set_torch_threads):
     """Scans of the device model (windows across depth edges kept at ZNCC 0.35), fitted from a model with it off
     (the paper's sensor): the 1-D search switches it on near the device's value (measured: 0.3; fit loss 0.66 mm at
     1.0, 0.44 at 0.3). (The narrow fill, cleanup_fill_width, is searched the same way, but on these scenes the fit
@@ -428,7 +429,7 @@ def test_edge_keeping_is_found_from_a_model_without_it(tmp_path):
 
     from ddsgen.preset import save_preset
 
-    torch.set_num_threads(2)
+    set_torch_threads(2)
     device = small_preset(640, 480)
     save_preset(device, tmp_path / "device.yaml")
     render(tmp_path / "device.yaml", Path(__file__).with_name("diagnose_scenes.yaml"), tmp_path / "scans", 2, seed=4)

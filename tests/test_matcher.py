@@ -20,6 +20,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
+from torch_threads import torch_threads
 from ddsgen.sensor import matcher as M
 from ddsgen.sensor.matcher import kernel, reference, torch_path
 from ddsgen.sensor.matcher.kernel import SEARCH_LANES
@@ -246,18 +247,14 @@ def test_c_refinement_does_not_depend_on_the_thread_count(sloped):
     if M.integer_search_backend() != "c":
         pytest.skip("no C compiler")
     observed, phases, pad, _ = sloped
-    before = torch.get_num_threads()
     out = []
-    try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
+    for threads in (1, 2):
+        with torch_threads(threads):
             obs = observed.clone().requires_grad_(True)
             beta = torch.tensor(15.0, requires_grad=True)
             result = match(obs, phases, pad, 8, 30, 9, beta, 2, 16, 0.05, quantize=False)
             (result.disparity * torch.linspace(0, 1, obs.shape[1])).sum().backward()
             out.append((result.disparity.detach(), obs.grad, beta.grad))
-    finally:
-        torch.set_num_threads(before)
     for a, b in zip(*out):
         assert torch.equal(a, b)
 
@@ -395,11 +392,27 @@ def test_gradients_finite_on_flat_windows_unknown_reference_and_seams():
 
 
 def test_gradient_wrt_reference_phases_when_they_require_grad():
+    """The disparities' gradient with respect to the reference phases is the derivative a central difference along a
+    random direction gives, on the pixels that keep their validity and their best integer match over the step (a
+    change of match moves a disparity by a large fraction of a pixel, not by step x gradient)."""
     observed, phases, pad, _ = _scene(12, 40, 8.5, n_sub=1, noise=2.0, seed=9)
+
+    def disparity(reference):
+        result = match(observed, reference, pad, 3, 14, 5, 15.0, 1, 64, 0.05, compile=False, quantize=False)
+        return result.disparity, result.valid
+
+    direction, step = torch.randn(phases.shape, generator=torch.Generator().manual_seed(1)), 1e-4
+    with torch.no_grad():
+        (up, valid_up), (down, valid_down) = disparity(phases + step * direction), disparity(phases - step * direction)
     ph = phases.clone().requires_grad_(True)
-    result = match(observed, ph, pad, 3, 14, 5, 15.0, 1, 64, 0.05, compile=False)
-    result.disparity.sum().backward()
-    assert torch.isfinite(ph.grad).all() and ph.grad.abs().sum() > 0
+    depth, valid = disparity(ph)
+    kept = (valid & valid_up & valid_down & ((up - down).abs() < 0.05)).float()
+    assert kept.sum() > 300
+    (depth * kept).sum().backward()
+    assert torch.isfinite(ph.grad).all()
+    numeric = float(((up - down) * kept).sum()) / (2 * step)
+    analytic = float((ph.grad * direction).sum())
+    assert abs(analytic) > 100 and analytic == pytest.approx(numeric, rel=0.02), (analytic, numeric)
 
 
 # ---------------------------------------------------------------------------------------

@@ -38,12 +38,12 @@ def _plane_noise(contrast: float, z: float, albedo: float) -> tuple[float, float
     return stats["flat_roughness_px"], stats["noise_correlation_row"], float(out.valid.float().mean())
 
 
-def test_the_reference_speckle_adds_the_same_disparity_noise_at_every_depth_and_albedo():
+def test_the_reference_speckle_adds_the_same_disparity_noise_at_every_depth_and_albedo(set_torch_threads):
     """Noise on the reference side does not depend on the scene: the disparity variance it adds (c = 0.3) is about
     the same near, far and on a dark surface (measured 0.9-1.3e-3 px^2), so in depth it grows as z^2 like the
     device's; spread by the overlapping windows, it raises the noise's correlation along the rows; a white plane
     keeps its validity."""
-    torch.set_num_threads(1)
+    set_torch_threads(1)
     added = []
     for z, albedo in ((0.8, 0.8), (2.5, 0.8), (1.5, 0.2)):
         rough0, row0, valid0 = _plane_noise(0.0, z, albedo)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_threads import torch_threads
 from ddsgen.cli import main
 from ddsgen.preset import Intrinsics, load_preset
 from ddsgen.raycast import cast
@@ -441,12 +442,8 @@ def test_real_cat_perturbed_3_deg_8_mm_comes_back_to_the_published_pose(draw):
     centre = published[:3, :3] @ _load_object_mesh(cat).bounds.mean(0) + published[:3, 3]
     cat.cam_T_obj = perturb_pose(published, centre, 3.0, 8.0, np.random.default_rng(draw))
     assert pose_difference(cat.cam_T_obj, published) == pytest.approx((3.0, 8.0))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # the trajectory depends on the thread count (docs/scene_gradients.md)
-    try:
+    with torch_threads(1):  # the trajectory depends on the thread count (docs/scene_gradients.md)
         refined = refine_scan_frame(preset, frame, 0, RefineSettings()).result.refined[0]
-    finally:
-        torch.set_num_threads(threads)
     deg, mm = pose_difference(refined, published)
     print(f"draw {draw}: {deg:.2f} deg {mm:.2f} mm from the published pose")
     assert deg <= 2.0 and mm <= 3.0

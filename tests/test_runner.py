@@ -15,7 +15,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from ddsgen.cli import main
 from ddsgen.errors import InputError
 from ddsgen.io.manifest import read_manifest
 from ddsgen.runner import MANIFEST, render_dataset
+from paused_render import PAUSE_TIMEOUT_S, paused_after_records, wait_for_pause
 from tiny_inputs import tiny_preset_yaml, tiny_scenes_yaml, tree_hashes, written_inputs
 
 N_FRAMES = 24
@@ -121,24 +121,26 @@ def _pool_children() -> list[int]:
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
 def test_pool_worker_killed_mid_run_dataset_completes(inputs, reference, tmp_path):
+    """A pool worker SIGKILLed while the render is paused after its 2nd record (the worker may be mid-frame or idle):
+    the pool is rebuilt, the batches it had not returned are rendered again, and the files are the reference's."""
     preset, scenes = inputs
     out = tmp_path / "out"
     killed: list[int] = []
 
-    def killer():
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
+    def killer(pause):
+        if pause.reached.wait(PAUSE_TIMEOUT_S):
             children = _pool_children()
-            if children and len(records_of(out)) >= 2:
+            if children:
                 os.kill(children[0], signal.SIGKILL)
                 killed.append(children[0])
-            time.sleep(0.01)
+        pause.go_on.set()
 
-    thread = threading.Thread(target=killer, daemon=True)
-    thread.start()
-    render_dataset(preset, scenes, N_FRAMES, str(out), workers=2, seed=SEED, progress=False)
+    with paused_after_records(2) as pause:
+        thread = threading.Thread(target=killer, args=(pause,), daemon=True)
+        thread.start()
+        render_dataset(preset, scenes, N_FRAMES, str(out), workers=2, seed=SEED, progress=False)
     thread.join(timeout=10)
-    assert killed, "the test never found a pool worker to kill"
+    assert killed, "no pool worker was alive at the pause"
     assert_complete_and_valid(out, N_FRAMES)
     assert tree_hashes(out) == reference[1]
 
@@ -177,24 +179,27 @@ def test_dask_worker_killed_mid_frame_dataset_completes(inputs, reference, tmp_p
     out = tmp_path / "out"
     killed: list[int] = []
 
-    def killer():
-        with Client(dask_cluster.scheduler_address) as client:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline and not killed:
-                busy = [w for w, tasks in client.processing().items() if tasks]
-                if busy and len(records_of(out)) >= 2:
-                    pids = client.run(os.getpid, workers=[busy[0]])
-                    pid = pids[busy[0]]
-                    os.kill(pid, signal.SIGKILL)  # mid-frame: the worker has a render task in progress
+    def killer(pause):
+        """At the pause after the 2nd record, SIGKILL a worker that holds tasks (any worker if none does): its
+        tasks, finished or not, are lost and rerun elsewhere."""
+        try:
+            if pause.reached.wait(PAUSE_TIMEOUT_S):
+                with Client(dask_cluster.scheduler_address) as client:
+                    processing = client.processing()
+                    chosen = max(processing, key=lambda worker: len(processing[worker]))
+                    pid = client.run(os.getpid, workers=[chosen])[chosen]
+                    os.kill(pid, signal.SIGKILL)
                     killed.append(pid)
-                time.sleep(0.01)
+        finally:
+            pause.go_on.set()
 
-    thread = threading.Thread(target=killer, daemon=True)
-    thread.start()
-    render_dataset(preset, scenes, N_FRAMES, str(out), seed=SEED, scheduler=dask_cluster.scheduler_address,
-                   progress=False, batch_size=2)  # fmt: skip
+    with paused_after_records(2) as pause:
+        thread = threading.Thread(target=killer, args=(pause,), daemon=True)
+        thread.start()
+        render_dataset(preset, scenes, N_FRAMES, str(out), seed=SEED, scheduler=dask_cluster.scheduler_address,
+                       progress=False, batch_size=2)  # fmt: skip
     thread.join(timeout=10)
-    assert killed, "the test never caught a worker mid-task"
+    assert killed, "no Dask worker was killed at the pause"
     with pytest.raises(ProcessLookupError):
         os.kill(killed[0], 0)  # it really died
     lines = (out / MANIFEST).read_text().splitlines()
@@ -221,26 +226,27 @@ def test_unreachable_scheduler_is_one_line_exit_2(inputs, tmp_path, capsys, monk
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
 def test_sigkill_render_then_rerun_is_byte_identical(inputs, reference, tmp_path, workers):
+    """SIGKILL to the command and its workers once the manifest holds 3 records (the render paused there; the workers
+    may be anywhere in the frames they hold): a re-run keeps those 3 and ends with the reference's bytes."""
     preset, scenes = inputs
     out = tmp_path / "out"
-    argv = ["render", preset, "--scenes", scenes, "-n", str(N_FRAMES), "--out", str(out),
+    argv = ["ddsgen", "render", preset, "--scenes", scenes, "-n", str(N_FRAMES), "--out", str(out),
             "--seed", str(SEED), "--workers", str(workers), "--quiet"]  # fmt: skip
     env = dict(os.environ, DDSGEN_NO_COMPILE="1", PYTHONWARNINGS="ignore")
-    process = subprocess.Popen([sys.executable, "-c", "from ddsgen.cli import entry_point; entry_point()", *argv],
-                               env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
-    deadline = time.monotonic() + 120
+    flag, err_path = tmp_path / "paused", tmp_path / "stderr.txt"
+    with open(err_path, "w") as err:  # a file, not a pipe: nobody reads it while the render runs
+        process = subprocess.Popen([sys.executable, str(Path(__file__).with_name("paused_render.py")), "3", str(flag),
+                                    "--", *argv], env=env, start_new_session=True, stdout=subprocess.DEVNULL,
+                                   stderr=err)  # fmt: skip
     try:
-        while time.monotonic() < deadline and process.poll() is None:
-            if (out / MANIFEST).exists() and (out / MANIFEST).read_bytes().count(b"\n") >= 3:
-                break
-            time.sleep(0.005)
+        wait_for_pause(flag, process, err_path.read_text)
     finally:
         # the whole process group: the CLI and its pool workers (a crash, the OOM killer, a power cut)
         os.killpg(process.pid, signal.SIGKILL)
         process.wait()
-    assert process.returncode == -signal.SIGKILL, process.stderr.read().decode()
+    assert process.returncode == -signal.SIGKILL, err_path.read_text()
     done = records_of(out)
-    assert 3 <= len(done) < N_FRAMES, f"killed after {len(done)} frames: not mid-run"
+    assert len(done) == 3, f"the manifest holds {len(done)} records at the pause after the 3rd"
     # what is in the manifest is complete (files written before the record)
     for record in done:
         for key in ("depth", "depth_exr", "clean", "ir", "mask"):

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from torch_threads import torch_threads
 from ddsgen.errors import InputError
 from ddsgen.fit.unpaired.features import NOISE_BIN_PX, distance_terms, frame_features, pool
 from ddsgen.realscan.realfolder import read_depth_folder, round_like
@@ -220,12 +221,12 @@ def hidden_device():
     from ddsgen.fit.unpaired.search import camera_for
     from ddsgen.preset import load_preset
 
-    torch = pytest.importorskip("torch")
-    torch.set_num_threads(1)
-    # The paper's sensor: at the device preset's signal-to-noise ratio eta_c is not identifiable from depth
-    # (measured: 4.5e7 fitted for a hidden 5e6), which is a limit of unpaired fitting, not of this test's subject.
-    stock = camera_for(load_preset("kinect_v1_paper"), W, H)
-    return stock, _real_like_frames(stock.replace(**HIDDEN))
+    pytest.importorskip("torch")
+    with torch_threads(1):
+        # The paper's sensor: at the device preset's signal-to-noise ratio eta_c is not identifiable from depth
+        # (measured: 4.5e7 fitted for a hidden 5e6), which is a limit of unpaired fitting, not of this test's subject.
+        stock = camera_for(load_preset("kinect_v1_paper"), W, H)
+        yield stock, _real_like_frames(stock.replace(**HIDDEN))
 
 
 def _fit(stock, real, scene_list):
@@ -295,7 +296,7 @@ def test_cli_unpaired_writes_preset_and_report(hidden_device, tmp_path, capsys):
         assert (tmp_path / "report" / name).stat().st_size > 1000
 
 
-def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
+def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling(set_torch_threads):
     """The device keys: a hidden kinect_v1 with a steeper beam fall-off (cos^12, stock cos^4) and
     no hole filling (stock fills holes below 8 px), targets on scene list A, fit on the built-in
     list. The fall-off is found from validity by image radius alone, the hole filling from the
@@ -309,8 +310,8 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired
     from ddsgen.preset import load_preset
 
-    torch = pytest.importorskip("torch")
-    torch.set_num_threads(1)
+    pytest.importorskip("torch")
+    set_torch_threads(1)
     # Without the narrow fill (cleanup_fill_width_px), which closes 1-px holes along rows and columns whatever the
     # hole fill does, as the dense splat does (below).
     stock = camera_for(load_preset("kinect_v1"), W, H).replace(registration_ir_offset_m=0.0, registration_shift_px=0.0,
@@ -334,7 +335,7 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling():
     assert result.distance_after["radius"] < 0.5 * result.distance_before["radius"]
 
 
-def test_unpaired_fit_recovers_the_device_smoothing_along_its_rows():
+def test_unpaired_fit_recovers_the_device_smoothing_along_its_rows(set_torch_threads):
     """A hidden kinect_v1 that averages its disparity [0.2, 0.6, 0.2] along the rows (row_smoothing_weight), targets
     on scene list A, fit from the same device without it (w = 0) on the built-in list: the search on the grain (the
     flat noise's correlation with the next pixel in the row and in the column) finds w. Measured with four (real,
@@ -343,8 +344,8 @@ def test_unpaired_fit_recovers_the_device_smoothing_along_its_rows():
     from ddsgen.preset import load_preset
     from ddsgen.scene.scenelist import load_scene_list
 
-    torch = pytest.importorskip("torch")
-    torch.set_num_threads(1)
+    pytest.importorskip("torch")
+    set_torch_threads(1)
     stock = camera_for(load_preset("kinect_v1"), W, H).replace(row_smoothing_weight=0.0)
     real = _real_like_frames(stock.replace(row_smoothing_weight=0.2))
     result = fit_unpaired(stock, real, cast_scenes(stock, load_scene_list(None), 6, seed=3), seed=0, bootstrap=40,
@@ -419,15 +420,15 @@ def registered_device():
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
     from ddsgen.preset import load_preset
 
-    torch = pytest.importorskip("torch")
-    torch.set_num_threads(1)
-    stock = camera_for(load_preset("kinect_v1"), 320, 240)
-    window = {"output_left_border_px": 12, "output_right_border_px": 9, "output_top_border_px": 6,
-              "output_bottom_border_px": 3}  # fmt: skip
-    device = stock.replace(**window)
-    scenes = _scene_list(("box", "can", "mug"), [0.6, 1.3], wall=False)
-    depths = render_depths(device, cast_scenes(device, scenes, 6, seed=21), seed=21)
-    return stock, window, [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
+    pytest.importorskip("torch")
+    with torch_threads(1):
+        stock = camera_for(load_preset("kinect_v1"), 320, 240)
+        window = {"output_left_border_px": 12, "output_right_border_px": 9, "output_top_border_px": 6,
+                  "output_bottom_border_px": 3}  # fmt: skip
+        device = stock.replace(**window)
+        scenes = _scene_list(("box", "can", "mug"), [0.6, 1.3], wall=False)
+        depths = render_depths(device, cast_scenes(device, scenes, 6, seed=21), seed=21)
+        yield stock, window, [RealDepthFrame(f"{i}.png", round_like(d, 0.001), 0.001) for i, d in enumerate(depths)]
 
 
 def test_a_registered_device_window_is_measured_in_its_ir_frame(registered_device):
@@ -445,7 +446,7 @@ def test_a_registered_device_window_is_measured_in_its_ir_frame(registered_devic
     assert np.ptp(np.percentile(first, [10, 90])) >= 1  # and it is not one width
 
 
-def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_depths():
+def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_depths(set_torch_threads):
     """On a table above a floor, a nearer surface's depth on a farther pixel maps a few pixels into the IR
     frame's bands (2-3.5 % of a band column against 88 % inside): they must not end the band (they read the
     right band 9 as 5 under the 1 % rule alone). Rendered with the registration mapped back by the ray-cast
@@ -458,8 +459,8 @@ def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_de
     from ddsgen.sensor.output_window import OutputWindow, measure_device_window
     from ddsgen.sensor.registration import ir_frame_validity
 
-    torch = pytest.importorskip("torch")
-    torch.set_num_threads(1)
+    pytest.importorskip("torch")
+    set_torch_threads(1)
     stock = camera_for(load_preset("kinect_v1").replace(registration_forward_gap_px=0), 320, 240)
     device = stock.replace(output_left_border_px=12, output_right_border_px=9, output_top_border_px=6,
                            output_bottom_border_px=3)  # fmt: skip
@@ -552,7 +553,7 @@ def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_a
     assert sum(row["pixels"] for row in real_rows) > 0 and sum(row["pixels"] for row in stock_rows) > 0
 
 
-def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined():
+def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined(set_torch_threads):
     """At a high IR signal (eta 5e7) the beam's fall-off darkens the corners without losing a dot:
     validity by radius does not move (hidden-device draw 1: 9 % of a tiny term over 0-16). The fit
     must not claim a value there: the hidden cos^8 lies within its reported 2 sigma, which spans the
@@ -562,8 +563,8 @@ def test_unpaired_fit_reports_a_fall_off_the_frames_cannot_see_as_undetermined()
     from ddsgen.preset import load_preset
     from ddsgen.scene.scenelist import load_scene_list
 
-    torch = pytest.importorskip("torch")
-    torch.set_num_threads(1)
+    pytest.importorskip("torch")
+    set_torch_threads(1)
     stock = camera_for(load_preset("kinect_v1"), W, H).replace(registration_ir_offset_m=0.0, registration_shift_px=0.0,
                                                                emitted_intensity=5.0e7)  # fmt: skip
     real = _real_like_frames(stock.replace(projector_falloff_exponent=8.0))
