@@ -11,6 +11,7 @@ Re-running into the same folder skips frames that already have a record.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -62,24 +63,37 @@ class RenderSummary:
 _WORKER: dict = {}
 
 
+@contextlib.contextmanager
+def one_thread():
+    """One intra-op torch thread and one BLAS thread while frames render, then the caller's settings again.
+
+    Parallelism comes from workers, and results must not depend on how a reduction was split over threads. numpy's
+    BLAS (the ray cast's matrix products) otherwise keeps a thread per core that spins after each call, ~95 ms of CPU
+    per frame beside a 125-ms sensor. Restoring matters where frames render in the caller's process (``--workers
+    1``, :mod:`ddsgen.data`): the caller's own torch work keeps its thread count.
+    """
+    import torch
+    from threadpoolctl import ThreadpoolController
+
+    controller = _WORKER.setdefault("threadpools", ThreadpoolController())  # found once: a lookup costs ~0.5 ms
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with controller.limit(limits=1, user_api="blas"):
+            yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def _worker_state(job: RenderJob):
     if _WORKER.get("job") != job:
-        import torch
-        from threadpoolctl import threadpool_limits
-
         from ddsgen.cache import configure_torch_compile_cache
         from ddsgen.sensor.depth_sensor import DepthSensor
 
         configure_torch_compile_cache()
-        # One intra-op thread per worker: parallelism comes from workers, and results do not
-        # depend on how a reduction was split over threads.
-        torch.set_num_threads(1)
-        # The same for numpy's BLAS (the ray cast's matrix products): OpenBLAS otherwise keeps a thread per
-        # core that spins after each call, ~95 ms of CPU per frame beside a 125-ms sensor, and its results
-        # could depend on the machine's core count.
-        threadpool_limits(1, user_api="blas")
         preset = load_preset(job.preset_path)
-        _WORKER.clear()
+        for key in ("job", "preset", "scenes", "sensor"):
+            _WORKER.pop(key, None)
         _WORKER.update(
             job=job,
             preset=preset,
@@ -124,7 +138,8 @@ def render_frame(job: RenderJob, frame: int) -> dict:
 
 
 def _render_batch(job: RenderJob, frames: list[int]) -> list[dict]:
-    return [render_frame(job, f) for f in frames]
+    with one_thread():
+        return [render_frame(job, f) for f in frames]
 
 
 # ---- the run ----------------------------------------------------------------------------

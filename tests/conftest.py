@@ -23,33 +23,18 @@ def set_torch_threads():
     torch.set_num_threads(before)
 
 
-def _in_process_render_job():
-    """The job the in-process renderer last built its state for (None: none yet). Rendering with --workers 1 in
-    this process pins torch to one thread for the render's worker state and leaves it so (ddsgen.runner)."""
-    runner = sys.modules.get("ddsgen.runner")
-    return None if runner is None else runner._WORKER.get("job")
-
-
 @pytest.fixture(autouse=True)
 def torch_thread_count_is_restored(request):
-    """Fail a test that leaves torch's thread count changed, and restore it, so the next test starts as this one did.
-
-    The one change accepted is the in-process renderer's pin to one thread; its cached worker state is dropped too, so
-    the next in-process render pins again instead of rendering with the restored count.
-    """
+    """Fail a test that leaves torch's thread count changed, and restore it, so the next test starts as this one did."""
     torch = sys.modules.get("torch")  # not imported yet: the test starts from torch's own default
     if torch is None:
         yield
         return
-    before, job = torch.get_num_threads(), _in_process_render_job()
+    before = torch.get_num_threads()
     yield
     after = torch.get_num_threads()
     if after == before:
         return
     torch.set_num_threads(before)
-    rendered_here = _in_process_render_job() is not job
-    if rendered_here and after == 1:
-        sys.modules["ddsgen.runner"]._WORKER.clear()
-        return
     pytest.fail(f"{request.node.nodeid} left torch's thread count at {after} (it was {before}): set it with the "
                 f"set_torch_threads fixture or torch_threads.torch_threads", pytrace=False)  # fmt: skip
