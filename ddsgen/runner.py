@@ -24,7 +24,9 @@ import numpy as np
 from ddsgen.errors import InputError
 from ddsgen.atomic import atomic_write_text
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
-from ddsgen.io.manifest import RUN_FILE, append_record, dumps_record, read_manifest, repair_manifest, sorted_records
+from ddsgen.io.manifest import (
+    BUILT_IN_SCENES, RUN_FILE, append_record, dumps_record, file_digest, read_manifest, repair_manifest, sorted_records,
+)
 from ddsgen.preset import SensorPreset, load_preset, save_preset, source_label
 from ddsgen.scene.scenelist import SceneList, load_scene_list
 from ddsgen.worker_pool import run_in_pool
@@ -143,20 +145,14 @@ def _render_batch(job: RenderJob, frames: list[int]) -> list[dict]:
 
 
 # ---- the run ----------------------------------------------------------------------------
-def _file_digest(path: str | None) -> str:
-    if path is None:
-        return "built-in"
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
-
-
 def _run_identity(preset: SensorPreset, scenes_path: str | None, seed: int) -> dict:
     """What must match for a resume to continue an earlier run into the same folder."""
     preset_text = json.dumps(preset.to_dict(), sort_keys=True)
     return {
         "seed": seed,
         "preset_sha": hashlib.sha256(preset_text.encode()).hexdigest()[:16],
-        "scenes": str(Path(scenes_path).resolve()) if scenes_path else "built-in",
-        "scenes_sha": _file_digest(scenes_path),
+        "scenes": str(Path(scenes_path).resolve()) if scenes_path else BUILT_IN_SCENES,
+        "scenes_sha": file_digest(scenes_path),
     }
 
 

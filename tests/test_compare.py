@@ -592,3 +592,36 @@ def test_real_cat_compare_gives_the_objects_only_figure_first(linemod, tmp_path,
     measured = json.loads((objects / "comparison.json").read_text())
     assert (only["gap"], only["noise_floor"]) == (measured["gap"], measured["noise_floor"])
     assert f"{only['gap']:.2f} mm" in lines[1]
+
+
+def test_a_rendered_folder_is_simulated_whole_and_its_preset_sits_at_the_noise_floor(tmp_path):
+    """A ddsgen render holds what its manifest does not list (distractors, the table, the floor, walls); run.json
+    names the scene list and seed that make them again, so compare simulates every surface of every frame: the
+    preset that rendered the folder is at the noise floor on each of 16 default-scene frames, and the frames get no
+    support plane fitted by RANSAC (the rendered one is modelled)."""
+    out = tmp_path / "render"
+    assert main(["render", "kinect_v1", "-n", "16", "--out", str(out), "--workers", "2", "--seed", "3", "--quiet"]) == 0
+    scans = read_scan_folder(out)
+    assert all(s.rendered is not None and not s.rendered.missing for s in scans)
+    frames = prepare_frames(load_preset("kinect_v1"), scans)
+    assert all(f.plane is None for f in frames)
+    report = gap(DepthSensor(load_preset("kinect_v1")), frames, seed=1)
+    excess = [f["gap"] - f["noise_floor"] for f in report.frames]
+    print("excess per frame (mm):", [round(e, 2) for e in excess])
+    assert max(excess) <= 0.1
+
+
+def test_a_render_whose_scene_list_changed_is_not_simulated_whole(tmp_path):
+    """The scene list named in run.json is used only while it is the one the folder was rendered from."""
+    from ddsgen.io.scanfolder import read_scan_folder as read
+
+    scenes = tmp_path / "scenes.yaml"
+    scenes.write_text(SCENES)
+    out = tmp_path / "render"
+    preset = write_presets(tmp_path)["stock"]
+    assert main(["render", str(preset), "--scenes", str(scenes), "-n", "2", "--out", str(out), "--quiet"]) == 0
+    assert all(s.rendered is not None and not s.rendered.missing for s in read(out))
+    scenes.write_text(SCENES.replace("albedo: 0.6", "albedo: 0.5"))
+    assert all("has changed" in s.rendered.missing for s in read(out))
+    scenes.unlink()
+    assert all("is gone" in s.rendered.missing for s in read(out))

@@ -607,6 +607,9 @@ def blind_scans(tmp_path, blind_geometry, effect):
     folder = tmp_path / "scans"
     shutil.copytree(source, folder)
     remeasure_folder(folder, frames, blind_stock().baseline_m, effect, seed=5)
+    # Scans of another device: only the annotated objects are known, as for real scans (with run.json the render's
+    # whole scene would be simulated, :func:`ddsgen.realscan.simulate.rendered_background`).
+    (folder / "run.json").unlink()
     return folder
 
 

@@ -15,6 +15,7 @@ line anywhere but a crash-truncated last one.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -336,3 +337,14 @@ def read_manifest(path: str | Path, validate: bool = True, strict: bool = True) 
 def sorted_records(records: list[dict]) -> list[dict]:
     """Records sorted by ``frame`` (stable)."""
     return sorted(records, key=lambda r: r["frame"])
+
+
+#: run.json's name for the built-in scene list (no file).
+BUILT_IN_SCENES = "built-in"
+
+
+def file_digest(path: str | Path | None) -> str:
+    """The first 16 hex digits of a file's SHA-256, as run.json records a scene list's (``"built-in"`` for None)."""
+    if path is None:
+        return BUILT_IN_SCENES
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]

@@ -62,6 +62,19 @@ class _LazyDepth:
 
 
 @dataclasses.dataclass(repr=False, eq=False)
+@dataclasses.dataclass(frozen=True)
+class RenderedScene:
+    """How ddsgen rendered a frame, from its folder's run.json: the scene list (None: the built-in one) and the seed.
+    ``ddsgen.scene.sampling.sample_frame(load_scene_list(scenes_path), frame, seed)`` makes the whole scene again:
+    distractors, table, floor and walls, which the manifest does not list. ``missing`` says why it cannot be made
+    again (the scene list moved or changed since the render); empty when it can."""
+
+    scenes_path: str | None
+    seed: int
+    missing: str = ""
+
+
+@dataclasses.dataclass
 class ScanFrame:
     """One depth scan with what is known about its scene.
 
@@ -75,6 +88,7 @@ class ScanFrame:
     depth_scale: metres per PNG unit used to decode a PNG.
     layout: ``"ddsgen"`` or ``"bop"``; frame: frame number / BOP image id.
     record: the raw manifest record (ddsgen layout), else None.
+    rendered: a ddsgen render's :class:`RenderedScene` (its folder has run.json), else None.
     """
 
     name: str
@@ -86,6 +100,7 @@ class ScanFrame:
     layout: str = "ddsgen"
     frame: int = 0
     record: dict | None = None
+    rendered: RenderedScene | None = None
     depth: np.ndarray | None = _LazyDepth()
 
     def load_depth(self) -> np.ndarray:

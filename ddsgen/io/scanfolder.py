@@ -36,18 +36,37 @@ the file and the problem.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.io.bop_reader import bop_scene_folders, read_bop_scene
-from ddsgen.io.manifest import read_manifest
-from ddsgen.io.scan_frame import ScanFrame, ScanObject, check_size, is_positive_number
+from ddsgen.io.manifest import BUILT_IN_SCENES, RUN_FILE, file_digest, read_manifest
+from ddsgen.io.scan_frame import RenderedScene, ScanFrame, ScanObject, check_size, is_positive_number
 from ddsgen.preset import Intrinsics
+
+def rendered_scene(folder: Path) -> RenderedScene | None:
+    """The :class:`RenderedScene` of a ddsgen render folder (None without a readable run.json)."""
+    try:
+        run = json.loads((folder / RUN_FILE).read_text())
+        scenes, digest, seed = run["scenes"], run["scenes_sha"], int(run["seed"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if scenes == BUILT_IN_SCENES:
+        return RenderedScene(None, seed)
+    path = Path(scenes)
+    if not path.is_file():
+        return RenderedScene(scenes, seed, missing=f"the scene list it was rendered from is gone ({scenes})")
+    if file_digest(path) != digest:
+        return RenderedScene(scenes, seed, missing=f"the scene list it was rendered from has changed ({scenes})")
+    return RenderedScene(scenes, seed)
+
 
 def _read_ddsgen(folder: Path) -> list[ScanFrame]:
     manifest = folder / "manifest.jsonl"
+    rendered = rendered_scene(folder)
     records = read_manifest(manifest, strict=False)
     if not records:
         raise InputError(f"{manifest}: no complete records")
@@ -100,6 +119,7 @@ def _read_ddsgen(folder: Path) -> list[ScanFrame]:
                 layout="ddsgen",
                 frame=int(record["frame"]),
                 record=record,
+                rendered=rendered,
             )
         )
     return frames

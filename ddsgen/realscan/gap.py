@@ -178,6 +178,7 @@ def gap(sensor, frames: list[FrameData], *, region: str = "all", seed: int = 0, 
                 for other in others:
                     twin = dataclasses.replace(frame, real_depth=other.depth, real_valid=other.valid)
                     floors[-1].append(frame_gap(sim, twin, region)["gap"] or 0.0)
+                per_frame[-1]["noise_floor"] = _r(np.mean(floors[-1]))
                 patches.append(patch_gap(sim, _with_region(frame, region), others, local_window(frame.intrinsics.fx)))
                 if region == "all" and bool(frame.object_region.any()):
                     objects_only.append(_objects_only(sim, frame, others))

@@ -22,8 +22,8 @@ class GapReport:
     gap: headline (mm); noise_floor: gap between the simulation and other units' (mm, NaN if not computed),
     averaged over ``len(noise_floor_draws)`` units per frame; noise_floor_draws: the floor against each of them
     (mean over frames, mm), whose spread is the floor's own scatter;
-    frames: per-frame dicts (name, gap, depth_mm, gradient_mm, validity_mm, bias_mm, spread_mm,
-    confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
+    frames: per-frame dicts (name, gap, noise_floor when computed, depth_mm, gradient_mm, validity_mm, bias_mm,
+    spread_mm, confusion, pixels); parts: aggregated bins and confusion; maps: per-frame (name, sim depth,
     real depth, region) numpy arrays when requested (for residual plots); realism: the hole and
     quantisation statistics of real and sim (:mod:`ddsgen.realscan.realism`), when computed.
     """

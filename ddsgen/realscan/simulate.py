@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -40,6 +41,9 @@ from ddsgen.errors import InputError
 from ddsgen.realscan.losses import resolved_depth_m
 from ddsgen.realscan.support_plane import Plane, fit_support_plane, plane_pose
 from ddsgen.preset import Intrinsics, SensorPreset
+from ddsgen.scene import shapes
+from ddsgen.scene.sampling import FrameScene, PlacedObject, sample_frame
+from ddsgen.scene.scenelist import load_mesh, load_scene_list
 
 #: Default IR reflectance of modelled surfaces (the scene-list default for objects). eta_c and
 #: albedo only appear as their product in the IR image, so a fitted eta_c is relative to this.
@@ -110,24 +114,44 @@ class FrameData:
 
 
 def _load_object_mesh(obj):
-    from ddsgen.scene.scenelist import load_mesh
-
     return load_mesh(obj.mesh_path, obj.mesh_scale)  # a file's errors name it (passing it as source named it twice)
 
 
-def frame_scene(frame, albedo: float = DEFAULT_ALBEDO, plane: Plane | None = None, plane_size_m: float = 20.0):
-    """The FrameScene of a scan frame: its objects at their poses (camera frame = world frame)."""
-    from ddsgen.scene import shapes
-    from ddsgen.scene.sampling import FrameScene, PlacedObject
+@functools.lru_cache(maxsize=4)
+def _scene_list(path: str | None):
+    return load_scene_list(path)
 
-    objects = []
+
+def rendered_background(frame) -> tuple[list[PlacedObject], dict[int, float]] | None:
+    """A ddsgen render's frame as it was rendered, beside its listed objects: the background (ground, table, floor,
+    walls, distractors) in the camera frame, and the objects' albedos by id. None for any other frame, and for a
+    render whose scene list cannot be made again (:class:`~ddsgen.io.scan_frame.RenderedScene`)."""
+    rendered = getattr(frame, "rendered", None)
+    if rendered is None or rendered.missing or frame.world_T_cam is None:
+        return None
+    scene = sample_frame(_scene_list(rendered.scenes_path), frame.frame, rendered.seed)
+    if not np.allclose(scene.world_T_cam, frame.world_T_cam, rtol=0.0, atol=1e-9):  # not the scene of this frame
+        return None
+    cam_T_world = np.linalg.inv(scene.world_T_cam)
+    background = [dataclasses.replace(b, world_T_obj=cam_T_world @ b.world_T_obj) for b in scene.background]
+    return background, {o.id: o.albedo for o in scene.objects}
+
+
+def frame_scene(frame, albedo: float = DEFAULT_ALBEDO, plane: Plane | None = None, plane_size_m: float = 20.0):
+    """The FrameScene of a scan frame (camera frame = world frame): its objects at their poses, and behind them the
+    background it was rendered with (a ddsgen render whose scene list is at hand: :func:`rendered_background`) or
+    else the support ``plane`` when given. ``albedo``: the IR reflectance of surfaces the frame does not state."""
+    objects, background = [], []
+    rendered = rendered_background(frame)
+    albedos = rendered[1] if rendered is not None else {}
     for obj in frame.objects:
         mesh = _load_object_mesh(obj)
         objects.append(PlacedObject(id=int(obj.id), class_name=obj.class_name, mesh_ref=obj.mesh_path, mesh=mesh,
-                                    world_T_obj=np.asarray(obj.cam_T_obj, dtype=np.float64), albedo=float(albedo),
-                                    mesh_scale=float(obj.mesh_scale)))  # fmt: skip
-    background = []
-    if plane is not None:
+                                    world_T_obj=np.asarray(obj.cam_T_obj, dtype=np.float64),
+                                    albedo=float(albedos.get(int(obj.id), albedo)), mesh_scale=float(obj.mesh_scale)))  # fmt: skip
+    if rendered is not None:
+        background = rendered[0]
+    elif plane is not None:
         background.append(PlacedObject(0, "support_plane", "plane:fitted", shapes.plane_mesh(plane_size_m, plane_size_m),
                                        plane_pose(plane), float(albedo)))  # fmt: skip
     return FrameScene(objects=objects, background=background, world_T_cam=np.eye(4), frame_index=int(frame.frame),
@@ -178,7 +202,8 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     scene = frame_scene(frame, albedo)
     hits = cast(scene, intr, output_projector_x_m(preset), preset.shadow_bias_m)
     plane = None
-    if support_plane:
+    whole_scene = rendered_background(frame) is not None  # a render whose background is modelled: no plane to fit
+    if support_plane and not whole_scene:
         # Exclude the objects' silhouettes grown by a few px (their rims are mixed pixels).
         import cv2
 
