@@ -70,8 +70,6 @@ FIELDS: dict[str, Field] = {
     "ambient_counts": Field(float, "ambient IR level added everywhere (IR counts)", 0, 1e6, default=0.0),
     "projector_falloff_exponent": Field(float, "projector beam profile: signal x cos^m(angle off the projector's axis); 0 = flat", 0, 32, default=0.0),
     "vignetting_exponent": Field(float, "IR lens vignetting: signal x cos^n(angle off the camera's axis); 4 = the cos^4 law, 0 = none", 0, 32, default=0.0),
-    "lens_aperture_m": Field(float, "IR lens aperture diameter (m): > 0 blurs the dots by the defocus at their depth; 0 = pinhole", 0, 0.1, default=0.0),
-    "focus_distance_m": Field(float, "IR lens focus distance (m), where the dots are sharpest", 0, 1e3, low_open=True, default=2.0),
     "ir_bits": Field(int, "IR sensor bit depth (clip and quantise to 2^bits - 1)", 4, 16, default=10),
     "min_confidence": Field(float, "matcher confidence (best minus second-best ZNCC) below which depth is invalid", 0, 1, default=0.15),
     "shadow_always_invalid": Field(bool, "pixels the projector cannot light are invalid whatever the matcher finds (true: the paper's shadow map); false: only matching decides, so windows at a shadow's edges keep the surface they see", default=True),
@@ -88,7 +86,6 @@ FIELDS: dict[str, Field] = {
     "registration_ir_offset_m": Field(float, "depth registered to an RGB camera: the IR camera sits this far left (-x) of the output (RGB) camera, so near points shift by f b / z px and RGB-view pixels the IR camera does not see get no depth (m; 0 = depth in the IR camera's own image). Takes effect where the caller casts the IR view (render, compare, fit, diagnose, study)", 0, 1, default=0.0),
     "registration_shift_px": Field(float, "depth registered to an RGB camera: the IR camera's principal point is this many px left of the output camera's (px; with the IR frame's blind left columns it sets the registered left band, output_left_border_px + this - f b / z)", -1000, 1000, default=0.0),
     "registration_dense": Field(bool, "depth registered to an RGB camera: the device writes each depth to a 2x2 block (OpenNI's dense registration), so pixels without depth of their own take a lower or right neighbour's: 1-px holes and cracks close", default=False),
-    "registration_fill_band_holes": Field(bool, "depth registered to an RGB camera: a small hole (fewer than cleanup_hole_px pixels) inside one surface (rim within cleanup_max_diff_px), most of whose pixels the IR camera does not see, takes its nearest valid pixel's depth. The device maps its measured depth forward, so the matcher's near surface, carried past a depth edge, covers such a band; the simulation maps back by the ray-cast geometry and would leave it open", default=False),
     "registration_forward_gap_px": Field(int, "depth registered to an RGB camera: 0 = map each output pixel back to the IR pixel that sees its ray-cast surface point; N >= 1 = map each valid IR depth forward by its measured depth, as the device does (z-buffer: the nearest wins), and close a run of at most N empty pixels between two written pixels whose IR sources are neighbours (a rasteriser's gap fill): the band right of a near surface stays open when wider than N, and the near surface the matcher carried past its edge lands next to it", 0, 64, default=0),
     "registration_forward_fill_rows": Field(int, "with registration_forward_gap_px: close a run of at most N empty pixels in a column, between two written pixels, where the IR camera saw a valid surface (its depth was carried elsewhere) or saw nothing; the nearer source wins. A forward map by rows leaves a dashed line along a near-horizontal depth edge where consecutive rows' bands overlap; real frames show no such dashes (their isolated dropouts are as often horizontal as vertical)", 0, 16, default=0),
     "output_top_border_px": Field(int, "the device outputs no depth in this many top rows (px; 0 = none)", 0, 16384, default=0),
@@ -97,7 +94,6 @@ FIELDS: dict[str, Field] = {
     "pattern": Field(str, "dot pattern: a file in pattern_assets/ or a path (relative to the preset)", default="kinect_like_640.png"),
     "pattern_psf_px": Field(float, "Gaussian point-spread sigma of a projected dot (px)", 0, 10, low_open=True, default=0.5),
     "pattern_dot_jitter_px": Field(float, "projected dots sit this far (uniform, +-half, projector px) off the pattern's pixel lattice; 0 = on the lattice", 0, 2, default=0.0),
-    "reference_speckle_contrast": Field(float, "speckle of the device's stored reference image (captured at calibration): each reference pixel times 1 + c N(0, 1), fixed per unit; it grains the disparity noise down the columns as well as along the rows (ddsgen/sensor/reference_speckle.py); 0 = off", 0, 2, default=0.0),
     "effects": Field(list, "extra physical effects: list of {name: EFFECT, PARAM: value}", default=()),
     "postprocess": Field(str, "optional post-processing CNN weights file (relative to the preset)", default=None),
 }
@@ -152,8 +148,6 @@ class SensorPreset:
     ambient_counts: float
     projector_falloff_exponent: float
     vignetting_exponent: float
-    lens_aperture_m: float
-    focus_distance_m: float
     ir_bits: int
     min_confidence: float
     row_smoothing_weight: float
@@ -170,7 +164,6 @@ class SensorPreset:
     registration_ir_offset_m: float
     registration_shift_px: float
     registration_dense: bool
-    registration_fill_band_holes: bool
     registration_forward_gap_px: int
     registration_forward_fill_rows: int
     output_top_border_px: int
@@ -179,7 +172,6 @@ class SensorPreset:
     pattern: str
     pattern_psf_px: float
     pattern_dot_jitter_px: float
-    reference_speckle_contrast: float
     effects: tuple
     postprocess: str | None
     source: str = ""  # file the preset came from (for messages and relative paths)
