@@ -154,7 +154,7 @@ class Parameter:
             object.__setattr__(self, "fit", dataclasses.replace(self.fit, key=self.name))
 
 
-# The schema. Order is the order of keys in a written preset.
+#: Every preset key by name, in the order of keys in a written preset.
 PARAMETERS: dict[str, Parameter] = {p.name: p for p in (
     Parameter("name", str, "", "name",
         "preset name",
