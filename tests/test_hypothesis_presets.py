@@ -61,8 +61,6 @@ def valid_presets(draw) -> dict:
         "electrons_per_count": st.floats(0.0, 1e6),
         "projector_falloff_exponent": st.floats(0.0, 32.0),
         "vignetting_exponent": st.floats(0.0, 32.0),
-        "lens_aperture_m": st.floats(0.0, 0.1),
-        "focus_distance_m": st.floats(1e-3, 1e3),
         "cleanup_speckle_px": st.integers(0, 1_000_000),
         "cleanup_max_diff_px": st.floats(1e-3, 1000.0),
         "cleanup_hole_px": st.integers(0, 1_000_000),

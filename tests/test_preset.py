@@ -29,8 +29,7 @@ def test_shipped_presets_match_the_paper_supplementary():
     # The paper's sketch has none of the device's extras (all off by default).
     assert (kinect.speckle_grain_px, kinect.speckle_fixed_to_scene, kinect.electrons_per_count) == (0.0, False, 0.0)
     assert (kinect.projector_falloff_exponent, kinect.vignetting_exponent) == (0.0, 0.0)
-    assert (kinect.cleanup_speckle_px, kinect.cleanup_hole_px, kinect.lens_aperture_m, kinect.output_left_border_px) == (
-        0, 0, 0.0, 0)
+    assert (kinect.cleanup_speckle_px, kinect.cleanup_hole_px, kinect.output_left_border_px) == (0, 0, 0)
 
 
 def test_device_preset_departs_from_the_paper_only_where_its_comments_say():

@@ -7,7 +7,8 @@ unique match nearby agrees, small holes inside one surface are filled, gaps narr
 window are bridged, and small specks of valid depth are removed. These are keys of the device model
 (``presets/kinect_v1.yaml``, each with its measurement), not effects. A preset that has one of them switched
 off -- ``kinect_v1_paper`` has all of them off -- gets it as a candidate: the key set to each value of a short
-grid (:data:`BEHAVIOURS`), judged by the same held-out rule as every effect, and named in the report like one.
+grid (:data:`BEHAVIOURS`, from the ``diagnose`` records of :mod:`ddsgen.parameters`), judged by the same held-out
+rule as every effect, and named in the report like one.
 
 Measured on the real LineMOD cat, objects' region (``ddsgen compare``, one key of ``kinect_v1`` at a time on
 ``kinect_v1_paper``): gap beyond the floor 1.69 mm -> 0.58 (windows across edges kept), 0.76 (the clean-up),
@@ -23,6 +24,7 @@ from ddsgen.diagnose.acceptance import relative_fall
 from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.plane import replaned
+from ddsgen.parameters import behaviours
 from ddsgen.sensor.effects.base import EffectParam
 
 
@@ -51,39 +53,11 @@ class DeviceBehaviour:
         return {self.key: EffectParam(self.off, min(self.grid), max(self.grid), self.unit, self.description)}
 
 
+#: The device behaviours, in candidate order: the ``diagnose`` records of the parameter registry
+#: (:class:`~ddsgen.parameters.Behaviour`), each with its key's unit.
 BEHAVIOURS: dict[str, DeviceBehaviour] = {
-    b.name: b
-    for b in (
-        DeviceBehaviour(
-            "edge_keeping_matches", "confirmed_match_zncc", 1.0, (0.3, 0.35, 0.4, 0.5, 0.6), "ZNCC", "disparity",
-            "The device keeps a match whose window straddles a depth edge (two correlation peaks, so it fails the "
-            "uniqueness test) when a unique match within its window agrees with it, so objects keep their edges, "
-            "fattened by a pixel or two, instead of a ring of holes.",
-            "depth missing in the simulation, present in the real frame, along depth edges",
-            "edge_distance",
-        ),
-        DeviceBehaviour(
-            "hole_fill", "cleanup_hole_px", 0, (2, 4, 8, 16, 32), "px", "validity",
-            "The device fills invalid holes of a few pixels inside one surface from their nearest valid "
-            "neighbour, so surfaces carry no pepper of single missing pixels.",
-            "small holes on surfaces in the simulation that the real frame does not have",
-            "signal",
-        ),
-        DeviceBehaviour(
-            "narrow_gap_fill", "cleanup_fill_width_px", 0, (1, 2, 3, 4, 6), "px", "validity",
-            "A pixel in a gap so narrow that a matching window centred on it is mostly lit takes its nearest "
-            "valid neighbour's depth: thin projector shadows and cracks keep depth on the device.",
-            "thin bands of missing depth along edges in the simulation, valid in the real frame",
-            "edge_distance",
-        ),
-        DeviceBehaviour(
-            "speckle_removal", "cleanup_speckle_px", 0, (25, 50, 100, 200, 400), "px", "validity",
-            "The device removes small isolated regions of valid depth (stray matches in shadows and on dark "
-            "surfaces).",
-            "isolated specks of depth in the simulation where the real frame has none",
-            "signal",
-        ),
-    )
+    b.name: DeviceBehaviour(b.name, key.name, b.off, b.grid, key.unit, b.acts_on, b.description, b.signature, b.axis)
+    for key, b in behaviours()
 }
 
 

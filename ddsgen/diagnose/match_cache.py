@@ -21,6 +21,8 @@ from collections import OrderedDict
 
 import torch
 
+from ddsgen.parameters import PARAMETERS, fit_rules, stage_keys
+
 #: Entries kept by each cache. At 640 x 480 a match result holds 5 maps (~6 MB), a front end ~7 maps and its
 #: noise draws (~15 MB): 32 front ends cover the fit frames x two noise draws of a candidate search with room to
 #: spare. (An unbounded match cache grew a test worker to 3 GB; 256 matches + 48 front ends to 4.6 GB.)
@@ -77,15 +79,15 @@ def reuse_matches(size: int = MATCH_ENTRIES):
         depth_sensor.match = original
 
 
-#: Preset keys read only by the validity stage (:meth:`~ddsgen.sensor.depth_sensor.DepthSensor.validity_stage`).
-#: Each is set to this value in the state.
-VALIDITY_STAGE_KEYS = {"cleanup_speckle_px": 0, "cleanup_hole_px": 0, "cleanup_fill_width_px": 0, "cleanup_max_diff_px": 1.0}
+#: Preset keys read only by the validity stage (:meth:`~ddsgen.sensor.depth_sensor.DepthSensor.validity_stage`): the
+#: clean-up's. Each is set to its default in the state.
+VALIDITY_STAGE_KEYS = {key: PARAMETERS[key].default for key in stage_keys("cleanup")}
 
 
 #: Preset keys the sensor holds as parameters (:class:`~ddsgen.sensor.depth_sensor.DepthSensor`) and its front end
-#: reads nowhere else (the baseline's preset value places the ray casts, which the geometry holds).
-PARAMETER_KEYS = ("emitted_intensity", "speckle_scale", "read_noise_std_counts", "read_noise_mean_counts",
-                  "ambient_counts", "softargmax_beta", "baseline_m")  # fmt: skip
+#: reads nowhere else (the baseline's preset value places the ray casts, which the geometry holds): the fit's keys
+#: stored in a tensor of their own value (the focal scale is a ratio to the preset's focal length).
+PARAMETER_KEYS = tuple(rule.key for rule in fit_rules().values() if rule.attr is not None and not rule.tensor_is_ratio)
 
 
 def front_end_state(sensor) -> tuple:

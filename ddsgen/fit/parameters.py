@@ -2,9 +2,9 @@
 
 :data:`SENSOR_PARAMS` maps each CLI name to the :class:`~ddsgen.sensor.depth_sensor.DepthSensor` tensor (or, for a
 device key of the preset, ``attr=None``: :mod:`ddsgen.fit.device_keys`), its bounds, prior and group
-(:mod:`ddsgen.fit.priors`); a new sensor parameter joins the fit with one entry. :func:`resolve_params` turns names
-(``--params``) into the tensors :func:`ddsgen.fit.fitting.fit_sensor` moves, :func:`physical_values` reads the values
-reports show, :func:`values_to_write` the values a written preset holds.
+(:mod:`ddsgen.fit.priors`), derived from the parameter registry (:mod:`ddsgen.parameters`). :func:`resolve_params`
+turns names (``--params``) into the tensors :func:`ddsgen.fit.fitting.fit_sensor` moves, :func:`physical_values` reads
+the values reports show, :func:`values_to_write` the values a written preset holds.
 """
 
 from __future__ import annotations
@@ -17,36 +17,13 @@ import torch
 from ddsgen.errors import InputError
 from ddsgen.fit.device_keys import device_key_values, is_device_key, mirror
 from ddsgen.fit.priors import SensorParam
+from ddsgen.parameters import fit_rules
 
 DEFAULT_PARAMS = ("emitted_intensity", "read_noise_std", "beta", "baseline")
-#: Fittable sensor parameters by CLI name: the DepthSensor tensor, bounds, prior and group
-#: (see :mod:`ddsgen.fit.priors`). A new sensor parameter joins the fit with one entry here.
-SENSOR_PARAMS = {
-    "emitted_intensity": SensorParam("log_emitted_intensity", "emitted_intensity", True, ("factor", 0.25, 4.0),
-                                     0.7, "snr", 0.25),
-    "read_noise_std": SensorParam("log_read_noise_std", "read_noise_std_counts", True, ("factor", 0.25, 4.0),
-                                  0.7, "snr", 0.25),
-    "beta": SensorParam("log_beta", "softargmax_beta", True, ("range", 5.0, 40.0), 1.0, "matching", 0.15),
-    "baseline": SensorParam("log_baseline", "baseline_m", True, ("factor", 0.95, 1.05), 0.02, "geometry", 0.005),
-    "focal": SensorParam("log_focal_scale", "focal_px", True, ("factor", 0.97, 1.03), 0.01, "geometry", 0.003),
-    "speckle_scale": SensorParam("log_speckle_scale", "speckle_scale", True, ("factor", 0.25, 4.0), 0.7, "pattern",
-                                 0.2),
-    "ambient": SensorParam("log_ambient", "ambient_counts", True, ("range", 1e-6, 255.0), 3.0, "ambient", 0.1),
-    "read_noise_mean": SensorParam("read_noise_mean", "read_noise_mean_counts", False, ("range", -64.0, 64.0), 16.0,
-                                   "ir_offset", 1.0),
-    # Device keys of the preset (attr None): 1-D grid searches, ddsgen.fit.device_keys; docs/fit_transfer.md.
-    "projector_falloff": SensorParam(None, "projector_falloff_exponent", False, ("range", 0.0, 8.0), 2.0, "falloff",
-                                     0.5),
-    "vignetting": SensorParam(None, "vignetting_exponent", False, ("range", 0.0, 8.0), 1.0, "falloff", 0.5),
-    "speckle_grain": SensorParam(None, "speckle_grain_px", False, ("range", 0.0, 3.0), 0.5, "speckle", 0.25),
-    "speckle_shape": SensorParam(None, "speckle_shape", True, ("factor", 0.25, 4.0), 0.7, "speckle", 0.2),
-    "shot_noise_gain": SensorParam(None, "electrons_per_count", True, ("factor", 0.25, 4.0), 0.7, "snr", 0.25),
-    "cleanup_speckle": SensorParam(None, "cleanup_speckle_px", False, ("range", 0.0, 400.0), 100.0, "cleanup", 25.0),
-    "cleanup_hole": SensorParam(None, "cleanup_hole_px", False, ("range", 0.0, 32.0), 8.0, "cleanup", 2.0),
-    "cleanup_max_diff": SensorParam(None, "cleanup_max_diff_px", False, ("range", 0.25, 4.0), 1.0, "cleanup", 0.25),
-    "cleanup_fill_width": SensorParam(None, "cleanup_fill_width_px", False, ("range", 0.0, 8.0), 4.0, "cleanup", 1.0),
-    "confirmed_match": SensorParam(None, "confirmed_match_zncc", False, ("range", 0.2, 1.0), 0.5, "edges", 0.05),
-}  # fmt: skip
+#: Fittable sensor parameters by CLI name: the DepthSensor tensor, bounds, prior and group (:class:`SensorParam`), in
+#: the fit's order -- the ``fit`` records of the parameter registry (a sensor parameter joins the fit with a ``fit``
+#: record on its key in :data:`ddsgen.parameters.PARAMETERS`).
+SENSOR_PARAMS: dict[str, SensorParam] = fit_rules()
 
 
 def param_names_help() -> str:

@@ -1,22 +1,12 @@
 """Bounds and priors that keep fitted sensor parameters physical.
 
-Every sensor parameter ``fit`` can move is one :class:`SensorParam` entry of
-:data:`ddsgen.fit.parameters.SENSOR_PARAMS` (adding a parameter to the fit is adding one entry):
-
-* ``attr`` -- the :class:`~ddsgen.sensor.depth_sensor.DepthSensor` tensor that stores it
-  (``None``: a device key of the preset, fitted by a 1-D search, :mod:`ddsgen.fit.device_keys`),
-  ``log`` -- whether that tensor is the logarithm of the physical value;
-* ``bound`` -- where the fitted value must stay: ``("factor", lo, hi)`` = within [lo, hi] x the
-  start (input preset's) value, ``("range", lo, hi)`` = within [lo, hi] in the preset key's units;
-  enforced by projecting the stored value back after every Adam step (and bounding the 1-D searches);
-* ``width`` -- the prior's standard deviation in stored units (log units for ``log``): the
-  regulariser ``prior_mm * sum ((stored - start) / width)^2`` (mm, like the loss) pulls a
-  parameter the data constrain only weakly back to the input preset instead of letting one
-  view's noise drive it to a bound (issue 14: one frame drove beta from 15 to 3);
-* ``group`` -- parameters that are kept or reverted together (eta_c and the read-noise std only
-  act through their ratio, so they are one group);
-* ``key`` -- the preset key reported (``physical_parameters``); ``step`` -- the finite-difference
-  step (stored units) of the uncertainty estimate (:mod:`ddsgen.fit.uncertainty`).
+Every sensor parameter ``fit`` can move has a :class:`SensorParam` (the parameter registry's
+:class:`~ddsgen.parameters.FitRule`: the ``fit`` record of its key in :data:`ddsgen.parameters.PARAMETERS`) in
+:data:`ddsgen.fit.parameters.SENSOR_PARAMS`: the tensor that stores it, its bounds (``stored_bounds``), the width of
+its prior, its group and its finite-difference step. :class:`Priors` enforces the bounds by projecting the stored
+value back after every Adam step, and adds the regulariser ``prior_mm * sum ((stored - start) / width)^2`` (mm, like
+the loss) that pulls a parameter the data constrain only weakly back to the input preset instead of letting one
+view's noise drive it to a bound (one frame drove beta from 15 to 3).
 
 Effect parameters are bounded by their own specs (a sigmoid of an unbounded raw value, see
 :mod:`ddsgen.sensor.effects.base`), so they need no projection; the prior does not apply to them.
@@ -24,46 +14,12 @@ Effect parameters are bounded by their own specs (a sigmoid of an unbounded raw 
 
 from __future__ import annotations
 
-import dataclasses
-import math
-
 import torch
+
+from ddsgen.parameters import FitRule as SensorParam
 
 #: Weight of the regulariser toward the input preset (mm of loss at one prior width).
 DEFAULT_PRIOR_MM = 0.1
-
-
-@dataclasses.dataclass(frozen=True)
-class SensorParam:
-    """One fittable sensor parameter (see the module docstring)."""
-
-    attr: str | None
-    key: str
-    log: bool
-    bound: tuple[str, float, float]
-    width: float
-    group: str
-    step: float = 0.05
-
-    def stored_bounds(self, start_stored: float) -> tuple[float, float]:
-        """(low, high) of the stored value given the stored start value."""
-        kind, lo, hi = self.bound
-        if kind == "factor":
-            if self.log:
-                return start_stored + math.log(lo), start_stored + math.log(hi)
-            a, b = start_stored * lo, start_stored * hi
-            return min(a, b), max(a, b)
-        if kind == "range":
-            if self.log:
-                return math.log(max(lo, 1e-9)), math.log(hi)
-            return lo, hi
-        raise ValueError(f"unknown bound kind {kind!r}")
-
-    def describe(self) -> str:
-        kind, lo, hi = self.bound
-        where = f"x{lo:g}..x{hi:g} of the input" if kind == "factor" else f"{lo:g}..{hi:g}"
-        prior = f"{self.width:g} in log" if self.log else f"{self.width:g}"
-        return f"{self.key}: {where}; prior width {prior}; group {self.group}"
 
 
 class Priors:

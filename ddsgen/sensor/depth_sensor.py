@@ -219,7 +219,7 @@ class DepthSensor(nn.Module):
         cached once per process and sensor."""
         width = self.intr.width if ir_width is None else int(ir_width)
         p = self.preset
-        phases = _reference_phases(*self._pattern_key(), p.subpixel_level, width, p.reference_speckle_contrast)
+        phases = _reference_phases(*self._pattern_key(), p.subpixel_level, width, 0.0)
         return phases.to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
@@ -278,8 +278,8 @@ class DepthSensor(nn.Module):
             seen.points, seen.normals, seen.albedo, lit_seen, self.pattern_field(),
             fx, fy, cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
             self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
-            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, p.lens_aperture_m,
-            p.focus_distance_m,
+            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, 0.0,
+            2.0,
         )  # fmt: skip
         ctx = {
             "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": cx, "cy": intr.cy,
@@ -376,7 +376,7 @@ class DepthSensor(nn.Module):
                                                    p.registration_forward_fill_rows, geometry.registration)  # fmt: skip
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes
                 index = dense_splat_index(index, valid)
-            if p.registration_fill_band_holes and p.cleanup_hole_px:  # as the device's forward map would
+            if False and p.cleanup_hole_px:  # as the device's forward map would
                 index = band_hole_fill_index(index, geometry.registration < 0, register(valid, index),
                                              register(disparity, index), p.cleanup_hole_px, p.cleanup_max_diff_px)
             depth, valid, valid_soft, disparity, confidence, raw_depth = register_images(

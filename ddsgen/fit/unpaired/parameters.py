@@ -1,10 +1,9 @@
 """The sensor parameters an unpaired fit moves: one table entry each.
 
-Each entry names a preset key, its search bounds and scale. The fit sets values through
-``SensorPreset.replace`` and rebuilds the sensor, so any preset key works -- including keys
-that only some presets have (an entry whose key the preset lacks is skipped). Adding a
-parameter (e.g. a fall-off exponent of a device-faithful preset) is one line in
-:data:`UNPAIRED_PARAMETERS`.
+Each entry names a preset key, its search bounds and scale: the ``unpaired`` records of the parameter
+registry (:mod:`ddsgen.parameters`). The fit sets values through ``SensorPreset.replace`` and rebuilds
+the sensor, so any preset key works. Adding a parameter (e.g. a fall-off exponent of a device-faithful
+preset) is an ``unpaired`` record on its key in :data:`ddsgen.parameters.PARAMETERS`.
 
 What depth alone constrains (see docs/unpaired_fit.md): the IR signal-to-noise ratio
 (eta_c against the fixed read noise: only their ratio is identifiable from depth), the
@@ -24,6 +23,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ddsgen.parameters import unpaired_searches
 
 
 @dataclass(frozen=True)
@@ -77,31 +78,11 @@ class UnpairedParameter:
         return (self.to_unit(self.high) - self.to_unit(self.low)) / (self.grid - 1)
 
 
-#: Fitted by default, in search order (the lattice first: it shapes the noise histogram; the clean-up
-#: before the fall-off: filled holes change the validity by radius).
+#: Fitted by default, in search order (:class:`~ddsgen.parameters.UnpairedSearch`).
 UNPAIRED_PARAMETERS: dict[str, UnpairedParameter] = {
-    "subpixel_level": UnpairedParameter("subpixel_level", 1, 4, log=False, integer=True),
-    "emitted_intensity": UnpairedParameter("emitted_intensity", 2.0e5, 5.0e7, grid=8),
-    "softargmax_beta": UnpairedParameter("softargmax_beta", 4.0, 60.0),
-    # The device's smoothing along its rows: it raises the flat-surface noise's correlation with the next pixel in
-    # the row (and lowers the column's a little), which beta and the SNR hardly move -> searched on the grain alone.
-    # Up to 0.3: beyond ~0.3 the side taps outweigh the centre, and the correlation falls again (no longer a
-    # one-valued function of w).
-    "row_smoothing_weight": UnpairedParameter("row_smoothing_weight", 0.0, 0.3, log=False, grid=7,
-                                              terms=("grain",)),
-    "min_confidence": UnpairedParameter("min_confidence", 0.05, 0.35, log=False),
-    # Device keys (kinect_v1): the beam's fall-off darkens the corners -> searched on validity by
-    # radius alone (it also changes the hole rates, but those are scene-dominated: measured, they
-    # swung by 0.6 between fall-off values 4 apart while the radius term pointed at the hidden
-    # value); the clean-up removes holes below cleanup_hole_px and valid specks below
-    # cleanup_speckle_px -> searched on the hole-size histogram. A preset without them has them at
-    # 0 (off), so the fit can switch them on.
-    "cleanup_hole_px": UnpairedParameter("cleanup_hole_px", 0, 32, log=False, integer=True,
-                                         choices=(0, 2, 4, 8, 16, 32), terms=("holes",)),
-    "cleanup_speckle_px": UnpairedParameter("cleanup_speckle_px", 0, 400, log=False, integer=True,
-                                            choices=(0, 25, 50, 100, 200, 400), terms=("holes",)),
-    "projector_falloff_exponent": UnpairedParameter("projector_falloff_exponent", 0.0, 16.0, log=False, grid=5,
-                                                    terms=("radius",)),
+    key.name: UnpairedParameter(key.name, search.low, search.high, search.log, key.kind is int, search.grid,
+                                search.choices, search.terms)
+    for key, search in unpaired_searches()
 }
 
 
