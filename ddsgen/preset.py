@@ -48,10 +48,14 @@ FIELDS: dict[str, Field] = {
     "name": Field(str, "preset name"),
     "width_px": Field(int, "image width (px)", 8, 16384),
     "height_px": Field(int, "image height (px)", 8, 16384),
-    "focal_px": Field(float, "focal length f of IR camera and projector (px)", 0, 1e5, low_open=True),
-    "focal_y_px": Field(float, "vertical focal length (px); default = focal_px", 0, 1e5, low_open=True, default=None),
-    "cx_px": Field(float, "principal point x (px); default = (width-1)/2", default=None),
-    "cy_px": Field(float, "principal point y (px); default = (height-1)/2", default=None),
+    "focal_px": Field(float, "camera intrinsics fx: horizontal focal length f of IR camera and projector (px);"
+                      " disparity = f x baseline / depth", 0, 1e5, low_open=True),
+    "focal_y_px": Field(float, "camera intrinsics fy: vertical focal length (px); default = focal_px", 0, 1e5,
+                        low_open=True, default=None),
+    "cx_px": Field(float, "camera intrinsics cx: principal point column (px, 0 = centre of the first pixel);"
+                   " default = (width-1)/2", default=None),
+    "cy_px": Field(float, "camera intrinsics cy: principal point row (px, 0 = centre of the first pixel);"
+                   " default = (height-1)/2", default=None),
     "baseline_m": Field(float, "projector-camera baseline b along +x (m)", 0, 2.0, low_open=True),
     "z_min_m": Field(float, "nearest measurable depth (m)", 0, 1e3, low_open=True),
     "z_max_m": Field(float, "farthest measurable depth (m)", 0, 1e3, low_open=True),
