@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
+from ddsgen.io.class_table import read_class_table
 from ddsgen.io.exr import read_exr
 from ddsgen.io.ir_png import GAMMA as IR_GAMMA
 from ddsgen.io.ir_png import decode_ir, encode_ir, ir_white_counts, read_ir_counts
@@ -142,10 +143,16 @@ class ScanFolderDataset(Dataset):
         folder: a ``ddsgen render`` output (``manifest.jsonl``), a ``render --format bop`` root, or a BOP dataset,
             split or scene folder. Read with :func:`ddsgen.io.scanfolder.read_scan_folder` (errors are
             :class:`ddsgen.errors.InputError` naming the file).
+
+    Attributes:
+        classes: the rows of the folder's ``classes.json`` (``id`` = obj_id, ``class``, ``class_id``, ``mesh``,
+            ``mesh_scale``; a ``--format bop`` root's are in its ``ddsgen/`` folder), or None without one.
     """
 
     def __init__(self, folder: str | Path):
         self.frames = read_scan_folder(folder)
+        folder = Path(folder)
+        self.classes = read_class_table(folder) or read_class_table(folder / "ddsgen")
 
     def __len__(self) -> int:
         return len(self.frames)

@@ -48,6 +48,8 @@ def test_folder_tensors_are_the_files(rendered):
         objects = record["objects"]
         assert item["instance_ids"].tolist() == [o["id"] for o in objects]
         assert item["obj_ids"].tolist() == [o["obj_id"] for o in objects] and min(item["obj_ids"].tolist()) >= 1
+        names = {row["id"]: row["class"] for row in dataset.classes}
+        assert [names[i] for i in item["obj_ids"].tolist()] == [o["class"] for o in objects]
         assert item["boxes"].tolist() == [o["bbox"] for o in objects]
         for k, obj in enumerate(objects):
             pose = np.asarray(obj["cam_T_obj"])
