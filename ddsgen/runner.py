@@ -23,12 +23,13 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.atomic import atomic_write_text
+from ddsgen.io.class_table import write_class_table
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import (
     BUILT_IN_SCENES, RUN_FILE, append_record, dumps_record, file_digest, read_manifest, repair_manifest, sorted_records,
 )
 from ddsgen.preset import SensorPreset, load_preset, save_preset, source_label
-from ddsgen.scene.scenelist import SceneList, load_scene_list
+from ddsgen.scene.scenelist import SceneList, load_scene_list, models_folder
 from ddsgen.worker_pool import run_in_pool
 
 MANIFEST = "manifest.jsonl"
@@ -46,6 +47,56 @@ class RenderJob:
     scenes_path: str | None
     out: str
     seed: int
+    camera: tuple[float, float, float, float] | None = None  # (fx, fy, cx, cy) px overriding the preset's
+    models_dir: str | None = None  # where mesh files not found at their scene-list path are looked up
+
+
+@dataclass
+class SimulatedFrame:
+    """One frame as arrays, before any file is written (``render_frame`` writes it; ``ddsgen.data`` reads it).
+
+    depth: float32 (H, W) simulated depth (m), 0 = invalid. clean: float32 (H, W) noise-free depth (m), 0 = no
+    hit. ir: float (H, W) IR image in detector counts. instance: (H, W) object ids, 0 = background.
+    ir_full_scale: the detector's largest count. record: the manifest record without its file keys.
+    """
+
+    depth: np.ndarray
+    clean: np.ndarray
+    ir: np.ndarray
+    instance: np.ndarray
+    ir_full_scale: float
+    record: dict
+
+
+# ---- the camera override (render --camera) ----------------------------------------------
+def parse_camera(text: str | None) -> tuple[float, float, float, float] | None:
+    """``"fx,fy,cx,cy"`` (px) -> a tuple of four finite numbers; None for None. InputError on anything else."""
+    if text is None:
+        return None
+    parts = str(text).split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(np.isfinite(values)):
+        raise InputError(f"--camera: expected four numbers fx,fy,cx,cy (px), got {text!r}")
+    return values
+
+
+def apply_camera(preset: SensorPreset, camera: tuple[float, float, float, float] | None) -> SensorPreset:
+    """The preset with its intrinsics (focal_px, focal_y_px, cx_px, cy_px) set from ``camera`` = (fx, fy, cx, cy)."""
+    if camera is None:
+        return preset
+    fx, fy, cx, cy = camera
+    if not (fx > 0 and fy > 0):
+        raise InputError(f"--camera: focal lengths must be > 0, got fx={fx:g}, fy={fy:g}")
+    if not (0 <= cx <= preset.width_px - 1 and 0 <= cy <= preset.height_px - 1):
+        raise InputError(f"--camera: principal point ({cx:g}, {cy:g}) lies outside the {preset.width_px}x"
+                         f"{preset.height_px} px image")  # fmt: skip
+    try:
+        return preset.replace(focal_px=fx, focal_y_px=fy, cx_px=cx, cy_px=cy)
+    except InputError as error:  # e.g. a focal length that puts the largest disparity beyond the image
+        raise InputError(f"--camera: {error}") from None
 
 
 @dataclass
@@ -93,13 +144,13 @@ def _worker_state(job: RenderJob):
         from ddsgen.sensor.depth_sensor import DepthSensor
 
         configure_torch_compile_cache()
-        preset = load_preset(job.preset_path)
+        preset = apply_camera(load_preset(job.preset_path), job.camera)
         for key in ("job", "preset", "scenes", "sensor"):
             _WORKER.pop(key, None)
         _WORKER.update(
             job=job,
             preset=preset,
-            scenes=load_scene_list(job.scenes_path),
+            scenes=load_scene_list(job.scenes_path, job.models_dir),
             sensor=DepthSensor(preset).eval(),
         )
     return _WORKER
@@ -107,6 +158,14 @@ def _worker_state(job: RenderJob):
 
 def render_frame(job: RenderJob, frame: int) -> dict:
     """Render frame ``frame`` and write its files; return its manifest record."""
+    simulated = simulate_frame(job, frame)
+    files = write_frame_files(job.out, frame, simulated.depth, simulated.clean, simulated.ir, simulated.ir_full_scale,
+                              simulated.instance)  # fmt: skip
+    return {**simulated.record, **files}
+
+
+def simulate_frame(job: RenderJob, frame: int) -> SimulatedFrame:
+    """Frame ``frame`` of the dataset ``job`` describes, as arrays (a pure function of the job and ``frame``)."""
     import torch
 
     from ddsgen.raycast import object_labels
@@ -124,19 +183,23 @@ def render_frame(job: RenderJob, frame: int) -> dict:
     depth = output.depth.numpy().astype(np.float32)
     ir = output.ir.numpy()
 
-    files = write_frame_files(job.out, frame, depth, hits.depth, ir, 2.0**preset.ir_bits - 1.0, hits.instance)
+    objects = object_labels(scene, hits, intrinsics)
+    for label in objects:  # the stable identity of the class table (classes.json), the same in every frame
+        entry = state["scenes"].class_entry(label["mesh"], label["mesh_scale"], label["class"])
+        label.update(obj_id=entry.obj_id, class_id=entry.class_id)
     ir_camera = ir_camera_record(intrinsics, preset)  # registered: the IR image is this camera's, not the depth's
-    return {
+    record = {
         "frame": frame,
-        **files,
         "intrinsics": intrinsics.as_dict(),
         "depth_scale": DEPTH_SCALE,
         "world_T_cam": np.asarray(scene.world_T_cam, dtype=float).tolist(),
-        "objects": object_labels(scene, hits, intrinsics),
+        "objects": objects,
         "seed": job.seed,
         "valid_fraction": round(float((depth > 0).mean()), 6),
         **({"ir_camera": ir_camera} if ir_camera else {}),
     }
+    return SimulatedFrame(depth, np.asarray(hits.depth, dtype=np.float32), ir, np.asarray(hits.instance),
+                          2.0**preset.ir_bits - 1.0, record)  # fmt: skip
 
 
 def _render_batch(job: RenderJob, frames: list[int]) -> list[dict]:
@@ -156,8 +219,12 @@ def _run_identity(preset: SensorPreset, scenes_path: str | None, seed: int) -> d
     }
 
 
-def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, seed: int) -> set[int]:
-    """Create (or re-open) the output folder; return the frames already finished."""
+def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, seed: int,
+                   scene_list: SceneList | None = None) -> set[int]:  # fmt: skip
+    """Create (or re-open) the output folder; return the frames already finished.
+
+    With ``scene_list``, its class table is written as ``out/classes.json``.
+    """
     identity = _run_identity(preset, scenes_path, seed)
     run_file = out / RUN_FILE
     if run_file.exists():
@@ -177,6 +244,8 @@ def prepare_output(out: Path, preset: SensorPreset, scenes_path: str | None, see
         out.mkdir(parents=True, exist_ok=True)
         save_preset(preset, out / "sensor.yaml", comment=f"resolved from {source_label(preset)}")
         atomic_write_text(run_file, json.dumps(identity, indent=1, sort_keys=True) + "\n")
+        if scene_list is not None:
+            write_class_table(out, scene_list.classes)
     except OSError as error:
         raise InputError(f"{out}: cannot write the output folder ({_os_reason(error)})") from None
     manifest = out / MANIFEST
@@ -237,6 +306,8 @@ def render_dataset(
     progress: bool = True,
     batch_size: int = 1,
     output_format: str = "ddsgen",
+    camera: str | tuple | None = None,
+    models_dir: str | None = None,
 ) -> RenderSummary:
     """Render frames 0..n-1 into ``out`` (skipping finished ones).
 
@@ -252,6 +323,10 @@ def render_dataset(
         batch_size: frames per task.
         output_format: ``"ddsgen"`` (DESIGN.md §3) or ``"bop"``: a BOP dataset at ``out`` (see
             ``ddsgen/io/bop_writer.py``), rendered through the ddsgen layout in ``out/ddsgen``.
+        camera: ``"fx,fy,cx,cy"`` (px) or a 4-tuple overriding the preset's intrinsics (focal_px, focal_y_px,
+            cx_px, cy_px); the manifest's intrinsics and OUT/sensor.yaml record them.
+        models_dir: folder where mesh files not found at their scene-list path are looked up by file name
+            (default: the environment variable DDSGEN_MODELS).
 
     Raises:
         InputError: bad preset, scene list, arguments or output folder -- before anything is written.
@@ -264,9 +339,10 @@ def render_dataset(
         from ddsgen.distributed import check_address
 
         check_address(scheduler)
-    preset = load_preset(preset_path)
-    scene_list: SceneList = load_scene_list(scenes_path)  # validates and loads every mesh now
-    del scene_list
+    camera = parse_camera(camera) if isinstance(camera, str) else camera
+    preset = apply_camera(load_preset(preset_path), camera)
+    models = models_folder(models_dir)  # resolved here: workers (also on a cluster) get the folder, not the variable
+    scene_list: SceneList = load_scene_list(scenes_path, models)  # validates and loads every mesh now
     check_sensor_assets(preset)
     if output_format not in OUTPUT_FORMATS:
         raise InputError(f"--format: must be one of {', '.join(OUTPUT_FORMATS)}, got {output_format!r}")
@@ -282,7 +358,10 @@ def render_dataset(
 
         client = connect(scheduler)
     try:
-        summary = _render_into(out_dir, preset, scenes_path, n, workers, seed, client, progress, batch_size)
+        summary = _render_into(out_dir, preset, scene_list, RenderJob(
+            str(Path(preset.source).resolve()), str(Path(scenes_path).resolve()) if scenes_path else None,
+            str(out_dir.resolve()), seed, camera, str(models.resolve()) if models else None,
+        ), n, workers, client, progress, batch_size)  # fmt: skip
     finally:
         if client is not None:
             client.close()
@@ -296,13 +375,12 @@ def render_dataset(
     return summary
 
 
-def _render_into(out_dir: Path, preset: SensorPreset, scenes_path, n, workers, seed, client, progress, batch_size):
+def _render_into(out_dir: Path, preset: SensorPreset, scene_list: SceneList, job: RenderJob, n, workers, client,
+                 progress, batch_size):  # fmt: skip
     from tqdm import tqdm
 
-    done = prepare_output(out_dir, preset, scenes_path, seed)
+    done = prepare_output(out_dir, preset, job.scenes_path, job.seed, scene_list)
     todo = [f for f in range(n) if f not in done]
-    job = RenderJob(str(Path(preset.source).resolve()), str(Path(scenes_path).resolve()) if scenes_path else None,
-                    str(out_dir.resolve()), seed)  # fmt: skip
     manifest = out_dir / MANIFEST
     batches = [todo[i : i + batch_size] for i in range(0, len(todo), batch_size)]
     start = time.perf_counter()

@@ -7,8 +7,9 @@ manifest work as usual; it is also a valid scan folder) and then writes, from it
 
     ROOT/
       camera.json                    {cx, cy, depth_scale, fx, fy, height, width}
-      models/obj_NNNNNN.ply          one model per distinct mesh (and scale), millimetres,
-                                     binary PLY with vertex normals, triangles
+      models/obj_NNNNNN.ply          one model per obj_id (the manifest objects' obj_id, see
+                                     ddsgen/scene/identity.py), millimetres, binary PLY with
+                                     vertex normals, triangles
       models/models_info.json        {obj_id: {diameter, min_x, min_y, min_z, size_x, size_y, size_z}} (mm)
       models/models_names.json       (ddsgen extra) {obj_id: {class, mesh, mesh_scale}}
       train_pbr/SSSSSS/              one BOP scene per 1000 frames (scene = frame // 1000)
@@ -127,9 +128,18 @@ def _load_model_mm(mesh_ref: str, mesh_scale: float, scans: Path):
     return vertices, np.asarray(mesh.faces, dtype=np.int64), np.asarray(mesh.vertex_normals, dtype=np.float64)
 
 
-def model_ids(records: list[dict]) -> dict[tuple[str, float], int]:
-    """obj_id (1, 2, ...) of every distinct (mesh, mesh_scale) in the manifest, in sorted order."""
-    keys = sorted({(o["mesh"], float(o.get("mesh_scale", 1.0))) for r in records for o in r["objects"]})
+def _identity(obj: dict) -> tuple[str, float, str]:
+    return (obj["mesh"], float(obj.get("mesh_scale", 1.0)), obj["class"])
+
+
+def model_ids(records: list[dict]) -> dict[tuple[str, float, str], int]:
+    """obj_id of every distinct (mesh, mesh_scale, class) in the manifest: the objects' own ``obj_id`` (what
+    ``render`` records from the scene list's class table); a manifest without them (an older render) numbers
+    them 1, 2, ... in sorted order."""
+    keys = sorted({_identity(o) for r in records for o in r["objects"]})
+    recorded = {_identity(o): int(o["obj_id"]) for r in records for o in r["objects"] if "obj_id" in o}
+    if recorded and set(recorded) == set(keys):
+        return recorded
     return {key: i + 1 for i, key in enumerate(keys)}
 
 
@@ -175,15 +185,14 @@ def write_bop_dataset(scans: str | Path, root: str | Path) -> Path:
     models_dir.mkdir(parents=True, exist_ok=True)
     vertices_of: dict[int, np.ndarray] = {}
     info, names = {}, {}
-    classes = {(o["mesh"], float(o.get("mesh_scale", 1.0))): o["class"] for r in records for o in r["objects"]}
-    for (mesh_ref, scale), obj_id in ids.items():
+    for (mesh_ref, scale, class_name), obj_id in ids.items():
         vertices, faces, normals = _load_model_mm(mesh_ref, scale, scans)
         vertices_of[obj_id] = vertices
         path = models_dir / f"obj_{obj_id:06d}.ply"
         if not path.is_file():
             atomic_write_bytes(path, ply_bytes(vertices, faces, normals))
         info[str(obj_id)] = _model_info(vertices)
-        names[str(obj_id)] = {"class": classes[(mesh_ref, scale)], "mesh": mesh_ref, "mesh_scale": scale}
+        names[str(obj_id)] = {"class": class_name, "mesh": mesh_ref, "mesh_scale": scale}
     atomic_write_text(models_dir / "models_info.json", bop_json(info))
     atomic_write_text(models_dir / "models_names.json", bop_json(names))
 
@@ -219,7 +228,7 @@ def write_bop_dataset(scans: str | Path, root: str | Path) -> Path:
             valid = read_depth_png(scans / record["depth"], float(record["depth_scale"])) > 0
             gts, gt_infos = [], []
             for gt_id, obj in enumerate(sorted(record["objects"], key=lambda o: o["id"])):
-                obj_id = ids[(obj["mesh"], float(obj.get("mesh_scale", 1.0)))]
+                obj_id = ids[_identity(obj)]
                 cam_T_obj = np.asarray(obj["cam_T_obj"], dtype=np.float64)
                 gts.append({
                     "obj_id": obj_id,

@@ -47,6 +47,9 @@ One JSON object per line; keys (units: metres, pixels; poses are 4x4 row-major n
                       visible_fraction  number in [0, 1]
                       mesh_scale        optional, finite number > 0: metres per mesh file unit (default 1;
                                         0.001 for millimetre models such as BOP's)
+                      obj_id            optional, int >= 1: the object's stable id (the same in every frame;
+                                        the BOP model id; a row of classes.json beside the manifest)
+                      class_id          optional, int >= 1: its class's id (the smallest obj_id of the class)
                     }
   seed              int, the run's seed (frame i's randomness comes from (seed, i))
   ir_white_counts   optional, finite number > 0: simulated IR counts shown as 255 in the 8-bit IR PNG
@@ -164,6 +167,9 @@ def _validate_object(prefix, key, obj, strict):
             _fail(prefix, f"{key}.bbox", f"must be [x, y, w, h] of ints >= 0, got {bbox!r}")
     if "mesh_scale" in obj:
         _positive_number(prefix, f"{key}.mesh_scale", obj["mesh_scale"])
+    for name in ("obj_id", "class_id"):
+        if name in obj and (not _is_int(obj[name]) or obj[name] < 1):
+            _fail(prefix, f"{key}.{name}", f"must be an int >= 1, got {obj[name]!r}")
     if "visible_fraction" in obj:
         frac = obj["visible_fraction"]
         if not _is_number(frac) or not 0.0 <= float(frac) <= 1.0:

@@ -25,7 +25,7 @@ class ScanObject:
 
     id: instance index >= 1 (its value in an instance mask; BOP: position in scene_gt + 1).
     class_name: class name (ddsgen: the record's ``class``; BOP: ``"obj_000006"``).
-    obj_id: BOP object id (int), None for the ddsgen layout.
+    obj_id: the stable object id (BOP: ``obj_id``; ddsgen: the record's ``obj_id``), None when not given.
     mesh_path: mesh file (absolute path) or a ``"shape:NAME"`` procedural reference.
     mesh_scale: metres per mesh unit (0.001 for BOP's millimetre models, else 1.0 unless the manifest says).
     cam_T_obj: float64 (4, 4) rigid transform, object -> camera, translation in metres.

@@ -104,6 +104,7 @@ def _read_ddsgen(folder: Path) -> list[ScanFrame]:
                     mesh_path=mesh,
                     mesh_scale=float(scale),
                     cam_T_obj=np.array(obj["cam_T_obj"], dtype=np.float64),
+                    obj_id=None if obj.get("obj_id") is None else int(obj["obj_id"]),
                     visible_fraction=None if obj.get("visible_fraction") is None else float(obj["visible_fraction"]),
                 )
             )

@@ -119,7 +119,11 @@ def _load_object_mesh(obj):
 
 @functools.lru_cache(maxsize=4)
 def _scene_list(path: str | None):
-    return load_scene_list(path)
+    """The scene list a render names (its meshes looked up as ``render`` does), None when it no longer loads."""
+    try:
+        return load_scene_list(path)
+    except InputError:  # e.g. meshes found through a --models folder at render time and not now
+        return None
 
 
 def rendered_background(frame) -> tuple[list[PlacedObject], dict[int, float]] | None:
@@ -127,9 +131,10 @@ def rendered_background(frame) -> tuple[list[PlacedObject], dict[int, float]] | 
     walls, distractors) in the camera frame, and the objects' albedos by id. None for any other frame, and for a
     render whose scene list cannot be made again (:class:`~ddsgen.io.scan_frame.RenderedScene`)."""
     rendered = getattr(frame, "rendered", None)
-    if rendered is None or rendered.missing or frame.world_T_cam is None:
+    scene_list = None if rendered is None or rendered.missing else _scene_list(rendered.scenes_path)
+    if scene_list is None or frame.world_T_cam is None:
         return None
-    scene = sample_frame(_scene_list(rendered.scenes_path), frame.frame, rendered.seed)
+    scene = sample_frame(scene_list, frame.frame, rendered.seed)
     if not np.allclose(scene.world_T_cam, frame.world_T_cam, rtol=0.0, atol=1e-9):  # not the scene of this frame
         return None
     cam_T_world = np.linalg.inv(scene.world_T_cam)

@@ -26,6 +26,8 @@ number means a fixed value)::
           - mesh: models/obj_000001.ply    # OBJ/PLY/STL/GLB, relative to this file
             scale: 0.001                   # file units -> metres (0.001 for millimetre models)
             class: ape
+            obj_id: 1                      # optional stable id (default: from an obj_NNNNNN file name, else
+                                           # assigned once per scene list; see ddsgen/scene/identity.py)
         clutter:
           count: [3, 6]                    # objects per layout (integers), default [3, 6]
           area: [0.5, 0.5]                 # x, y extent of the drop area centred on the origin (m)
@@ -47,6 +49,9 @@ number means a fixed value)::
           azimuth_deg: [-180, 180]         # 0 = camera on the -y side looking towards +y (the wall)
           roll_deg: [0, 0]                 # rotation about the optical axis
           look_at_jitter: 0.05             # uniform +- jitter of the look-at point per axis (m)
+
+A mesh path not found relative to the file (or the working folder) is looked up by its file name in the
+models folder, when one is given (``render --models DIR`` or the environment variable ``DDSGEN_MODELS``).
 
 Every problem raises :class:`~ddsgen.errors.InputError` with one line
 ``FILE: KEY: problem`` where KEY is a path such as ``scenes[0].objects[2].scale``.
@@ -74,10 +79,14 @@ from ddsgen.scene.fields import (
     field_text,
     field_vector,
 )
+from ddsgen.scene.identity import ClassEntry, class_table
 from ddsgen.scene.meshes import load_mesh
 from ddsgen.yamlfile import read_yaml
 
 DEFAULT_SOURCE = "<built-in default scene list>"
+
+#: Environment variable naming a folder where mesh files not found at their scene-list path are looked up.
+MODELS_ENV = "DDSGEN_MODELS"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -94,6 +103,7 @@ class ObjectSpec:
     albedo: tuple[float, float] = (0.5, 0.5)  # uniform range
     weight: float = 1.0
     rest: str = "stable"  # "stable" | "upright"
+    obj_id: int | None = None  # the entry's `obj_id:` key; the resolved id is in SceneList.classes
 
     @property
     def is_shape(self) -> bool:
@@ -165,6 +175,15 @@ class SceneList:
     scenes: tuple[SceneSpec, ...]
     source: str = DEFAULT_SOURCE
     description: str = ""
+    classes: tuple[ClassEntry, ...] = ()  # the class table: one obj_id per labelled pool entry
+
+    def class_entry(self, mesh_ref: str, mesh_scale: float, class_name: str) -> ClassEntry:
+        """The class-table row of a placed object (KeyError if the scene list has no such entry)."""
+        wanted = (str(mesh_ref), float(mesh_scale), str(class_name))
+        for entry in self.classes:
+            if entry.key == wanted:
+                return entry
+        raise KeyError(wanted)
 
     @property
     def cycle_length(self) -> int:
@@ -193,10 +212,10 @@ class SceneList:
 # ----------------------------------------------------------------------------------------------------------------
 # Sections
 
-OBJECT_KEYS_COMMON = ("class", "albedo", "weight", "rest")
+OBJECT_KEYS_COMMON = ("class", "albedo", "weight", "rest", "obj_id")
 
 
-def _resolve_mesh_path(source: str, key: str, value: Any, base_dir: Path | None) -> str:
+def _resolve_mesh_path(source: str, key: str, value: Any, base_dir: Path | None, models_dir: Path | None) -> str:
     text = field_text(source, key, value)
     path = Path(text).expanduser()
     candidates = [path] if path.is_absolute() else []
@@ -204,14 +223,29 @@ def _resolve_mesh_path(source: str, key: str, value: Any, base_dir: Path | None)
         if base_dir is not None:
             candidates.append(base_dir / path)
         candidates.append(Path.cwd() / path)
+    if models_dir is not None:
+        candidates.append(models_dir / path.name)
     for candidate in candidates:
         if candidate.is_file():
             return os.path.abspath(candidate)
-    tried = candidates[0] if candidates else path
-    raise InputError(f"{where(source, key)}{text}: mesh file not found (looked at {tried})")
+    tried = candidates[-1] if models_dir is not None else candidates[0] if candidates else path
+    hint = "" if models_dir is not None else f"; give the folder holding {path.name} with --models DIR or {MODELS_ENV}=DIR"
+    raise InputError(f"{where(source, key)}{text}: mesh file not found (looked at {tried}){hint}")
 
 
-def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
+def models_folder(models_dir: str | Path | None) -> Path | None:
+    """The models folder to look mesh files up in: ``models_dir``, else ``$DDSGEN_MODELS``, else None."""
+    chosen = models_dir if models_dir is not None else os.environ.get(MODELS_ENV) or None
+    if chosen is None:
+        return None
+    folder = Path(chosen).expanduser()
+    if not folder.is_dir():
+        origin = "--models" if models_dir is not None else MODELS_ENV
+        raise InputError(f"{origin}: {folder}: models folder not found")
+    return folder
+
+
+def _object(source, key: str, data: Any, base_dir: Path | None, models_dir: Path | None = None) -> ObjectSpec:
     if isinstance(data, str) and data in shapes.SHAPES:
         data = {"shape": data}
     if not isinstance(data, dict):
@@ -239,7 +273,7 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
         default_class = name
     else:
         check_keys(source, key, data, ("mesh", "scale", *OBJECT_KEYS_COMMON), "a mesh file entry")
-        mesh_ref = _resolve_mesh_path(source, f"{key}.mesh", data["mesh"], base_dir)
+        mesh_ref = _resolve_mesh_path(source, f"{key}.mesh", data["mesh"], base_dir, models_dir)
         scale = field_number(source, f"{key}.scale", data.get("scale", 1.0), low=0, low_open=True, high=1e6)
         default_class = Path(mesh_ref).stem
         mesh = load_mesh(mesh_ref, scale, source, f"{key}.mesh")  # validate now (and warm the cache)
@@ -255,7 +289,11 @@ def _object(source, key: str, data: Any, base_dir: Path | None) -> ObjectSpec:
     rest = data.get("rest", "stable")
     if rest not in ("stable", "upright"):
         raise InputError(f"{where(source, key + '.rest')}expected 'stable' or 'upright', got {describe(rest)}")
-    return ObjectSpec(class_name=class_name, mesh_ref=mesh_ref, scale=scale, albedo=albedo, weight=weight, rest=rest)
+    obj_id = None
+    if "obj_id" in data:
+        obj_id = field_number(source, f"{key}.obj_id", data["obj_id"], low=1, high=2**31 - 1, integer=True)
+    return ObjectSpec(class_name=class_name, mesh_ref=mesh_ref, scale=scale, albedo=albedo, weight=weight, rest=rest,
+                      obj_id=obj_id)  # fmt: skip
 
 
 def _clutter(source, key: str, data: Any, pool_size: int) -> ClutterSpec:
@@ -349,7 +387,7 @@ def _camera(source, key: str, data: Any, has_wall: bool) -> CameraSpec:
 SCENE_KEYS = ("name", "frames", "objects", "clutter", "ground", "floor", "wall", "camera", "distractors")
 
 
-def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> SceneSpec:
+def _scene(source, key: str, data: Any, base_dir: Path | None, index: int, models_dir: Path | None) -> SceneSpec:
     check_keys(source, key, data, SCENE_KEYS, "a scene")
     name = field_text(source, f"{key}.name", data["name"]) if "name" in data else f"scene{index}"
     frames = field_number(source, f"{key}.frames", data.get("frames", 1), low=1, high=10**9, integer=True)
@@ -358,12 +396,12 @@ def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> Sc
         raise InputError(f"{where(source, key + '.objects')}missing: a scene needs a pool of at least one object")
     if not isinstance(pool, list) or not pool:
         raise InputError(f"{where(source, key + '.objects')}expected a non-empty list of objects, got {describe(pool)}")
-    objects = tuple(_object(source, f"{key}.objects[{i}]", entry, base_dir) for i, entry in enumerate(pool))
+    objects = tuple(_object(source, f"{key}.objects[{i}]", entry, base_dir, models_dir) for i, entry in enumerate(pool))
     wall = _wall(source, f"{key}.wall", data.get("wall"))
     ground = _plane(source, f"{key}.ground", data.get("ground", {}))
     floor = _floor(source, f"{key}.floor", data.get("floor"), ground)
     distractors = parse_distractors(source, f"{key}.distractors", data.get("distractors"),
-                                    lambda sub, entry: _object(source, sub, entry, base_dir),
+                                    lambda sub, entry: _object(source, sub, entry, base_dir, models_dir),
                                     has_floor=floor is not None, has_ground=ground is not None)  # fmt: skip
     return SceneSpec(
         name=name,
@@ -378,8 +416,10 @@ def _scene(source, key: str, data: Any, base_dir: Path | None, index: int) -> Sc
     )
 
 
-def scene_list_from_dict(data: Any, source: str | Path = "", base_dir: str | Path | None = None) -> SceneList:
-    """Validate a parsed scene list; relative mesh paths are resolved against ``base_dir``."""
+def scene_list_from_dict(data: Any, source: str | Path = "", base_dir: str | Path | None = None,
+                         models_dir: str | Path | None = None) -> SceneList:  # fmt: skip
+    """Validate a parsed scene list; relative mesh paths are resolved against ``base_dir``, then looked up by
+    file name in the models folder (``models_dir``, else ``$DDSGEN_MODELS``, see :func:`models_folder`)."""
     source = str(source)
     base = Path(base_dir) if base_dir is not None else None
     if not isinstance(data, dict):
@@ -393,15 +433,21 @@ def scene_list_from_dict(data: Any, source: str | Path = "", base_dir: str | Pat
     description = data.get("description", "")
     if not isinstance(description, str):
         raise InputError(f"{where(source, 'description')}expected text, got {describe(description)}")
-    specs = tuple(_scene(source, f"scenes[{i}]", scene, base, i) for i, scene in enumerate(scenes))
-    return SceneList(scenes=specs, source=source, description=description)
+    models = models_folder(models_dir)
+    specs = tuple(_scene(source, f"scenes[{i}]", scene, base, i, models) for i, scene in enumerate(scenes))
+    labelled = [(f"scenes[{i}].objects[{j}]", obj)
+                for i, scene in enumerate(specs) for j, obj in enumerate(scene.objects)]  # fmt: skip
+    return SceneList(scenes=specs, source=source, description=description, classes=class_table(labelled, source))
 
 
 _DEFAULT: SceneList | None = None
 
 
-def load_scene_list(path: str | Path | None) -> SceneList:
-    """Read and validate a scene list YAML file; ``None`` gives the built-in default (no files needed)."""
+def load_scene_list(path: str | Path | None, models_dir: str | Path | None = None) -> SceneList:
+    """Read and validate a scene list YAML file; ``None`` gives the built-in default (no files needed).
+
+    ``models_dir``: where mesh files not found at their path are looked up by name (default ``$DDSGEN_MODELS``).
+    """
     global _DEFAULT
     if path is None:
         if _DEFAULT is None:
@@ -411,4 +457,4 @@ def load_scene_list(path: str | Path | None) -> SceneList:
     data = read_yaml(path, "scene list")
     if data is None:
         raise InputError(f"{path}: scene list is empty (expected `scenes:` with at least one scene)")
-    return scene_list_from_dict(data, source=path, base_dir=path.parent)
+    return scene_list_from_dict(data, source=path, base_dir=path.parent, models_dir=models_dir)
