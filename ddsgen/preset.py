@@ -302,10 +302,13 @@ def shipped_preset_names() -> list[str]:
 def load_preset(path: str | Path) -> SensorPreset:
     """Read and validate a preset YAML file, or a shipped preset by name (``kinect_v1``).
 
-    A file of that name in the current folder wins over the shipped preset.
+    A file of that name in the current folder wins over the shipped preset; a folder of that name does not (a render
+    into ``kinect_v1/`` must not hide the shipped ``kinect_v1``).
     """
     path = Path(path)
-    if not path.exists():
+    if path.is_dir() and shipped_preset(str(path)) is None:
+        raise InputError(f"{path}: is a folder, not a preset file")
+    if not path.is_file():
         shipped = shipped_preset(str(path))
         if shipped is None and len(path.parts) == 1:
             names = ", ".join(shipped_preset_names())

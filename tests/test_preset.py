@@ -97,3 +97,14 @@ def test_missing_required_key_and_malformed_yaml(tmp_path):
         load_preset(bad)
     with pytest.raises(InputError, match="preset file not found"):
         load_preset(tmp_path / "absent.yaml")
+
+
+def test_a_folder_named_like_a_shipped_preset_does_not_hide_it(tmp_path, monkeypatch):
+    """``ddsgen render kinect_v1 --out kinect_v1`` makes a folder of that name; later commands run there still find
+    the shipped preset, and a folder that is no preset's name is named as a folder."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "kinect_v1").mkdir()
+    assert load_preset("kinect_v1").name == "kinect_v1"
+    (tmp_path / "renders").mkdir()
+    with pytest.raises(InputError, match="renders: is a folder, not a preset file"):
+        load_preset("renders")
