@@ -49,7 +49,7 @@ def _frame(name, region):
     return _Frame(name, region, region.clone())
 
 
-def test_split_holds_out_whole_scenes_then_frames_then_half_a_frame():
+def test_split_holds_out_whole_scenes_then_frames_then_blocks_of_a_frame():
     region = torch.ones(6, 10, dtype=torch.bool)
     frames = [_frame(f"{s:06d}/{i:06d}", region) for s in (1, 2, 3, 4) for i in range(3)]
     fit, held, kind = split_fit_held_out(frames, 0.25, seed=3)
@@ -58,13 +58,22 @@ def test_split_holds_out_whole_scenes_then_frames_then_half_a_frame():
     assert not {scene_of(f.name) for f in held} & {scene_of(f.name) for f in fit}
     fit, held, kind = split_fit_held_out(frames[:3], 0.34, seed=3)
     assert kind == "frame" and len(held) == 1 and len(fit) == 2
-    # One frame: two disjoint halves of its region with equal pixel counts, cut across the longer side.
-    region = torch.zeros(6, 10, dtype=torch.bool)
-    region[1:5, 2:10] = True
-    (left,), (right,), kind = split_fit_held_out([_frame("a/000000", region)], 0.25)
-    assert kind == "spatial" and int(left.region.sum()) == int(right.region.sum()) == 16
-    assert not bool((left.region & right.region).any()) and torch.equal(left.region | right.region, region)
-    assert int(left.region.nonzero()[:, 1].max()) < int(right.region.nonzero()[:, 1].min())
+    # One frame, an object at its left edge (as the real cat): interleaved blocks, the object's pixels shared.
+    region = torch.zeros(120, 160, dtype=torch.bool)
+    region[10:110, 5:155] = True
+    objects = torch.zeros_like(region)
+    objects[40:80, 5:35] = True
+    one = _Frame("a/000000", region, objects)
+    (fit,), (held,), kind = split_fit_held_out([one], 0.25)
+    assert kind == "spatial"
+    assert not bool((fit.region & held.region).any()) and torch.equal(fit.region | held.region, region)
+    block = 8 * 8  # the most one block can tip the balance
+    assert abs(int(fit.object_region.sum()) - int(held.object_region.sum())) <= block
+    assert abs(int(fit.region.sum()) - int(held.region.sum())) <= block
+    for half in (fit, held):  # each half spans the view: both sides of the image and the object's rows
+        columns = half.region.nonzero()[:, 1]
+        assert int(columns.min()) < 40 and int(columns.max()) > 120
+    assert torch.equal(split_fit_held_out([one], 0.25, seed=0)[0][0].region, fit.region)  # seeded
     assert split_fit_held_out(frames, 0.0)[2] == "none"
     with pytest.raises(InputError, match="--holdout"):
         split_fit_held_out(frames, 1.0)

@@ -8,9 +8,11 @@ better on the scene's other frames. So :func:`split_fit_held_out` holds out whol
   ``round(holdout x scenes)`` scenes (at least 1, at most all but one), chosen by a seeded
   permutation -- ``"scene"``;
 * one scene, several frames: ``round(holdout x frames)`` frames -- ``"frame"``;
-* one frame: the frame's comparison region is cut in two halves of equal pixel count along
-  its longer side, fit on one, held out on the other -- ``"spatial"`` (the same view: a weak
-  test, reported as such);
+* one frame: the frame's comparison region is tiled into square blocks dealt into two interleaved halves, so that
+  each half holds as many of the annotated objects' pixels as the other (then as many of the rest), fit on one,
+  held out on the other -- ``"spatial"`` (the same view: a weak test, reported as such). A cut into two
+  contiguous halves could put an object at the image's edge almost wholly on one side, leaving the fit nothing
+  of it to learn from or the held-out part nothing to judge by;
 * ``holdout == 0``: every frame is both fit and held out -- ``"none"`` (in-sample).
 """
 
@@ -27,7 +29,8 @@ from ddsgen.errors import InputError
 SPLIT_MEANING = {
     "scene": "held-out frames are of other scenes (a real test of transfer)",
     "frame": "held-out frames are other frames of the same scene (optimistic: same objects and poses)",
-    "spatial": "one frame: fit on one half of its region, held out on the other half (same view: optimistic)",
+    "spatial": "one frame: fit on half of its region's blocks, held out on the other half, the annotated objects' "
+               "pixels shared equally (same view: optimistic)",
     "none": "no held-out frames: the gap is measured on the fit frames (in-sample)",
 }
 
@@ -67,26 +70,55 @@ def split_fit_held_out(frames: list, holdout: float, seed: int = 0) -> tuple[lis
         held = set(rng.permutation(len(frames))[: _count(holdout, len(frames))].tolist())
         return ([f for i, f in enumerate(frames) if i not in held],
                 [f for i, f in enumerate(frames) if i in held], "frame")  # fmt: skip
-    fit_half, held_half = spatial_halves(frames[0])
+    fit_half, held_half = interleaved_halves(frames[0], seed)
     return [fit_half], [held_half], "spatial"
 
 
-def spatial_halves(frame) -> tuple:
-    """Two copies of ``frame`` whose regions are the two halves (equal pixel counts) of its region,
-    cut across its longer extent (left | right or top | bottom)."""
-    region = frame.region
-    ys, xs = torch.nonzero(region, as_tuple=True)
-    if ys.numel() < 2:
-        return frame, frame
-    along_x = int(xs.max() - xs.min()) >= int(ys.max() - ys.min())
-    coords = xs if along_x else ys
-    cut = int(torch.sort(coords).values[coords.numel() // 2])  # the first column (row) of the second half
-    grid = torch.arange(region.shape[1] if along_x else region.shape[0])
-    first = (grid < cut)[None, :] if along_x else (grid < cut)[:, None]
-    first = first.expand_as(region)
+#: Blocks of a one-frame split per image height (side at least MIN_BLOCK_PX): small enough that both halves cover
+#: the whole view and share an object between them, large enough that a matching window (9 px) and the bands at
+#: depth edges mostly stay inside one block.
+BLOCKS_PER_HEIGHT = 15
+MIN_BLOCK_PX = 8
 
-    def half(mask, side):
-        return dataclasses.replace(frame, name=f"{frame.name}#{side}", region=frame.region & mask,
-                                   object_region=frame.object_region & mask)  # fmt: skip
 
-    return half(first, "left" if along_x else "top"), half(~first, "right" if along_x else "bottom")
+def _block_sums(mask: torch.Tensor, side: int) -> np.ndarray:
+    """(rows, cols) count of ``mask``'s pixels in each ``side`` x ``side`` block (the last ones may be partial)."""
+    h, w = mask.shape
+    rows, cols = -(-h // side), -(-w // side)
+    padded = np.zeros((rows * side, cols * side), np.int64)
+    padded[:h, :w] = mask.numpy()
+    return padded.reshape(rows, side, cols, side).sum(axis=(1, 3))
+
+
+def interleaved_halves(frame, seed: int = 0) -> tuple:
+    """Two copies of ``frame`` whose regions are disjoint sets of square blocks of its region (together all of it).
+
+    Blocks are dealt largest first -- by the annotated objects' pixels, then by the region's -- each to the half that
+    holds fewer of them so far (a tie to a seeded coin), so the halves are balanced in the objects' pixels to within
+    about one block, and interleave across the whole view.
+    """
+    region, objects = frame.region, frame.object_region
+    side = max(MIN_BLOCK_PX, int(round(region.shape[0] / BLOCKS_PER_HEIGHT)))
+    object_px, region_px = _block_sums(objects, side), _block_sums(region, side)
+    rng = np.random.default_rng([seed, 2024])
+    tiebreak = rng.random(object_px.size)
+    order = np.lexsort((tiebreak, -region_px.ravel(), -object_px.ravel()))
+    totals = np.zeros((2, 2), np.int64)  # per half: object pixels, region pixels
+    half_of = np.zeros(object_px.size, np.int64)
+    for block in order:
+        counts = np.array([object_px.flat[block], region_px.flat[block]])
+        if not counts.any():
+            continue
+        column = 0 if counts[0] else 1
+        lower = np.flatnonzero(totals[:, column] == totals[:, column].min())
+        half = int(lower[0]) if len(lower) == 1 else int(rng.integers(2))
+        half_of[block] = half
+        totals[half] += counts
+    labels = np.repeat(np.repeat(half_of.reshape(object_px.shape), side, 0), side, 1)
+    first = torch.from_numpy(labels[: region.shape[0], : region.shape[1]] == 0)
+
+    def half(mask, index):
+        return dataclasses.replace(frame, name=f"{frame.name}#half{index}", region=region & mask,
+                                   object_region=objects & mask)  # fmt: skip
+
+    return half(first, 1), half(~first, 2)
