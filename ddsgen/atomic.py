@@ -14,6 +14,8 @@ import socket
 import tempfile
 from pathlib import Path
 
+from ddsgen.errors import InputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -54,8 +56,6 @@ def check_can_create_folder(folder: str | Path, what: str) -> None:
     """Raise ``InputError`` naming ``folder`` when it cannot become a writable folder: it, or the first of its
     ancestors that exists, is a file or is not writable. Writes nothing: commands call it before hours of work
     whose results go there (a file where the folder should be was a traceback at the end of a fit)."""
-    from ddsgen.errors import InputError
-
     folder = Path(folder)
     existing = folder
     while not existing.exists() and existing != existing.parent:
@@ -80,8 +80,6 @@ def check_new_folder(folder: str | Path, option: str, inputs: tuple[str | Path, 
     """Raise ``InputError`` unless ``folder`` can become a new output folder: absent or an empty folder, writable,
     and neither one of ``inputs`` nor inside one nor holding one. Writes nothing; call before any work. Returns
     ``folder`` as a Path. ``option`` names the option in the message (``--out``)."""
-    from ddsgen.errors import InputError
-
     folder = Path(folder)
     for source in inputs:
         where = overlap(folder, source)
@@ -105,8 +103,6 @@ def atomic_folder(folder: str | Path, what: str, *, merge: bool = True, last: st
     index page) goes in last; without ``merge`` it is an error. Ctrl-C waits for the renames. Errors of the file
     system are one-line ``InputError`` naming ``folder`` and ``what``.
     """
-    from ddsgen.errors import InputError
-
     folder = Path(folder)
     target = folder.resolve()
     made = _make_parents(target.parent, folder, what)
@@ -162,8 +158,6 @@ def _process_alive(pid: int) -> bool:
 
 def _make_parents(parent: Path, folder: Path, what: str) -> list[Path]:
     """Create ``parent`` and its missing ancestors; returns those created, outermost first."""
-    from ddsgen.errors import InputError
-
     missing = [p for p in (parent, *parent.parents) if not p.exists()][::-1]
     try:
         for path in missing:
@@ -181,8 +175,6 @@ def _remove_made(made: list[Path]) -> None:
 
 
 def _put_in_place(tmp: Path, target: Path, folder: Path, what: str, merge: bool, last: str | None) -> None:
-    from ddsgen.errors import InputError
-
     try:
         if target.is_dir() and not any(target.iterdir()):
             target.rmdir()

@@ -18,6 +18,8 @@ import tempfile
 from importlib.resources import files
 from pathlib import Path
 
+from ddsgen.cache import cache_dir
+
 log = logging.getLogger(__name__)
 
 
@@ -47,8 +49,6 @@ def load_c_library(source: bytes, stem: str, flags: list[str], what: str, fallba
     """
     if os.environ.get("DDSGEN_NO_C_KERNEL"):
         return None
-    from ddsgen.cache import cache_dir
-
     compiler = os.environ.get("CC", "cc")
     try:
         digest = hashlib.sha256(source + "\n".join(["", compiler, *flags, cpu_tag()]).encode()).hexdigest()[:16]

@@ -62,7 +62,18 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from ddsgen.depth_jumps import band_outcomes, holes_at_depth_jumps, region_or_all, registration_band_jumps
+from ddsgen.depth_jumps import (
+    band_outcomes,
+    holes_at_depth_jumps,
+    region_or_all,
+    registration_band_jumps,
+)
+from ddsgen.silhouette_edges import outline_jitter
+from ddsgen.surface_roughness import (
+    ROUGHNESS_KEYS,
+    roughness_summary,
+    surface_residuals,
+)
 
 if TYPE_CHECKING:
     from ddsgen.surface_roughness import SurfaceResiduals
@@ -311,9 +322,6 @@ def realism_statistics(depth_m: np.ndarray, valid: np.ndarray | None = None, reg
     with ``disparity_fb`` = f b in px m; None without it or without enough such surface; ``residuals``: those of
     :func:`ddsgen.surface_roughness.surface_residuals` for this frame when already computed), ``pixels``.
     """
-    from ddsgen.silhouette_edges import outline_jitter
-    from ddsgen.surface_roughness import ROUGHNESS_KEYS, roughness_summary, surface_residuals
-
     depth = np.asarray(depth_m, np.float64)
     valid = depth > 0 if valid is None else np.asarray(valid, bool)
     region = region_or_all(depth.shape, region)

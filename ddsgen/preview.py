@@ -25,14 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.errors import InputError
 from ddsgen.atomic import atomic_path
+from ddsgen.errors import InputError
 from ddsgen.io.bop_writer import scans_folder
-from ddsgen.io.manifest import RUN_FILE
 from ddsgen.io.ir_png import encode_ir, ir_white_counts
+from ddsgen.io.manifest import RUN_FILE
 from ddsgen.io.png import read_png8, read_png16
 from ddsgen.io.scan_frame import ScanFrame
 from ddsgen.io.scanfolder import read_scan_folder
+from ddsgen.scene.meshes import load_mesh
 
 #: Frames shown by default (evenly spaced over the dataset, first and last included).
 DEFAULT_FRAMES = 4
@@ -97,8 +98,6 @@ def _ddsgen_row(folder: Path, scan: ScanFrame) -> SheetFrame:
 
 def projected_box(obj, intrinsics, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
     """(x, y, w, h) px of the object's mesh projected with its pose, clipped to the image; None if out of view."""
-    from ddsgen.scene.meshes import load_mesh
-
     mesh = load_mesh(obj.mesh_path, obj.mesh_scale)
     points = mesh.vertices @ obj.cam_T_obj[:3, :3].T + obj.cam_T_obj[:3, 3]
     points = points[points[:, 2] > 1e-3]

@@ -21,15 +21,30 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.errors import InputError
 from ddsgen.atomic import atomic_write_text
+from ddsgen.cache import configure_torch_compile_cache
+from ddsgen.distributed import check_address, connect, run_on_dask
+from ddsgen.errors import InputError
+from ddsgen.io.bop_writer import check_bop_root, scans_folder, write_bop_dataset
 from ddsgen.io.class_table import write_class_table
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import (
-    BUILT_IN_SCENES, RUN_FILE, append_record, dumps_record, file_digest, read_manifest, repair_manifest, sorted_records,
+    BUILT_IN_SCENES,
+    RUN_FILE,
+    append_record,
+    dumps_record,
+    file_digest,
+    read_manifest,
+    repair_manifest,
+    sorted_records,
 )
 from ddsgen.preset import SensorPreset, load_preset, save_preset, source_label
+from ddsgen.raycast import object_labels
+from ddsgen.scene.sampling import sample_frame
 from ddsgen.scene.scenelist import SceneList, load_scene_list, models_folder
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.registration import ir_camera_record
+from ddsgen.sensor.sensor_cast import cast_for_sensor
 from ddsgen.worker_pool import run_in_pool
 
 MANIFEST = "manifest.jsonl"
@@ -140,9 +155,6 @@ def one_thread():
 
 def _worker_state(job: RenderJob):
     if _WORKER.get("job") != job:
-        from ddsgen.cache import configure_torch_compile_cache
-        from ddsgen.sensor.depth_sensor import DepthSensor
-
         configure_torch_compile_cache()
         preset = apply_camera(load_preset(job.preset_path), job.camera)
         for key in ("job", "preset", "scenes", "sensor"):
@@ -167,11 +179,6 @@ def render_frame(job: RenderJob, frame: int) -> dict:
 def simulate_frame(job: RenderJob, frame: int) -> SimulatedFrame:
     """Frame ``frame`` of the dataset ``job`` describes, as arrays (a pure function of the job and ``frame``)."""
     import torch
-
-    from ddsgen.raycast import object_labels
-    from ddsgen.scene.sampling import sample_frame
-    from ddsgen.sensor.sensor_cast import cast_for_sensor
-    from ddsgen.sensor.registration import ir_camera_record
 
     state = _worker_state(job)
     preset: SensorPreset = state["preset"]
@@ -287,8 +294,6 @@ def finalise_manifest(out: Path) -> None:
 def check_sensor_assets(preset: SensorPreset) -> None:
     """Load the preset's dot pattern and fit it to the sensor now, so a missing or unusable pattern
     file is an :class:`InputError` before anything is written (the workers would fail later)."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     try:
         DepthSensor(preset).pattern_field()
     except InputError as error:
@@ -336,8 +341,6 @@ def render_dataset(
     if workers < 1:
         raise InputError(f"--workers: must be >= 1, got {workers}")
     if scheduler:  # a malformed address fails now, not after loading the preset and a connection timeout
-        from ddsgen.distributed import check_address
-
         check_address(scheduler)
     camera = parse_camera(camera) if isinstance(camera, str) else camera
     preset = apply_camera(load_preset(preset_path), camera)
@@ -348,14 +351,10 @@ def render_dataset(
         raise InputError(f"--format: must be one of {', '.join(OUTPUT_FORMATS)}, got {output_format!r}")
     out_dir = Path(out)
     if output_format == "bop":
-        from ddsgen.io.bop_writer import check_bop_root, scans_folder
-
         check_bop_root(out_dir)
         out_dir = scans_folder(out_dir)
     client = None
     if scheduler:  # connect first: an unreachable scheduler must not leave an output folder behind
-        from ddsgen.distributed import connect
-
         client = connect(scheduler)
     try:
         summary = _render_into(out_dir, preset, scene_list, RenderJob(
@@ -366,8 +365,6 @@ def render_dataset(
         if client is not None:
             client.close()
     if output_format == "bop":
-        from ddsgen.io.bop_writer import write_bop_dataset
-
         try:
             write_bop_dataset(out_dir, Path(out))
         except OSError as error:
@@ -388,8 +385,6 @@ def _render_into(out_dir: Path, preset: SensorPreset, scene_list: SceneList, job
     appended: set[int] = set()
     try:
         if client is not None:
-            from ddsgen.distributed import run_on_dask
-
             results = run_on_dask(client, _render_batch, job, batches)
         elif workers == 1:
             results = (_render_batch(job, b) for b in batches)

@@ -40,9 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.errors import InputError
 from ddsgen.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from ddsgen.errors import InputError
 from ddsgen.io.manifest import RUN_FILE, read_manifest
+from ddsgen.io.png import read_depth_png, read_png16, write_png8
+from ddsgen.scene.meshes import load_mesh
 
 SCANS_DIR = "ddsgen"
 SPLIT = "train_pbr"
@@ -118,8 +120,6 @@ def _model_info(vertices_mm: np.ndarray) -> dict:
 
 def _load_model_mm(mesh_ref: str, mesh_scale: float, scans: Path):
     """(vertices mm, faces, vertex normals) of a manifest mesh reference."""
-    from ddsgen.scene.meshes import load_mesh
-
     ref = mesh_ref
     if not ref.startswith("shape:") and not Path(ref).is_absolute():
         ref = str(scans / ref)
@@ -170,8 +170,6 @@ def _copy_atomic(source: Path, target: Path) -> None:
 
 def write_bop_dataset(scans: str | Path, root: str | Path) -> Path:
     """Write (or complete) the BOP layout at ``root`` from the ddsgen render in ``scans``. Returns the split folder."""
-    from ddsgen.io.png import read_depth_png, read_png16, write_png8
-
     scans, root = Path(scans), Path(root)
     records = read_manifest(scans / "manifest.jsonl")
     split = root / SPLIT

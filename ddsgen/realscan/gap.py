@@ -54,10 +54,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ddsgen.atomic import atomic_write_text
 from ddsgen.errors import InputError
-from ddsgen.realscan.gap_report import BELOW_FLOOR, GapReport, round_or_none as _r
+from ddsgen.realscan.gap_report import BELOW_FLOOR, GapReport
+from ddsgen.realscan.gap_report import round_or_none as _r
 from ddsgen.realscan.local_patches import patch_gap, patch_line, patch_summary
 from ddsgen.realscan.losses import GAP_WEIGHTS, depth_compared, frame_loss, local_window
+from ddsgen.realscan.plots import plot_bins, plot_residuals
+from ddsgen.realscan.realism import table as realism_table
 from ddsgen.realscan.simulate import FrameData, simulate, simulate_twin, twin_draws
 
 DEPTH_EDGES_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0, 4.0, 8.0)
@@ -272,8 +276,6 @@ def table(report: GapReport, title: str = "") -> str:
         lines.append(f"  {b['low']:.1f}-{b['high']:.1f}  {b['pixels']:7d} {_f(b['gap_bias_mm']):>7} "
                      f"{_f(b['gap_spread_mm']):>7}   {b['real_valid_rate']:.3f}     {b['sim_valid_rate']:.3f}")  # fmt: skip
     if report.realism:
-        from ddsgen.realscan.realism import table as realism_table
-
         lines.append(realism_table(report.realism))
     return "\n".join(lines)
 
@@ -309,14 +311,10 @@ def _mm(x, spec: str) -> str:
 
 def write_report(report: GapReport, folder: str | Path, name: str = "comparison") -> list[Path]:
     """Write ``NAME.json`` and the PNG plots (binned bias/spread/validity; residual maps) into ``folder``."""
-    from ddsgen.atomic import atomic_write_text
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = [folder / f"{name}.json"]
     atomic_write_text(out[0], json.dumps(report.to_dict(), indent=1) + "\n")
-    from ddsgen.realscan.plots import plot_bins, plot_residuals
-
     out.append(plot_bins(report, folder / f"{name}_bins.png"))
     if report.maps:
         out.append(plot_residuals([report], folder / f"{name}_residuals.png", ["residual (sim - real)"]))

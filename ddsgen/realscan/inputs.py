@@ -9,6 +9,12 @@ from typing import Callable
 import numpy as np
 
 from ddsgen.errors import InputError
+from ddsgen.io.scanfolder import read_scan_folder
+from ddsgen.preset import load_preset
+from ddsgen.realscan.plane_depth import plane_depth_for
+from ddsgen.realscan.simulate import prepare_frames
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.output_window import OutputWindow, measure_device_window
 
 
 def adopt_camera(preset, scan_frames):
@@ -46,12 +52,6 @@ def load_inputs(preset_path, real_dir, *, support_plane=True, crop=False, plausi
     ``echo`` (e.g. ``click.echo`` to stderr) is told when the scans' camera replaces the preset's, and (if
     ``window_hint``) when the real frames' output window differs from the preset's.
     """
-    from ddsgen.realscan.plane_depth import plane_depth_for
-    from ddsgen.realscan.simulate import prepare_frames
-    from ddsgen.io.scanfolder import read_scan_folder
-    from ddsgen.preset import load_preset
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     preset = load_preset(preset_path)
     scans = read_scan_folder(real_dir)
     if not scans:
@@ -80,8 +80,6 @@ def differing_output_window(preset, depth_maps, tolerance_px: int = 2):
         preset: the preset at the frames' image size.
         depth_maps: (H, W) depth of the real frames (m, 0 = invalid), uncropped.
     """
-    from ddsgen.sensor.output_window import OutputWindow, measure_device_window
-
     maps = [np.asarray(d) for d in depth_maps]
     if len(maps) < 2 or len({m.shape for m in maps}) != 1:
         return None
@@ -92,8 +90,6 @@ def differing_output_window(preset, depth_maps, tolerance_px: int = 2):
 def output_window_hint(preset, scans, tolerance_px: int = 2) -> str | None:
     """One line for the user when the real frames' output window differs from the preset's
     (:func:`differing_output_window`), else None."""
-    from ddsgen.sensor.output_window import OutputWindow
-
     measured = differing_output_window(preset, [scan.depth for scan in scans], tolerance_px)
     if measured is None:
         return None

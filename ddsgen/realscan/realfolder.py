@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.errors import InputError
+from ddsgen.io.exr import read_exr
+from ddsgen.io.png import read_depth_png
 
 DEPTH_SUFFIXES = (".png", ".exr")
 
@@ -44,9 +46,6 @@ def read_depth_folder(folder: str | Path, depth_scale: float = 0.001) -> list[Re
         InputError: no depth image, an unreadable/non-16-bit file, sizes that differ,
             a frame without any valid pixel.
     """
-    from ddsgen.io.exr import read_exr
-    from ddsgen.io.png import read_depth_png
-
     if not depth_scale > 0:
         raise InputError(f"--depth-scale: {depth_scale}: must be > 0 (metres per PNG unit)")
     paths = depth_files(folder)

@@ -17,12 +17,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ddsgen.errors import InputError
-from ddsgen.realscan.realism import full_frame
 from ddsgen.atomic import atomic_folder, check_new_folder
+from ddsgen.errors import InputError
 from ddsgen.io.framefiles import DEPTH_SCALE, write_frame_files
 from ddsgen.io.manifest import append_record
 from ddsgen.preset import SensorPreset, save_preset
+from ddsgen.raycast import object_labels
+from ddsgen.realscan.realism import full_frame
+from ddsgen.realscan.simulate import frame_scene
 
 MANIFEST = "manifest.jsonl"
 
@@ -66,9 +68,6 @@ class SimFolderWriter:
 
     def add(self, frame, sim, scan) -> dict:
         """Write the simulation ``sim`` (SensorOutput) of ``frame`` (FrameData) of the real ``scan`` (ScanFrame)."""
-        from ddsgen.realscan.simulate import frame_scene
-        from ddsgen.raycast import object_labels
-
         index = self.count
         intrinsics = frame.full_intrinsics or frame.intrinsics
         depth = full_frame(sim.depth.detach().numpy(), frame, 0.0).astype(np.float32)

@@ -38,12 +38,16 @@ import numpy as np
 import torch
 
 from ddsgen.errors import InputError
+from ddsgen.preset import Intrinsics, SensorPreset
+from ddsgen.raycast import cast
 from ddsgen.realscan.losses import resolved_depth_m
 from ddsgen.realscan.support_plane import Plane, fit_support_plane, plane_pose
-from ddsgen.preset import Intrinsics, SensorPreset
 from ddsgen.scene import shapes
 from ddsgen.scene.sampling import FrameScene, PlacedObject, sample_frame
 from ddsgen.scene.scenelist import load_mesh, load_scene_list
+from ddsgen.sensor.output_window import OutputWindow
+from ddsgen.sensor.registration import output_projector_x_m
+from ddsgen.sensor.sensor_cast import sensor_geometry
 
 #: Default IR reflectance of modelled surfaces (the scene-list default for objects). eta_c and
 #: albedo only appear as their product in the IR image, so a fitted eta_c is relative to this.
@@ -194,10 +198,6 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
                   albedo: float = DEFAULT_ALBEDO, plausible_px: float = DEFAULT_PLAUSIBLE_PX,
                   crop: bool = False, crop_margin_px: int = 24, seed: int = 0, plane_depth=None) -> FrameData:  # fmt: skip
     """One :class:`FrameData` (see :func:`prepare_frames`)."""
-    from ddsgen.raycast import cast
-    from ddsgen.sensor.sensor_cast import sensor_geometry
-    from ddsgen.sensor.registration import output_projector_x_m
-
     intr = frame.intrinsics
     real = np.asarray(frame.depth, dtype=np.float32)
     real = np.where(np.isfinite(real) & (real > 0), real, 0.0).astype(np.float32)
@@ -230,8 +230,6 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
 
     # Comparison region, on the whole frame (the support plane's real extent is a whole-frame notion).
     from ddsgen.realscan.region import comparison_region
-    from ddsgen.sensor.output_window import OutputWindow
-
     region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px,
                                preset.block_size_px, plane is not None, OutputWindow.of(preset))  # fmt: skip
 

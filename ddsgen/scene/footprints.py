@@ -13,6 +13,10 @@ import functools
 
 import numpy as np
 
+from ddsgen.scene.meshes import load_mesh
+from ddsgen.scene.stable_poses import stable_poses
+
+
 @dataclasses.dataclass(frozen=True)
 class RestPose:
     """One resting pose of a mesh. Its offset and footprint are computed when a layout first draws it: a mesh
@@ -53,9 +57,6 @@ def _convex_polygon(points: np.ndarray) -> np.ndarray:
 @functools.lru_cache(maxsize=256)
 def rest_poses(mesh_ref: str, scale: float, rest: str) -> tuple[tuple[RestPose, ...], np.ndarray]:
     """Resting poses of a mesh and their probabilities."""
-    from ddsgen.scene.meshes import load_mesh
-    from ddsgen.scene.stable_poses import stable_poses
-
     mesh = load_mesh(mesh_ref, scale)
     hull = mesh.convex_hull
     if rest == "upright":

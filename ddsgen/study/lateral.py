@@ -23,6 +23,10 @@ import math
 import numpy as np
 
 from ddsgen.preset import Intrinsics
+from ddsgen.scene.sampling import FrameScene, PlacedObject
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.sensor_cast import cast_for_sensor
+from ddsgen.study.noise import simulate_point, study_intrinsics
 
 #: Each edge's image column: this share of the image width left / right of the principal point.
 EDGE_OFFSET = 0.25
@@ -71,8 +75,6 @@ def board_scene(z: float, angle_deg: float, intrinsics: Intrinsics, albedo: floa
     halves are :func:`board_halves` long, and it is tall enough to fill the view.
     """
     import trimesh
-
-    from ddsgen.scene.sampling import FrameScene, PlacedObject
 
     a = math.radians(angle_deg)
     sin_a, cos_a = math.sin(a), math.cos(a)
@@ -245,10 +247,6 @@ def run_lateral_study(preset, zs, angles_deg, frames: int = 4, seed: int = 0, ro
     Arguments as :func:`ddsgen.study.noise.run_noise_study` (the same frame seeds, another scene: the board of
     :func:`board_scene`). Returns one :class:`LateralPoint` per (z, alpha), z-major.
     """
-    from ddsgen.sensor.depth_sensor import DepthSensor
-    from ddsgen.sensor.sensor_cast import cast_for_sensor
-    from ddsgen.study.noise import simulate_point, study_intrinsics
-
     intrinsics = study_intrinsics(preset, rows)
     sensor = DepthSensor(preset, intrinsics=intrinsics).eval()
     points = []

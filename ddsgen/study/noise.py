@@ -34,6 +34,9 @@ import numpy as np
 
 from ddsgen.errors import InputError
 from ddsgen.preset import Intrinsics, SensorPreset
+from ddsgen.scene.sampling import FrameScene, PlacedObject
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.sensor_cast import cast_for_sensor
 from ddsgen.study.quantisation import lattice_step, quantisation_step
 
 DEFAULT_Z = "0.5:4.0:0.25"
@@ -132,8 +135,6 @@ def plane_scene(z: float, angle_deg: float, albedo: float = DEFAULT_ALBEDO):
     where it comes within 0.25 z of the camera, and far enough vertically to fill the field of view.
     """
     import trimesh
-
-    from ddsgen.scene.sampling import FrameScene, PlacedObject
 
     a = math.radians(angle_deg)
     sin_a, cos_a = math.sin(a), math.cos(a)
@@ -333,9 +334,6 @@ def run_noise_study(
     Returns:
         One :class:`NoisePoint` per (z, alpha), z-major.
     """
-    from ddsgen.sensor.depth_sensor import DepthSensor
-    from ddsgen.sensor.sensor_cast import cast_for_sensor
-
     if frames < 1:
         raise InputError(f"--frames: must be >= 1, got {frames}")
     intr = study_intrinsics(preset, rows)

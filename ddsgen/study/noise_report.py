@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ddsgen.atomic import atomic_path, atomic_write_text
 from ddsgen.preset import SensorPreset
+from ddsgen.study.lateral import nguyen_lateral_px
 from ddsgen.study.noise import NoisePoint, khoshelham_sigma, nguyen_sigma
 from ddsgen.study.quantisation import RealQuantisation, local_steps, quantisation_step
-
 
 #: A point agrees with a published curve when its std is within this fraction of it (issue 12's +-30 %).
 AGREEMENT = 0.3
@@ -67,8 +68,6 @@ def write_noise_json(points: list[NoisePoint], path: Path | str, lateral: list |
     """``{"points": [{z, angle_deg, rms_m, std_m, bias_m, valid_fraction, step_m}, ...], "verdict": ...}``
     (:func:`verdict`), atomically; with ``lateral`` (:class:`~ddsgen.study.lateral.LateralPoint` list) also
     ``"lateral": [{z, angle_deg, lateral_px, left_px, right_px, nguyen_px}, ...]``."""
-    from ddsgen.atomic import atomic_write_text
-
     data = {"points": [p.as_json() for p in points], "verdict": verdict(points)}
     if lateral is not None:
         data["lateral"] = [p.as_json() for p in lateral]
@@ -131,8 +130,6 @@ def quantisation_table(points: list[NoisePoint], preset: SensorPreset, real: Rea
 def lateral_table(points: list, fx: float) -> str:
     """A Markdown table of the lateral noise (:class:`~ddsgen.study.lateral.LateralPoint` list) beside Nguyen's (px;
     mm at the board's distance: px z / fx), and the edges' fattening (px outside the true edge, both edges' mean)."""
-    from ddsgen.study.lateral import nguyen_lateral_px
-
     def px(value):
         return "n/a" if value is None else f"{value:.2f}"
 
@@ -168,8 +165,6 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ddsgen.atomic import atomic_path
 
     angles = sorted({p.angle_deg for p in points})
     zs = sorted({p.z for p in points})
@@ -266,8 +261,6 @@ def plot_noise_study(points: list[NoisePoint], preset: SensorPreset, real: RealQ
 
 def _plot_lateral(ax_px, ax_ratio, lateral: list, angles: list[float], colours) -> None:
     """The lateral noise (px) vs z per alpha with Nguyen's value, and its ratio to Nguyen's (goal band +-30 %)."""
-    from ddsgen.study.lateral import nguyen_lateral_px
-
     for colour, angle in zip(colours, angles):
         rows = [(p.z, p.lateral_px) for p in lateral if p.angle_deg == angle and p.lateral_px is not None]
         nguyen = float(nguyen_lateral_px(angle))

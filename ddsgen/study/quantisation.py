@@ -16,6 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ddsgen.errors import InputError
+from ddsgen.io.images import read_image
+
 #: Real depth data for the quantisation check: $DDSGEN_SHARED_DATA, else shared/data beside the
 #: source checkout (absent in a wheel install: the check is then skipped with a message).
 SHARED_DATA = Path(os.environ.get("DDSGEN_SHARED_DATA") or Path(str(files("ddsgen"))).parents[1] / "shared" / "data")
@@ -78,9 +81,6 @@ class RealQuantisation:
 
 def real_quantisation(linemod_png: Path | str | None = LINEMOD_DEPTH, distreal_txt: Path | str | None = DISTREAL_MM):
     """Read the real depth values; a missing file gives None and a message (the check is then skipped)."""
-    from ddsgen.errors import InputError
-    from ddsgen.io.images import read_image
-
     messages = []
     linemod = distreal = None
     if linemod_png is not None and Path(linemod_png).is_file():

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ddsgen.errors import InputError
 from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool
+from ddsgen.fit.unpaired.search import cast_scenes, render_depths
 from ddsgen.realscan.realfolder import RealDepthFrame, round_like
 from ddsgen.sensor.output_window import OutputWindow, measure_device_window
 from ddsgen.sensor.registration import is_registered
@@ -51,8 +53,6 @@ class WindowModel:
 
 
 def _stock_radius_distance(model: WindowModel, real_features: list, resolution_m: float, seed: int) -> float:
-    from ddsgen.fit.unpaired.search import render_depths
-
     fb = model.camera.focal_px * model.camera.baseline_m
     depths = render_depths(model.camera, model.geometries, seed)
     simulated = [frame_features(round_like(d, resolution_m), fb) for d in depths]
@@ -76,9 +76,6 @@ def choose_window_model(stock_camera, real: list[RealDepthFrame], scene_list, si
         real_features: :func:`.features.frame_features` of ``real`` with the preset's f b, when the caller has
             them already.
     """
-    from ddsgen.errors import InputError
-    from ddsgen.fit.unpaired.search import cast_scenes
-
     if reading not in READINGS:
         raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
     if reading == "registered" and not is_registered(stock_camera):

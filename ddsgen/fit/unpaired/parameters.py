@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ddsgen.fit.unpaired.features import WEIGHTS
 from ddsgen.parameters import unpaired_searches
 
 
@@ -46,8 +47,6 @@ class UnpairedParameter:
 
     def objective(self, terms: dict) -> float:
         """This key's search objective from a :func:`.features.distance_terms` dict."""
-        from ddsgen.fit.unpaired.features import WEIGHTS
-
         return float(sum(terms[t] if t == "total" else WEIGHTS[t] * terms[t] for t in self.terms))
 
     def to_unit(self, value: float) -> float:

@@ -26,10 +26,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
-from ddsgen.fit.unpaired.features import DEPTH_EDGES, ISOLATED_CLASSES, NOISE_BIN_PX, RADIUS_EDGES, summary
 from ddsgen.atomic import atomic_path, atomic_write_text
-from ddsgen.surface_roughness import flat_residuals_by_depth, pooled_flat_roughness, surface_residuals
+from ddsgen.depth_statistics import STATISTIC_LABELS, realism_statistics
+from ddsgen.fit.unpaired.features import (
+    DEPTH_EDGES,
+    ISOLATED_CLASSES,
+    NOISE_BIN_PX,
+    RADIUS_EDGES,
+    summary,
+)
+from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
+from ddsgen.surface_roughness import (
+    flat_residuals_by_depth,
+    pooled_flat_roughness,
+    surface_residuals,
+)
 
 COLOURS = {"real": "black", "stock": "tab:orange", "fitted": "tab:blue"}
 PATCH_PX = 64
@@ -98,8 +109,6 @@ def plot_distributions(pooled: dict[str, dict], path: Path) -> None:
 def plot_profiles(content: dict, path: Path) -> None:
     """One panel per fitted key: objective against value (``content``: :class:`.search.UnpairedResult` as a dict)."""
     from matplotlib import ticker
-
-    from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 
     plt = _plt()
     keys = list(content["profiles"])

@@ -9,14 +9,21 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ddsgen.atomic import atomic_folder
 from ddsgen.errors import InputError
+from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
-from ddsgen.realscan.realfolder import read_depth_folder, round_like
 from ddsgen.fit.unpaired.report import write_report
-from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
-from ddsgen.fit.unpaired.search import camera_for, cast_scenes, fit_unpaired, render_depths
-from ddsgen.atomic import atomic_folder
+from ddsgen.fit.unpaired.search import (
+    camera_for,
+    cast_scenes,
+    fit_unpaired,
+    render_depths,
+)
+from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
+from ddsgen.realscan.realfolder import read_depth_folder, round_like
+from ddsgen.scene.scenelist import load_scene_list
 
 #: Frames of the scene list rendered per evaluation.
 DEFAULT_SIM_FRAMES = 8
@@ -33,9 +40,6 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     ``registration``: how to read the frames' depth (:data:`~.device_window.READINGS`; "auto" measures it).
     Returns the report's JSON content.
     """
-    from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
-    from ddsgen.scene.scenelist import load_scene_list
-
     out = Path(out)
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")

@@ -44,8 +44,15 @@ import torch
 from ddsgen.fit.unpaired.features import distance_terms, frame_features, pool
 from ddsgen.fit.unpaired.joint import design_offsets, joint_uncertainty
 from ddsgen.fit.unpaired.parameters import UnpairedParameter, parameters_for
+from ddsgen.fit.unpaired.spread import (
+    scene_content_interval,
+    scene_content_scale,
+    search_std,
+)
 from ddsgen.realscan.realfolder import RealDepthFrame, round_like
-from ddsgen.fit.unpaired.spread import scene_content_interval, scene_content_scale, search_std
+from ddsgen.scene.sampling import sample_frame
+from ddsgen.sensor.depth_sensor import DepthSensor
+from ddsgen.sensor.sensor_cast import cast_for_sensor
 
 #: Noise stream of the fit's renders (never render's 1 or simulate's 7919).
 UNPAIRED_STREAM = 6143
@@ -99,9 +106,6 @@ def cast_scenes(preset, scene_list, n_frames: int, seed: int, progress: bool = F
     list of :class:`~ddsgen.sensor.geometry.SensorGeometry`."""
     from tqdm import tqdm
 
-    from ddsgen.scene.sampling import sample_frame
-    from ddsgen.sensor.sensor_cast import cast_for_sensor
-
     out = []
     for i in tqdm(range(n_frames), desc="ray cast", unit="frame", disable=not progress, leave=False):
         scene = sample_frame(scene_list, i, seed)
@@ -114,8 +118,6 @@ def render_depths(preset, geometries: list, seed: int, first_index: int = 0) -> 
 
     Frame ``k`` of the list is drawn with noise seed ``[seed, first_index + k, UNPAIRED_STREAM]``,
     so rendering frames one slice at a time gives the same bytes as all at once."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     sensor = DepthSensor(preset).eval()
     with torch.no_grad():
         return [sensor(g, seed=[seed, first_index + i, UNPAIRED_STREAM]).depth.numpy()
