@@ -23,7 +23,7 @@ Three statistics of :func:`ddsgen.depth_statistics.realism_statistics` (definiti
 
 * **narrow registration bands left as a slit**: the same jumps with a predicted band of 3-6 px
   (``NARROW_BAND_PX``), and the share of them with 1-2 invalid pixels (``SLIT_PX``) between the surfaces. Three
-  real devices agree (docs/realism.md, session 48): IC-BIN 0.23 pooled, the LineMOD cat 0.15, TUM 0.14; row by row
+  real devices agree (docs/validation.md): IC-BIN 0.23 pooled, the LineMOD cat 0.15, TUM 0.14; row by row
   a 3-4 px band closes in 66-90 % of the rows and leaves a slit in 8-12 %, a 4-6 px band a slit in 13-22 %, one
   row here and there: most of the real frames' 1-2 px holes right of near surfaces (6 a frame on each device).
 """

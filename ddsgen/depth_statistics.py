@@ -35,7 +35,7 @@ there):
   each other (the hole fill's tolerance applied to the whole rim's range, stricter than
   ``ddsgen.sensor.cleanup``'s rule on adjacent rim pixels, which a slanted rim can pass; f b of a Kinect V1 by
   default). The eleven real frames: 18 % (71 of 386, most of them 1-2 px); the rest sit at depth edges. A simulation with many more has holes no real device leaves, such as a
-  registration band drawn inside the near surface (docs/realism.md, session 33).
+  registration band drawn inside the near surface (docs/model.md, registration).
 
 * **holes at depth jumps** and **wide registration bands kept open**: :mod:`ddsgen.depth_jumps`.
 
@@ -45,7 +45,7 @@ there):
   IC-BIN 61 of 105 pooled (0.58; per frame 0.31-0.86 on 7-15 of them), the LineMOD cat 6 of 12, TUM 5 of 9. It
   tells how a simulation's registration breaks its bands into holes: the backward map leaves thin vertical slivers
   beside near surfaces (16 rendered kinect_v1 frames: 0.78), a forward map without a vertical fill leaves dashes
-  along near-horizontal edges (0.19; docs/realism.md, session 35). Per frame it rests on few holes: pool frames.
+  along near-horizontal edges (0.19; docs/validation.md). Per frame it rests on few holes: pool frames.
 
 * **roughness and grain** (with the sensor's f b): how rough flat and slanted surfaces are in disparity and how the
   noise is grained, from local quadratic fits (:mod:`ddsgen.surface_roughness`).

@@ -326,7 +326,7 @@ def render_dataset(
         scheduler: address of a Dask scheduler (``tcp://host:port``) to run on instead.
         progress: show a tqdm progress bar.
         batch_size: frames per task.
-        output_format: ``"ddsgen"`` (DESIGN.md §3) or ``"bop"``: a BOP dataset at ``out`` (see
+        output_format: ``"ddsgen"`` (the scan layout, README.md "Outputs") or ``"bop"``: a BOP dataset at ``out`` (see
             ``ddsgen/io/bop_writer.py``), rendered through the ddsgen layout in ``out/ddsgen``.
         camera: ``"fx,fy,cx,cy"`` (px) or a 4-tuple overriding the preset's intrinsics (focal_px, focal_y_px,
             cx_px, cy_px); the manifest's intrinsics and OUT/sensor.yaml record them.

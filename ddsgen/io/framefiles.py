@@ -1,4 +1,4 @@
-"""The files of one simulated frame in ddsgen's scan layout (DESIGN.md §3), written atomically.
+"""The files of one simulated frame in ddsgen's scan layout (README.md "Outputs"), written atomically.
 
 Shared by ``render`` (ddsgen/runner.py) and ``compare --save-sim`` (ddsgen/realscan/save_sim.py), so
 both write the same files under the same names and a saved folder reads back with
@@ -20,7 +20,7 @@ DEPTH_SCALE = 0.001  # metres per depth-PNG unit (millimetres)
 
 
 def frame_paths(frame: int) -> dict[str, str]:
-    """Relative paths of a frame's files (DESIGN.md §3)."""
+    """Relative paths of a frame's files in the scan layout."""
     name = f"{frame:06d}"
     return {
         "depth": f"depth/{name}.png",

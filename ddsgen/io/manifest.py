@@ -1,4 +1,4 @@
-"""The JSON Lines manifest of a scan folder (DESIGN.md §3): one JSON object per frame.
+"""The JSON Lines manifest of a scan folder (README.md "Outputs"): one JSON object per frame.
 
 Writing: :func:`append_record` validates a record, serialises it as canonical
 JSON (sorted keys, fixed separators, no NaN; numpy values converted), and

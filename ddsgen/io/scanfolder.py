@@ -2,7 +2,7 @@
 
 :func:`read_scan_folder` auto-detects the layout:
 
-* **ddsgen** (DESIGN.md §3): ``DIR/manifest.jsonl`` (validated non-strictly, so
+* **ddsgen** (README.md "Outputs"): ``DIR/manifest.jsonl`` (validated non-strictly, so
   hand-written real-scan manifests need no ``seed``/``bbox``/``visible_fraction``
   and may have ``world_T_cam: null``); each record's ``depth`` file (16-bit PNG
   scaled by ``depth_scale``, or float32 EXR in metres); meshes are file paths

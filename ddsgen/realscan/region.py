@@ -20,7 +20,7 @@ simulation should answer for. The rule (:func:`comparison_region`), in disparity
    an unmodelled real surface (valid real pixels that are not plausible -- nearer than the
    modelled geometry, or where nothing is modelled -- at least half a block wide, so that a
    lone wrong match is no occluder) does not count. With the projector at +b on
-   the camera's x axis (DESIGN.md), a point at column u with disparity d is lit by projector
+   the camera's x axis (docs/model.md), a point at column u with disparity d is lit by projector
    column u - d; it is shadowed when some nearer point to its right on the same row maps to a
    projector column <= u - d. The shadow is widened by half a matching block, since the real
    matcher loses the window that straddles a shadow's edge.

@@ -20,7 +20,7 @@ columns, restricted to where the true depth is within +-10 % of z, so tilted pla
 * ``step_m``: the quantisation step: the spacing of the distinct depth values the sensor output near z
   (:func:`ddsgen.study.quantisation.lattice_step`).
 
-Published curves (DESIGN.md, shared/data/README.md): :func:`nguyen_sigma`, :func:`khoshelham_sigma`; the predicted
+Published curves (docs/validation.md, noise study): :func:`nguyen_sigma`, :func:`khoshelham_sigma`; the predicted
 quantisation step and the real Kinect depth values are in :mod:`ddsgen.study.quantisation`.
 """
 
