@@ -1,0 +1,167 @@
+"""Keep a refined pose only where pixels the optimiser never saw say it is better.
+
+The image is cut into square blocks (``holdout_block_px``) coloured like a checkerboard whose phase
+is drawn from the seed and the view's index: the optimiser compares depth only on one colour
+(:func:`heldout_blocks` is False there); the other colour judges the result. For every free part
+(an object, the support plane) the held-out cost at the start poses is compared with the cost
+when that part alone takes its refined pose; the refined pose is kept only if the cost is lower.
+
+The per-pixel cost (:func:`pixel_cost`, m) is the same for every pose, so sums over one fixed pixel
+set compare fairly (the part's held-out pixels at the start pose and at the refined one):
+
+* the real surface nearer than the modelled one by more than ``occluder_m`` (an occluder, clutter
+  the scene lacks), or no simulated depth: a fixed charge ``occluder_m`` -- it explains the pixel
+  no better and no worse wherever the object is, so hiding an object in clutter earns nothing;
+* otherwise ``|simulated - real|``, at most ``absence_cap_m``: where the model puts a surface in front of
+  a farther real one (the object is not there) the pixel costs the cap, more than any charge.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+#: Hold-out pattern: the checkerboard's phase of a view comes from rng([seed, HOLDOUT_STREAM, view]).
+HOLDOUT_STREAM = 16065
+
+
+@dataclasses.dataclass
+class PartDecision:
+    """Whether a part's refined pose was kept, by its held-out cost (mean over its held-out pixels, mm)."""
+
+    part: int
+    kept: bool
+    heldout_start_mm: float
+    heldout_refined_mm: float
+    pixels: int
+
+    def reason(self) -> str:
+        """One phrase for the terminal and the report."""
+        if self.pixels == 0:
+            return "start kept: no held-out pixel shows it"
+        verdict = "refined pose kept" if self.kept else "start kept: the refined pose does not lower"
+        return f"{verdict} (held-out gap {self.heldout_start_mm:.2f} mm -> {self.heldout_refined_mm:.2f} mm)"
+
+
+def heldout_blocks(height: int, width: int, block_px: int, seed: int, view: int) -> torch.Tensor:
+    """(H, W) bool: the held-out colour of a checkerboard of ``block_px`` blocks, phase seeded by (seed, view)."""
+    rng = np.random.default_rng([int(seed), HOLDOUT_STREAM, int(view)])
+    oy, ox = rng.integers(0, block_px, size=2)
+    parity = int(rng.integers(0, 2))
+    rows = (np.arange(height) + oy) // block_px
+    cols = (np.arange(width) + ox) // block_px
+    return torch.from_numpy(((rows[:, None] + cols[None, :]) % 2) == parity)
+
+
+def pixel_cost(depth, valid, clean, real, occluder_m: float, absence_cap_m: float, max_depth_m: float):
+    """((H, W) cost in m, (H, W) bool where it is defined: a real depth and a modelled surface within range)."""
+    defined = (real > 0) & (clean > 0) & (clean <= max_depth_m)
+    occluded = real < clean - occluder_m
+    residual = (depth - real).abs().clamp(max=absence_cap_m)
+    charge = torch.full_like(residual, occluder_m)
+    return torch.where(occluded | ~valid, charge, residual), defined
+
+
+def owner_image(tensors) -> torch.Tensor:
+    """(H, W) int64 part index of every pixel of a cast (-1: nothing hit)."""
+    height, width = tensors.shape
+    owner = torch.full((height * width,), -1, dtype=torch.int64)
+    owner[tensors.index] = tensors.owner
+    return owner.reshape(height, width)
+
+
+@dataclasses.dataclass
+class _Unit:
+    """One decision: the correction rows that move a part (one row of each tensor), the views it moves it in."""
+
+    rows: list  # [(parameter tensor, row)]
+    views: list  # view indices
+    part: int
+
+
+def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list[list]:
+    """Keep each part's refined correction only if it lowers the part's held-out cost; reset the others.
+
+    Args:
+        sensor: the DepthSensor (each view's camera is set for its evaluation).
+        views: the refinement loop's views (``scene``, ``real``, ``heldout``, ``index``, ``recast()``,
+            ``render(sensor)`` -> (depth, valid, clean), ``resolved_depth_m(sensor)``), at the refined poses.
+
+    Returns:
+        per view, per part: a :class:`PartDecision` (None for a part that does not move).
+    """
+    from ddsgen.realscan.simulate import frame_camera
+
+    units = _units(views)
+    refined = {id(p): p.detach().clone() for u in units for p, _ in u.rows}
+    with torch.no_grad():
+        for u in units:
+            for p, row in u.rows:
+                p[row] = 0.0
+    start = []
+    for v in views:
+        with frame_camera(sensor, v.scene.intrinsics):
+            start.append(_cost(v, sensor, occluder_m, absence_cap_m))
+    decisions = [[None] * len(v.scene.parts) for v in views]
+    kept = []
+    for u in units:
+        with torch.no_grad():
+            for p, row in u.rows:
+                p[row] = refined[id(p)][row]
+        before = after = 0.0
+        pixels = 0
+        for i in u.views:
+            v = views[i]
+            with frame_camera(sensor, v.scene.intrinsics):
+                cost, owner = _cost(v, sensor, occluder_m, absence_cap_m)
+            cost0, owner0 = start[i]
+            judged = v.heldout & ((owner0 == u.part) | (owner == u.part))
+            before += float(cost0[judged].sum())
+            after += float(cost[judged].sum())
+            pixels += int(judged.sum())
+        with torch.no_grad():
+            for p, row in u.rows:
+                p[row] = 0.0
+        keep = pixels > 0 and after < before
+        if keep:
+            kept.append(u)
+        n = max(pixels, 1)
+        decision = PartDecision(u.part, keep, before / n * 1000.0, after / n * 1000.0, pixels)
+        for i in u.views:
+            decisions[i][u.part] = decision
+    with torch.no_grad():
+        for u in kept:
+            for p, row in u.rows:
+                p[row] = refined[id(p)][row]
+    return decisions
+
+
+def _cost(v, sensor, occluder_m, absence_cap_m):
+    """(cost (H, W) m with undefined pixels 0, owner image) of a view at its current poses."""
+    v.recast()
+    depth, valid, clean = v.render(sensor)
+    cost, defined = pixel_cost(depth, valid, clean, v.real, occluder_m, absence_cap_m, v.resolved_depth_m(sensor))
+    return torch.where(defined, cost, torch.zeros_like(cost)), torch.where(defined, owner_image(v.tensors), -1)
+
+
+def _units(views) -> list:
+    """The decisions to make: each free part of each view, a shared object's correction once for all views."""
+    units, shared_done = [], set()
+    for i, v in enumerate(views):
+        poses = v.scene.poses
+        n_shared = len(poses.shared) if poses.shared is not None else 0
+        free = poses.free.tolist()
+        for k in range(len(poses)):
+            if not free[k] and k >= n_shared:
+                continue
+            if k < n_shared:
+                if k in shared_done:
+                    continue
+                shared_done.add(k)
+                sharing = [j for j, w in enumerate(views) if w.scene.poses.shared is poses.shared]
+                units.append(_Unit([(poses.shared.rotation, k), (poses.shared.translation, k)], sharing, k))
+            else:
+                units.append(_Unit([(poses.rotation, k), (poses.translation, k)], [i], k))
+    return units
