@@ -157,7 +157,9 @@ def refine_scene(scene: ValidationScene, settings, margin_px: int = 32) -> list[
         decision = result.decisions[k] if k < len(result.decisions) else None
         rows.append({"seed": scene.seed, "obj_id": scene.obj_ids[k], "start_deg": start_deg, "start_mm": start_mm,
                      "deg": deg, "mm": mm, "worse": bool(deg > start_deg + 1e-6 or mm > start_mm + 1e-6),
-                     "kept": bool(decision is not None and decision.kept and not result.kept_start)})  # fmt: skip
+                     "kept": bool(decision is not None and decision.kept and not result.kept_start),
+                     "decision": None if decision is None else decision.reason(),
+                     "candidates_mm": None if decision is None else decision.candidates_mm})  # fmt: skip
     return rows
 
 

@@ -112,7 +112,9 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     for r in refinements:
         for change in r.object_changes():
             click.echo(f"{r.name} {change['label']}: moved {change['rotation_deg']:.2f} deg, "
-                       f"{change['translation_mm']:.2f} mm; {change['decision']}")  # fmt: skip
+                       f"{change['translation_mm']:.2f} mm; {change['decision']}"
+                       + (f"; not determined by the data, kept at the start: {', '.join(change['undetermined'])}"
+                          if change.get("undetermined") else ""))  # fmt: skip
         verdict = (f" (optimised {r.result.gap_optimised_mm:.2f} mm, not lower: start poses kept)"
                    if r.result.kept_start else "")  # fmt: skip
         click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm{verdict}")

@@ -3,8 +3,10 @@
 The image is cut into square blocks (``holdout_block_px``) coloured like a checkerboard whose phase
 is drawn from the seed and the view's index: the optimiser compares depth only on one colour
 (:func:`heldout_blocks` is False there); the other colour judges the result. For every free part
-(an object, the support plane) the held-out cost at the start poses is compared with the cost
-when that part alone takes its refined pose; the refined pose is kept only if the cost is lower.
+(an object, the support plane) the held-out cost at the start poses is compared with the cost when that
+part alone takes its refined pose, and when it takes only the refined translation (its start rotation:
+a turn the depth supports less than the shift that came with it is not taken along); the part gets the
+candidate of lowest cost, the start unless another is strictly lower.
 
 The per-pixel cost (:func:`pixel_cost`, m) is the same for every pose, so sums over one fixed pixel
 set compare fairly (the part's held-out pixels at the start pose and at the refined one):
@@ -36,12 +38,19 @@ class PartDecision:
     heldout_start_mm: float
     heldout_refined_mm: float
     pixels: int
+    translation_only: bool = False  # kept the refined translation with the start rotation
+    candidates_mm: tuple = ()  # held-out gap (mm) of the whole refined pose, of its translation alone
 
     def reason(self) -> str:
         """One phrase for the terminal and the report."""
         if self.pixels == 0:
             return "start kept: no held-out pixel shows it"
-        verdict = "refined pose kept" if self.kept else "start kept: the refined pose does not lower"
+        if not self.kept:
+            verdict = "start kept: the refined pose does not lower"
+        elif self.translation_only:
+            verdict = "refined translation kept, start rotation (the turn does not lower)"
+        else:
+            verdict = "refined pose kept"
         return f"{verdict} (held-out gap {self.heldout_start_mm:.2f} mm -> {self.heldout_refined_mm:.2f} mm)"
 
 
@@ -96,46 +105,61 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
 
     units = _units(views)
     refined = {id(p): p.detach().clone() for u in units for p, _ in u.rows}
-    with torch.no_grad():
-        for u in units:
-            for p, row in u.rows:
-                p[row] = 0.0
+    for u in units:
+        _set(u.rows, None)
     start = []
     for v in views:
         with frame_camera(sensor, v.scene.intrinsics):
             start.append(_cost(v, sensor, occluder_m, absence_cap_m))
     decisions = [[None] * len(v.scene.parts) for v in views]
-    kept = []
+    chosen = []  # the rows to set to their refined values
     for u in units:
-        with torch.no_grad():
-            for p, row in u.rows:
-                p[row] = refined[id(p)][row]
-        before = after = 0.0
-        pixels = 0
-        for i in u.views:
-            v = views[i]
-            with frame_camera(sensor, v.scene.intrinsics):
-                cost, owner = _cost(v, sensor, occluder_m, absence_cap_m)
-            cost0, owner0 = start[i]
-            judged = v.heldout & ((owner0 == u.part) | (owner == u.part))
-            before += float(cost0[judged].sum())
-            after += float(cost[judged].sum())
-            pixels += int(judged.sum())
-        with torch.no_grad():
-            for p, row in u.rows:
-                p[row] = 0.0
-        keep = pixels > 0 and after < before
+        candidates = [u.rows, u.rows[1:]]  # the whole correction; its translation only
+        costs = []
+        for rows in candidates:
+            _set(rows, refined)
+            costs.append(_judge(sensor, views, u, start, occluder_m, absence_cap_m))
+            _set(rows, None)
+        before, pixels = costs[0][0], costs[0][2]
+        after = [c[1] for c in costs]
+        best = int(np.argmin(after))
+        keep = pixels > 0 and after[best] < before
         if keep:
-            kept.append(u)
+            chosen.append(candidates[best])
         n = max(pixels, 1)
-        decision = PartDecision(u.part, keep, before / n * 1000.0, after / n * 1000.0, pixels)
+        decision = PartDecision(u.part, keep, before / n * 1000.0, (after[best] if keep else after[0]) / n * 1000.0,
+                                pixels, translation_only=keep and best == 1,
+                                candidates_mm=tuple(a / n * 1000.0 for a in after))  # fmt: skip
         for i in u.views:
             decisions[i][u.part] = decision
-    with torch.no_grad():
-        for u in kept:
-            for p, row in u.rows:
-                p[row] = refined[id(p)][row]
+    for rows in chosen:
+        _set(rows, refined)
     return decisions
+
+
+def _set(rows, refined) -> None:
+    """Set the rows to their refined values (``refined``: {id(tensor): values}) or to 0 (None: the start)."""
+    with torch.no_grad():
+        for p, row in rows:
+            p[row] = 0.0 if refined is None else refined[id(p)][row]
+
+
+def _judge(sensor, views, u, start, occluder_m, absence_cap_m) -> tuple[float, float, int]:
+    """(held-out cost at the start, at the current correction (m, summed), pixels judged) of a unit's part."""
+    from ddsgen.realscan.simulate import frame_camera
+
+    before = after = 0.0
+    pixels = 0
+    for i in u.views:
+        v = views[i]
+        with frame_camera(sensor, v.scene.intrinsics):
+            cost, owner = _cost(v, sensor, occluder_m, absence_cap_m)
+        cost0, owner0 = start[i]
+        judged = v.heldout & ((owner0 == u.part) | (owner == u.part))
+        before += float(cost0[judged].sum())
+        after += float(cost[judged].sum())
+        pixels += int(judged.sum())
+    return before, after, pixels
 
 
 def _cost(v, sensor, occluder_m, absence_cap_m):

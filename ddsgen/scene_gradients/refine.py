@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from ddsgen.realscan.losses import resolved_depth_m
-from ddsgen.scene_gradients.acceptance import accept_parts, heldout_blocks
+from ddsgen.scene_gradients.acceptance import accept_parts, heldout_blocks, owner_image
+from ddsgen.scene_gradients.identifiability import object_identifiability
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.scene import RefinableScene
@@ -78,6 +79,10 @@ class RefineSettings:
     # Acceptance (:mod:`.acceptance`): blocks of this many pixels, every other one held out of the optimiser and used
     # to judge each part's refined pose; 0: no hold-out (the parts keep their refined poses unless the view's gap rises).
     holdout_block_px: int = 6
+    # Identifiability (:mod:`.identifiability`): an object's pose directions whose standard deviation from the
+    # curvature of its data term at the start exceeds this (m; rotations x the object's radius) stay at the start.
+    # 0: every direction is free. Views sharing corrections (static scenes) are not restricted.
+    identify_max_sigma_m: float = 0.001
 
     def rotation_step(self) -> float:
         """The rotations' Adam step at the start (rad): ``lr_rotation``, or by default a travel of
@@ -100,6 +105,8 @@ class RefineResult:
         move, or no acceptance); ``refined`` holds the start pose of a part whose refined pose was not kept.
     kept_start: True if the view's gap at the kept poses was not lower than at the start: ``refined`` = ``initial``.
     gap_optimised_mm: the gap at the optimiser's poses, before any was reverted.
+    identifiability: per object, its :class:`~ddsgen.scene_gradients.identifiability.Identifiability` (empty: not
+        assessed); its undetermined directions stayed at the start.
     """
 
     initial: np.ndarray
@@ -113,6 +120,7 @@ class RefineResult:
     decisions: list = dataclasses.field(default_factory=list)
     kept_start: bool = False
     gap_optimised_mm: float = float("nan")
+    identifiability: list = dataclasses.field(default_factory=list)
 
 
 def compared_pixels(valid, clean_depth, real_depth, band_m: float, max_depth_m: float = math.inf,
@@ -251,6 +259,29 @@ class _View:
                         if s.holdout_block_px > 0 else torch.zeros(real.shape, dtype=torch.bool))  # fmt: skip
         self.meshes = [p.mesh for p in scene.parts]
         self.tensors, self.outline = None, None
+        self.identifiability = []
+
+    def assess(self, sensor) -> None:
+        """Each object's identifiability at the current (start) poses and cast (:mod:`.identifiability`)."""
+        poses, s = self.scene.poses, self.s
+        if poses.shared is not None or s.identify_max_sigma_m <= 0:
+            return
+        depth, valid, clean = self.render(sensor)
+        compared = compared_pixels(valid, clean, self.real, s.band_m, self.resolved_depth_m(sensor), s.occluder_m)
+        owner = owner_image(self.tensors)
+        for k in range(self.scene.n_objects):
+            radius = float(np.linalg.norm(self.meshes[k].extents)) / 2.0
+            self.identifiability.append(object_identifiability(
+                poses, self.tensors, k, compared & (owner == k) & ~self.heldout, self.outline, self.scene.intrinsics,
+                max_sigma_m=s.identify_max_sigma_m, radius_m=max(radius, 1e-3)))  # fmt: skip
+
+    def restrict(self) -> None:
+        """Remove the objects' corrections along their undetermined directions."""
+        poses = self.scene.poses
+        with torch.no_grad():
+            for k, identified in enumerate(self.identifiability):
+                rotation, translation = identified.project(poses.rotation[k], poses.translation[k])
+                poses.rotation[k], poses.translation[k] = rotation, translation
 
     def resolved_depth_m(self, sensor) -> float:
         """The depth (m) beyond which this view's depth values do not count, for the sensor's current baseline."""
@@ -325,6 +356,7 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
         v.recast()
         with frame_camera(sensor, v.scene.intrinsics):
             before.append(v.evaluate(sensor))
+            v.assess(sensor)
     histories = [[] for _ in views]
     first_averaged = s.steps - int(round(s.average_last * s.steps)) if s.average_last > 0 else s.steps
     averaged = []
@@ -346,6 +378,8 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
         if total.requires_grad:
             total.backward()
             optimiser.step()
+            for v in views:
+                v.restrict()
         if callback is not None:
             callback(step, float(total.detach()))
         if step >= first_averaged:
@@ -377,7 +411,8 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
         results.append(RefineResult(initial=init, refined=poses.matrices(), albedo=poses.albedo.detach().numpy().copy(),
                                     history=history, gap_before_mm=gap_before, gap_after_mm=gap_after,
                                     depth_before=depth_before, depth_after=depth_after, decisions=decisions[k],
-                                    kept_start=kept_start, gap_optimised_mm=optimised[k]))  # fmt: skip
+                                    kept_start=kept_start, gap_optimised_mm=optimised[k],
+                                    identifiability=v.identifiability))  # fmt: skip
     return results
 
 

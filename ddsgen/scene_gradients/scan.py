@@ -32,8 +32,10 @@ class FrameRefinement:
     object_labels: list = dataclasses.field(default_factory=list)
 
     def object_changes(self) -> list[dict]:
-        """Per object: id, label, the pose change (deg, mm) from the initial to the refined pose, and whether the
-        refined pose was kept (``kept``, ``decision``: why, with the held-out gaps)."""
+        """Per object: id, label, the pose change (deg, mm) from the initial to the refined pose, whether the
+        refined pose was kept (``kept``, ``decision``: why, with the held-out gaps) and, where assessed, each
+        direction's standard deviation and whether the data determine it (``directions``, ``undetermined``: those
+        that stayed at the start)."""
         written = self.refined_poses()
         changes = object_changes(self.object_ids, self.result.initial, [written[i] for i in self.object_ids])
         decisions = self.result.decisions
@@ -50,6 +52,10 @@ class FrameRefinement:
                 change["kept"], change["decision"] = False, f"start kept: the frame's gap is not lower{why}"
             elif decision is None:
                 change["kept"], change["decision"] = True, "refined pose kept (no acceptance test)"
+            identified = self.result.identifiability
+            if k < len(identified):
+                change["directions"] = identified[k].as_dict()
+                change["undetermined"] = identified[k].undetermined_axes()
         return changes
 
     def refined_poses(self) -> dict:
