@@ -273,7 +273,7 @@ class _View:
             radius = float(np.linalg.norm(self.meshes[k].extents)) / 2.0
             self.identifiability.append(object_identifiability(
                 poses, self.tensors, k, compared & (owner == k) & ~self.heldout, self.outline, self.scene.intrinsics,
-                max_sigma_m=s.identify_max_sigma_m, radius_m=max(radius, 1e-3)))  # fmt: skip
+                (owner == k).numpy(), max_sigma_m=s.identify_max_sigma_m, radius_m=max(radius, 1e-3)))  # fmt: skip
 
     def restrict(self) -> None:
         """Remove the objects' corrections along their undetermined directions."""
