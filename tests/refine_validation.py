@@ -154,10 +154,11 @@ def refine_scene(scene: ValidationScene, settings, margin_px: int = 32) -> list[
     for k, (truth, start) in enumerate(zip(scene.annotated, scene.start)):
         start_deg, start_mm = pose_difference(start.world_T_obj, truth.world_T_obj)
         deg, mm = pose_difference(result.refined[k], truth.world_T_obj)
-        decision = result.decisions[k] if k < len(result.decisions) else None
+        decisions = getattr(result, "decisions", [])  # (absent from refine_poses before the acceptance existed)
+        decision = decisions[k] if k < len(decisions) else None
         rows.append({"seed": scene.seed, "obj_id": scene.obj_ids[k], "start_deg": start_deg, "start_mm": start_mm,
                      "deg": deg, "mm": mm, "worse": bool(deg > start_deg + 1e-6 or mm > start_mm + 1e-6),
-                     "kept": bool(decision is not None and decision.kept and not result.kept_start),
+                     "kept": bool(decision is not None and decision.kept and not getattr(result, "kept_start", False)),
                      "decision": None if decision is None else decision.reason(),
                      "candidates_mm": None if decision is None else decision.candidates_mm})  # fmt: skip
     return rows
