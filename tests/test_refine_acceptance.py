@@ -141,7 +141,7 @@ def test_the_cat_from_its_published_pose_is_not_written_worse(tmp_path, capsys):
     out = tmp_path / "refined"
     assert main(["refine", "kinect_v1", str(LINEMOD), "--out", str(out), "--threads", "1", "--quiet"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert any(line.startswith("000006/000000 obj_id 6:") for line in lines), lines
+    assert any(line.startswith("000006/000000 obj_id 6 (") and "visible" in line for line in lines), lines
     assert not any("object 1" in line for line in lines)
     report = json.loads((out / "report" / "refine_report.json").read_text())["frames"][0]
     assert report["gap_after_mm"] <= report["gap_before_mm"]
@@ -166,3 +166,31 @@ def test_validation_scene_objects_come_back_and_none_ends_worse():
     print(result, [(r["obj_id"], round(r["deg"], 2), round(r["mm"], 2)) for r in rows])
     assert result["worse"] == 0.0
     assert result["deg"] <= 1.5 and result["mm"] <= 2.0
+
+
+@pytest.mark.parametrize("bar", [False, True])
+def test_the_visible_fraction_is_estimated_from_what_lies_in_front_of_the_model(bar):
+    """A bar the scene lacks, 10 cm in front of half the box: the estimate drops to about the half left in view;
+    without it the whole box is seen."""
+    from ddsgen.realscan.simulate import frame_camera
+
+    intr = window()
+    box = shapes.make_shape("box", {"size": (0.07, 0.055, 0.045)})
+    truth_T = pose((-0.6, 0.7, 0.0), (0.0, 0.0, 0.7))
+    occluder = PlacedObject(9, "bar", "shape:box", shapes.make_shape("box", {"size": (0.04, 0.2, 0.01)}),
+                            pose((0.0, 0.0, 0.0), (0.02, 0.0, 0.6)), 0.6)  # fmt: skip
+    measured = one_object_scene(box, truth_T)
+    if bar:
+        measured = dataclasses.replace(measured, objects=measured.objects + [occluder])
+    sensor = DepthSensor(load_preset("kinect_v1_paper"), intrinsics=intr)
+    with torch.no_grad():
+        real = sensor(SensorGeometry.from_hits(cast(measured, intr, 0.075, 0.005)), seed=3).depth
+    view = _View(0, RefinableScene(one_object_scene(box, truth_T), intr, 0.075, 0.005), real, RefineSettings())
+    view.recast()
+    with frame_camera(sensor, intr):
+        view.assess(sensor)
+    (seen,) = view.visible_fraction
+    if bar:
+        assert 0.2 < seen < 0.8
+    else:
+        assert seen > 0.95

@@ -111,7 +111,10 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
                      "static_scene": bool(static_scene), "static_views": int(static_views), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
     for r in refinements:
         for change in r.object_changes():
-            click.echo(f"{r.name} {change['label']}: moved {change['rotation_deg']:.2f} deg, "
+            seen = change.get("visible_fraction_dataset", change.get("visible_fraction_estimated"))
+            click.echo(f"{r.name} {change['label']}"
+                       + (f" ({100 * seen:.0f} % visible)" if seen is not None else "")
+                       + f": moved {change['rotation_deg']:.2f} deg, "
                        f"{change['translation_mm']:.2f} mm; {change['decision']}"
                        + (f"; not determined by the data, kept at the start: {', '.join(change['undetermined'])}"
                           if change.get("undetermined") else ""))  # fmt: skip

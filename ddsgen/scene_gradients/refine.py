@@ -107,6 +107,8 @@ class RefineResult:
     gap_optimised_mm: the gap at the optimiser's poses, before any was reverted.
     identifiability: per object, its :class:`~ddsgen.scene_gradients.identifiability.Identifiability` (empty: not
         assessed); its undetermined directions stayed at the start.
+    visible_fraction: per object, the share of its modelled pixels at the start (with a real depth) where the real
+        surface is not more than ``occluder_m`` nearer: the visibility estimated from the data.
     """
 
     initial: np.ndarray
@@ -121,6 +123,7 @@ class RefineResult:
     kept_start: bool = False
     gap_optimised_mm: float = float("nan")
     identifiability: list = dataclasses.field(default_factory=list)
+    visible_fraction: list = dataclasses.field(default_factory=list)
 
 
 def compared_pixels(valid, clean_depth, real_depth, band_m: float, max_depth_m: float = math.inf,
@@ -259,16 +262,21 @@ class _View:
                         if s.holdout_block_px > 0 else torch.zeros(real.shape, dtype=torch.bool))  # fmt: skip
         self.meshes = [p.mesh for p in scene.parts]
         self.tensors, self.outline = None, None
-        self.identifiability = []
+        self.identifiability, self.visible_fraction = [], []
 
     def assess(self, sensor) -> None:
         """Each object's identifiability at the current (start) poses and cast (:mod:`.identifiability`)."""
         poses, s = self.scene.poses, self.s
+        depth, valid, clean = self.render(sensor)
+        owner = owner_image(self.tensors)
+        measured = (self.real > 0) & (clean > 0)
+        unoccluded = measured & (self.real >= clean - s.occluder_m)
+        for k in range(self.scene.n_objects):
+            modelled = int((measured & (owner == k)).sum())
+            self.visible_fraction.append(float((unoccluded & (owner == k)).sum()) / modelled if modelled else 0.0)
         if poses.shared is not None or s.identify_max_sigma_m <= 0:
             return
-        depth, valid, clean = self.render(sensor)
         compared = compared_pixels(valid, clean, self.real, s.band_m, self.resolved_depth_m(sensor), s.occluder_m)
-        owner = owner_image(self.tensors)
         for k in range(self.scene.n_objects):
             radius = float(np.linalg.norm(self.meshes[k].extents)) / 2.0
             self.identifiability.append(object_identifiability(
@@ -412,7 +420,7 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
                                     history=history, gap_before_mm=gap_before, gap_after_mm=gap_after,
                                     depth_before=depth_before, depth_after=depth_after, decisions=decisions[k],
                                     kept_start=kept_start, gap_optimised_mm=optimised[k],
-                                    identifiability=v.identifiability))  # fmt: skip
+                                    identifiability=v.identifiability, visible_fraction=v.visible_fraction))  # fmt: skip
     return results
 
 

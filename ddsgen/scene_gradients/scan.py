@@ -30,6 +30,7 @@ class FrameRefinement:
     real_depth: np.ndarray
     plane_fitted: bool
     object_labels: list = dataclasses.field(default_factory=list)
+    dataset_visibility: list = dataclasses.field(default_factory=list)  # per object: the dataset's visible fraction or None
 
     def object_changes(self) -> list[dict]:
         """Per object: id, label, the pose change (deg, mm) from the initial to the refined pose, whether the
@@ -52,6 +53,11 @@ class FrameRefinement:
                 change["kept"], change["decision"] = False, f"start kept: the frame's gap is not lower{why}"
             elif decision is None:
                 change["kept"], change["decision"] = True, "refined pose kept (no acceptance test)"
+            estimated = self.result.visible_fraction
+            if k < len(estimated):
+                change["visible_fraction_estimated"] = round(estimated[k], 4)
+            if k < len(self.dataset_visibility) and self.dataset_visibility[k] is not None:
+                change["visible_fraction_dataset"] = round(float(self.dataset_visibility[k]), 4)
             identified = self.result.identifiability
             if k < len(identified):
                 change["directions"] = identified[k].as_dict()
@@ -212,4 +218,5 @@ class _ScanView:
         objects = self.frame.objects
         return FrameRefinement(name=self.frame.name, crop=self.crop, object_ids=[o.id for o in objects],
                                result=result, real_depth=self.real.numpy(), plane_fitted=self.plane_fitted,
-                               object_labels=[object_label(o, objects) for o in objects])  # fmt: skip
+                               object_labels=[object_label(o, objects) for o in objects],
+                               dataset_visibility=[o.visible_fraction for o in objects])  # fmt: skip
