@@ -4,9 +4,11 @@ The image is cut into square blocks (``holdout_block_px``) coloured like a check
 is drawn from the seed and the view's index: the optimiser compares depth only on one colour
 (:func:`heldout_blocks` is False there); the other colour judges the result. For every free part
 (an object, the support plane) the held-out cost at the start poses is compared with the cost when that
-part alone takes its refined pose, and when it takes only the refined translation (its start rotation:
-a turn the depth supports less than the shift that came with it is not taken along); the part gets the
-candidate of lowest cost, the start unless another is strictly lower.
+part alone takes its refined pose, and when it takes only the refined translation (its start rotation),
+all on one pixel set (the part's held-out pixels at the start or at either candidate). The turn is dropped
+if that lowers the cost by more than twice the noise of the difference (a turn the depth supports less than
+the shift that came with it is not taken along); the part keeps the start unless the chosen candidate's
+cost is strictly lower.
 
 The per-pixel cost (:func:`pixel_cost`, m) is the same for every pose, so sums over one fixed pixel
 set compare fairly (the part's held-out pixels at the start pose and at the refined one):
@@ -115,14 +117,23 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
     chosen = []  # the rows to set to their refined values
     for u in units:
         candidates = [u.rows, u.rows[1:]]  # the whole correction; its translation only
-        costs = []
+        maps = []  # per candidate, per view of the unit: (cost, owner)
         for rows in candidates:
             _set(rows, refined)
-            costs.append(_judge(sensor, views, u, start, occluder_m, absence_cap_m))
+            maps.append([_view_cost(sensor, views[i], occluder_m, absence_cap_m) for i in u.views])
             _set(rows, None)
-        before, pixels = costs[0][0], costs[0][2]
-        after = [c[1] for c in costs]
-        best = int(np.argmin(after))
+        # one pixel set for all three: the part's held-out pixels at the start or at either candidate
+        judged = [views[i].heldout & ((start[i][1] == u.part) | (maps[0][j][1] == u.part) | (maps[1][j][1] == u.part))
+                  for j, i in enumerate(u.views)]  # fmt: skip
+        base = torch.cat([start[i][0][m] for i, m in zip(u.views, judged)]).double()
+        full, shift = (torch.cat([c[j][0][m] for j, m in enumerate(judged)]).double() for c in maps)
+        pixels = int(base.numel())
+        before, after = float(base.sum()), [float(full.sum()), float(shift.sum())]
+        # The turn is dropped only if that lowers the cost by more than twice the noise of the difference (its
+        # pixel-wise spread; neighbouring pixels counted as a quarter as many): a turn is not lost to noise.
+        difference = full - shift
+        noise = float(difference.std()) * (4.0 * max(pixels, 1)) ** 0.5 if pixels > 1 else 0.0
+        best = 1 if after[0] - after[1] > 2.0 * noise else 0
         keep = pixels > 0 and after[best] < before
         if keep:
             chosen.append(candidates[best])
@@ -144,22 +155,12 @@ def _set(rows, refined) -> None:
             p[row] = 0.0 if refined is None else refined[id(p)][row]
 
 
-def _judge(sensor, views, u, start, occluder_m, absence_cap_m) -> tuple[float, float, int]:
-    """(held-out cost at the start, at the current correction (m, summed), pixels judged) of a unit's part."""
+def _view_cost(sensor, v, occluder_m, absence_cap_m):
+    """:func:`_cost` of a view in its own camera."""
     from ddsgen.realscan.simulate import frame_camera
 
-    before = after = 0.0
-    pixels = 0
-    for i in u.views:
-        v = views[i]
-        with frame_camera(sensor, v.scene.intrinsics):
-            cost, owner = _cost(v, sensor, occluder_m, absence_cap_m)
-        cost0, owner0 = start[i]
-        judged = v.heldout & ((owner0 == u.part) | (owner == u.part))
-        before += float(cost0[judged].sum())
-        after += float(cost[judged].sum())
-        pixels += int(judged.sum())
-    return before, after, pixels
+    with frame_camera(sensor, v.scene.intrinsics):
+        return _cost(v, sensor, occluder_m, absence_cap_m)
 
 
 def _cost(v, sensor, occluder_m, absence_cap_m):
