@@ -162,9 +162,10 @@ def test_refine_cli_static_scene_writes_one_world_pose_per_object_and_scene(two_
     frames = read_scan_folder(scans)
     assert [[f.frame for f in group] for _, group in static_scenes(frames)] == [[0, 1, 2], [3, 4, 5]]
     out = tmp_path / "refined"
-    # Two of each scene's three frames simulated; the correction they find moves the third one too.
+    # Two of each scene's three frames simulated; the correction they find moves the third one too. The rendered
+    # poses are exact, so the held-out acceptance would keep them: it is off here, this checks the sharing.
     assert main(["refine", preset, str(scans), "--out", str(out), "--steps", "3", "--static-scene", "--static-views",
-                 "2", "--quiet"]) == 0  # fmt: skip
+                 "2", "--holdout-block-px", "0", "--quiet"]) == 0  # fmt: skip
     report = json.loads((out / "report" / "refine_report.json").read_text())
     assert [f["frame"].split("/")[1] for f in report["frames"]] == ["000000", "000002", "000003", "000005"]
     refined = read_scan_folder(out)
@@ -179,10 +180,11 @@ def test_refine_cli_static_scene_writes_one_world_pose_per_object_and_scene(two_
     assert moved > 0
     # Without --static-scene every frame moves its objects its own way.
     single = tmp_path / "single"
-    assert main(["refine", preset, str(scans), "--out", str(single), "--steps", "3", "--quiet"]) == 0
+    assert main(["refine", preset, str(scans), "--out", str(single), "--steps", "3", "--holdout-block-px", "0",
+                 "--quiet"]) == 0  # fmt: skip
     apart = read_scan_folder(single)
-    a, b = (apart[i].world_T_cam @ apart[i].objects[0].cam_T_obj for i in (0, 1))
-    assert pose_difference(a, b)[1] > 0.01
+    world = [f.world_T_cam @ f.objects[0].cam_T_obj for f in apart]  # a frame whose gap does not fall keeps its start
+    assert any(pose_difference(world[i], world[j])[1] > 0.01 for i, j in ((0, 1), (0, 2), (1, 2), (3, 4), (3, 5), (4, 5)))
 
 
 def test_a_static_scene_whose_frames_list_other_objects_is_refused_with_one_line(two_static_scenes):
@@ -213,7 +215,8 @@ def test_fit_refine_poses_static_scene_moves_each_object_alike_in_every_frame_of
         assert [c["frame"].split("/")[-1] for c in changes] == [f"{k:06d}" for k in range(6)]
         for scene in (changes[:3], changes[3:]):  # the frame not simulated (--static-views 2) moves alike too
             for k in range(len(scene[0]["objects"])):
+                # From the exact rendered poses a 3-step move is kept only where held-out pixels favour it (the
+                # CLI test above checks, with the acceptance off, that a kept move is shared): moved or not, alike.
                 moved = [(c["objects"][k]["rotation_deg"], c["objects"][k]["translation_mm"]) for c in scene]
-                assert moved[0][0] > 0.0 and moved[0][1] > 0.0
                 for other in moved[1:]:
                     assert other == pytest.approx(moved[0], abs=1e-3)

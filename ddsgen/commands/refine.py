@@ -27,6 +27,10 @@ from ddsgen.errors import InputError
 @click.option("--edge-weight", type=float, default=1.0, show_default=True,
               help="Weight of the depth-edge term (the objects' outlines pulled onto the real depth discontinuities; "
                    "pins in-plane slides and turns depth cannot see). 0: depth only (for simulated scans).")
+@click.option("--holdout-block-px", type=int, default=6, show_default=True,
+              help="Every other block of this many pixels is held out of the optimiser; an object keeps its refined "
+                   "pose only if that lowers its gap there. 0: no hold-out (objects keep their refined poses unless "
+                   "the frame's gap rises).")
 @click.option("--no-plane", is_flag=True, help="Do not fit and refine a support plane.")
 @click.option("--static-scene", is_flag=True,
               help="Frames that show one static scene (BOP: a scene folder; ddsgen: consecutive frames with the same "
@@ -38,13 +42,16 @@ from ddsgen.errors import InputError
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Noise seed of the simulation.")
 @threads_option(None, REPRODUCIBLE_THREADS_HELP)
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, no_plane, static_scene,
-           static_views, seed, threads, quiet):  # fmt: skip
+def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, edge_weight, holdout_block_px, no_plane,
+           static_scene, static_views, seed, threads, quiet):  # fmt: skip
     """Refine every annotated object's pose (and the support plane) in REAL_DIR with the sensor PRESET.
 
     Each frame's objects are moved until the simulated depth matches the real one (Huber loss on the
-    pixels where the real depth is within --band-mm of the rendered scene) and their outlines lie on
-    the real depth's discontinuities (--edge-weight). Writes OUT (a new or empty folder, not REAL_DIR)
+    pixels where the real depth is within --band-mm of the rendered scene; a real surface more than
+    15 mm in front of it is an occluder and pulls nothing) and their outlines lie on the real depth's
+    discontinuities (--edge-weight). An object keeps its refined pose only if it lowers its gap on
+    held-out pixels (--holdout-block-px), a frame only if it lowers the frame's gap; otherwise the
+    start is written and the lines say so. Writes OUT (a new or empty folder, not REAL_DIR)
     with the refined poses in the input's layout, and OUT/report/ (refine_report.json: per-object pose
     change in deg/mm, gap before/after; one PNG per frame: real | before | after).
     """
@@ -67,6 +74,8 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
         raise click.BadParameter("must be > 0", param_hint="--band-mm")
     if not edge_weight >= 0:
         raise click.BadParameter("must be >= 0", param_hint="--edge-weight")
+    if holdout_block_px < 0:
+        raise click.BadParameter("must be >= 0", param_hint="--holdout-block-px")
     if static_views < 1:
         raise click.BadParameter("must be >= 1", param_hint="--static-views")
     # Before any work: OUT is a new folder, not the input (whose manifest it would overwrite) nor in it.
@@ -79,7 +88,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
         if not frame.objects:
             raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists no objects (nothing to refine)")
     settings = RefineSettings(steps=steps, recast_every=recast_every, band_m=band_mm / 1000.0, seed=seed,
-                              gradient=gradient, edge_weight=edge_weight)  # fmt: skip
+                              gradient=gradient, edge_weight=edge_weight, holdout_block_px=holdout_block_px)  # fmt: skip
     refinements, refined = [], {}
     if static_scene:
         for first, scene_frames in tqdm(static_scenes(frames), desc="scenes", unit="scene", disable=quiet):
@@ -102,9 +111,16 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
                      "static_scene": bool(static_scene), "static_views": int(static_views), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
     for r in refinements:
         for change in r.object_changes():
-            click.echo(f"{r.name} object {change['id']}: moved {change['rotation_deg']:.2f} deg, "
-                       f"{change['translation_mm']:.2f} mm")  # fmt: skip
-        click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm")
+            seen = change.get("visible_fraction_dataset", change.get("visible_fraction_estimated"))
+            click.echo(f"{r.name} {change['label']}"
+                       + (f" ({100 * seen:.0f} % visible)" if seen is not None else "")
+                       + f": moved {change['rotation_deg']:.2f} deg, "
+                       f"{change['translation_mm']:.2f} mm; {change['decision']}"
+                       + (f"; not determined by the data, kept at the start: {', '.join(change['undetermined'])}"
+                          if change.get("undetermined") else ""))  # fmt: skip
+        verdict = (f" (optimised {r.result.gap_optimised_mm:.2f} mm, not lower: start poses kept)"
+                   if r.result.kept_start else "")  # fmt: skip
+        click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm{verdict}")
     click.echo(f"wrote {', '.join(str(p) for p in written)} and {out / 'report'}/")
 
 

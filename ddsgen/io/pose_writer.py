@@ -7,6 +7,8 @@
   (metres) replaced; the depth and other file paths point back at the source files (relative to
   OUT), meshes by absolute path.
 
+An object whose refined pose equals the pose read (within float rounding: 1e-9 m, 1e-9 per rotation entry; a
+refinement that kept its start) keeps its entry exactly as read.
 Every file is written atomically; nothing is written when the input is inconsistent.
 """
 
@@ -48,6 +50,13 @@ def write_refined_poses(frames, refined: dict, out: str | Path, final: str | Pat
     return [final / path.relative_to(out) for path in written]
 
 
+def _changed(frame, poses: dict) -> dict:
+    """The entries of ``poses`` ({object id: (4, 4)}) that differ from the frame's pose of that object as read."""
+    read = {o.id: o.cam_T_obj for o in frame.objects}
+    return {obj_id: T for obj_id, T in poses.items()
+            if obj_id not in read or not np.allclose(np.asarray(T, dtype=np.float64), read[obj_id], rtol=0.0, atol=1e-9)}
+
+
 def _write_bop(frames, refined: dict, out: Path) -> list[Path]:
     scenes: dict[Path, list] = {}
     for f in frames:
@@ -61,7 +70,7 @@ def _write_bop(frames, refined: dict, out: Path) -> list[Path]:
             raise InputError(f"{gt_path}: cannot read: {error}") from None
         for f in scene_frames:
             entries = gt.get(str(f.frame))
-            for obj_id, T in refined.get(f.name, {}).items():
+            for obj_id, T in _changed(f, refined.get(f.name, {})).items():
                 if entries is None or not 1 <= int(obj_id) <= len(entries):
                     raise InputError(f"{gt_path}: image {f.frame}: no entry {int(obj_id) - 1} to refine")
                 T = np.asarray(T, dtype=np.float64)
@@ -91,7 +100,7 @@ def _write_manifest(frames, refined: dict, out: Path, final: Path) -> Path:
         for key in ("depth",) + OPTIONAL_PATH_KEYS:
             if isinstance(record.get(key), str):
                 record[key] = Path(os.path.relpath(source / record[key], final.resolve())).as_posix()
-        poses = refined.get(f.name, {})
+        poses = _changed(f, refined.get(f.name, {}))
         for obj, scan_obj in zip(record["objects"], f.objects):
             obj["mesh"] = scan_obj.mesh_path
             if scan_obj.id in poses:

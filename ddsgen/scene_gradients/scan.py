@@ -20,6 +20,7 @@ class FrameRefinement:
     result: the :class:`RefineResult` (poses: objects, then the support plane if one was fitted).
     real_depth: (h, w) float32 real depth of the window (m, 0 invalid).
     plane_fitted: whether a support plane was fitted (and refined).
+    object_labels: the objects' names in the dataset's own terms (:func:`object_label`), in the same order.
     """
 
     name: str
@@ -28,14 +29,47 @@ class FrameRefinement:
     result: RefineResult
     real_depth: np.ndarray
     plane_fitted: bool
+    object_labels: list = dataclasses.field(default_factory=list)
+    dataset_visibility: list = dataclasses.field(default_factory=list)  # per object: the dataset's visible fraction or None
 
     def object_changes(self) -> list[dict]:
-        """Per object: id and the pose change (deg, mm) from the initial to the refined pose."""
-        return object_changes(self.object_ids, self.result.initial, self.result.refined)
+        """Per object: id, label, the pose change (deg, mm) from the initial to the refined pose, whether the
+        refined pose was kept (``kept``, ``decision``: why, with the held-out gaps) and, where assessed, each
+        direction's standard deviation and whether the data determine it (``directions``, ``undetermined``: those
+        that stayed at the start)."""
+        written = self.refined_poses()
+        changes = object_changes(self.object_ids, self.result.initial, [written[i] for i in self.object_ids])
+        decisions = self.result.decisions
+        for k, change in enumerate(changes):
+            change["label"] = self.object_labels[k] if k < len(self.object_labels) else f"instance {change['id']}"
+            decision = decisions[k] if k < len(decisions) else None
+            if decision is not None:
+                change["kept"], change["decision"] = decision.kept, decision.reason()
+                change["heldout_start_mm"] = round(decision.heldout_start_mm, 4)
+                change["heldout_refined_mm"] = round(decision.heldout_refined_mm, 4)
+            if self.result.kept_start:
+                why = (f" (held-out gap {decision.heldout_start_mm:.2f} mm -> {decision.heldout_refined_mm:.2f} mm)"
+                       if decision is not None and decision.pixels else "")  # fmt: skip
+                change["kept"], change["decision"] = False, f"start kept: the frame's gap is not lower{why}"
+            elif decision is None:
+                change["kept"], change["decision"] = True, "refined pose kept (no acceptance test)"
+            estimated = self.result.visible_fraction
+            if k < len(estimated):
+                change["visible_fraction_estimated"] = round(estimated[k], 4)
+            if k < len(self.dataset_visibility) and self.dataset_visibility[k] is not None:
+                change["visible_fraction_dataset"] = round(float(self.dataset_visibility[k]), 4)
+            identified = self.result.identifiability
+            if k < len(identified):
+                change["directions"] = identified[k].as_dict()
+                change["undetermined"] = identified[k].undetermined_axes()
+        return changes
 
     def refined_poses(self) -> dict:
-        """{object id: (4, 4) refined ``cam_T_obj``}."""
-        return {obj_id: self.result.refined[k] for k, obj_id in enumerate(self.object_ids)}
+        """{object id: (4, 4) refined ``cam_T_obj``}: the start pose where the refined one was not kept."""
+        r = self.result
+        kept = [not r.kept_start and (k >= len(r.decisions) or r.decisions[k] is None or r.decisions[k].kept)
+                for k in range(len(self.object_ids))]  # fmt: skip
+        return {obj_id: (r.refined if kept[k] else r.initial)[k] for k, obj_id in enumerate(self.object_ids)}
 
 
 def object_changes(object_ids, initial, refined) -> list[dict]:
@@ -48,6 +82,18 @@ def object_changes(object_ids, initial, refined) -> list[dict]:
         deg, mm = pose_difference(initial[k], refined[k])
         out.append({"id": int(obj_id), "rotation_deg": round(deg, 4), "translation_mm": round(mm, 4)})
     return out
+
+
+def object_label(obj, frame_objects=()) -> str:
+    """An object's name in its dataset's terms: ``obj_id 6`` (BOP, or a manifest that gives obj_id), else its class;
+    ``#<instance>`` is added when another object of ``frame_objects`` has the same name."""
+    def name(o):
+        return f"obj_id {o.obj_id}" if o.obj_id is not None else str(o.class_name)
+
+    label = name(obj)
+    if sum(name(o) == label for o in frame_objects) > 1:
+        label += f" #{obj.id}"
+    return label
 
 
 def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: RefineSettings | None = None, *,
@@ -169,5 +215,8 @@ class _ScanView:
         self.real = prepared.real_depth.clone()
 
     def refinement(self, result: RefineResult) -> FrameRefinement:
-        return FrameRefinement(name=self.frame.name, crop=self.crop, object_ids=[o.id for o in self.frame.objects],
-                               result=result, real_depth=self.real.numpy(), plane_fitted=self.plane_fitted)  # fmt: skip
+        objects = self.frame.objects
+        return FrameRefinement(name=self.frame.name, crop=self.crop, object_ids=[o.id for o in objects],
+                               result=result, real_depth=self.real.numpy(), plane_fitted=self.plane_fitted,
+                               object_labels=[object_label(o, objects) for o in objects],
+                               dataset_visibility=[o.visible_fraction for o in objects])  # fmt: skip

@@ -1,0 +1,192 @@
+"""Keep a refined pose only where pixels the optimiser never saw say it is better.
+
+The image is cut into square blocks (``holdout_block_px``) coloured like a checkerboard whose phase
+is drawn from the seed and the view's index: the optimiser compares depth only on one colour
+(:func:`heldout_blocks` is False there); the other colour judges the result. For every free part
+(an object, the support plane) the held-out cost at the start poses is compared with the cost when that
+part alone takes its refined pose, and when it takes only the refined translation (its start rotation),
+all on one pixel set (the part's held-out pixels at the start or at either candidate). The turn is dropped
+if that lowers the cost by more than twice the noise of the difference (a turn the depth supports less than
+the shift that came with it is not taken along); the part keeps the start unless the chosen candidate's
+cost is strictly lower.
+
+The per-pixel cost (:func:`pixel_cost`, m) is the same for every pose, so sums over one fixed pixel
+set compare fairly (the part's held-out pixels at the start pose and at the refined one):
+
+* the real surface nearer than the modelled one by more than ``occluder_m`` (an occluder, clutter
+  the scene lacks), or no simulated depth: a fixed charge ``occluder_m`` -- it explains the pixel
+  no better and no worse wherever the object is, so hiding an object in clutter earns nothing;
+* otherwise ``|simulated - real|``, at most ``absence_cap_m``: where the model puts a surface in front of
+  a farther real one (the object is not there) the pixel costs the cap, more than any charge.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+#: Hold-out pattern: the checkerboard's phase of a view comes from rng([seed, HOLDOUT_STREAM, view]).
+HOLDOUT_STREAM = 16065
+
+
+@dataclasses.dataclass
+class PartDecision:
+    """Whether a part's refined pose was kept, by its held-out cost (mean over its held-out pixels, mm)."""
+
+    part: int
+    kept: bool
+    heldout_start_mm: float
+    heldout_refined_mm: float
+    pixels: int
+    translation_only: bool = False  # kept the refined translation with the start rotation
+    candidates_mm: tuple = ()  # held-out gap (mm) of the whole refined pose, of its translation alone
+
+    def reason(self) -> str:
+        """One phrase for the terminal and the report."""
+        if self.pixels == 0:
+            return "start kept: no held-out pixel shows it"
+        if not self.kept:
+            verdict = "start kept: the refined pose does not lower"
+        elif self.translation_only:
+            verdict = "refined translation kept, start rotation (the turn does not lower)"
+        else:
+            verdict = "refined pose kept"
+        return f"{verdict} (held-out gap {self.heldout_start_mm:.2f} mm -> {self.heldout_refined_mm:.2f} mm)"
+
+
+def heldout_blocks(height: int, width: int, block_px: int, seed: int, view: int) -> torch.Tensor:
+    """(H, W) bool: the held-out colour of a checkerboard of ``block_px`` blocks, phase seeded by (seed, view)."""
+    rng = np.random.default_rng([int(seed), HOLDOUT_STREAM, int(view)])
+    oy, ox = rng.integers(0, block_px, size=2)
+    parity = int(rng.integers(0, 2))
+    rows = (np.arange(height) + oy) // block_px
+    cols = (np.arange(width) + ox) // block_px
+    return torch.from_numpy(((rows[:, None] + cols[None, :]) % 2) == parity)
+
+
+def pixel_cost(depth, valid, clean, real, occluder_m: float, absence_cap_m: float, max_depth_m: float):
+    """((H, W) cost in m, (H, W) bool where it is defined: a real depth and a modelled surface within range)."""
+    defined = (real > 0) & (clean > 0) & (clean <= max_depth_m)
+    occluded = real < clean - occluder_m
+    residual = (depth - real).abs().clamp(max=absence_cap_m)
+    charge = torch.full_like(residual, occluder_m)
+    return torch.where(occluded | ~valid, charge, residual), defined
+
+
+def owner_image(tensors) -> torch.Tensor:
+    """(H, W) int64 part index of every pixel of a cast (-1: nothing hit)."""
+    height, width = tensors.shape
+    owner = torch.full((height * width,), -1, dtype=torch.int64)
+    owner[tensors.index] = tensors.owner
+    return owner.reshape(height, width)
+
+
+@dataclasses.dataclass
+class _Unit:
+    """One decision: the correction rows that move a part (one row of each tensor), the views it moves it in."""
+
+    rows: list  # [(parameter tensor, row)]
+    views: list  # view indices
+    part: int
+
+
+def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list[list]:
+    """Keep each part's refined correction only if it lowers the part's held-out cost; reset the others.
+
+    Args:
+        sensor: the DepthSensor (each view's camera is set for its evaluation).
+        views: the refinement loop's views (``scene``, ``real``, ``heldout``, ``index``, ``recast()``,
+            ``render(sensor)`` -> (depth, valid, clean), ``resolved_depth_m(sensor)``), at the refined poses.
+
+    Returns:
+        per view, per part: a :class:`PartDecision` (None for a part that does not move).
+    """
+    from ddsgen.realscan.simulate import frame_camera
+
+    units = _units(views)
+    refined = {id(p): p.detach().clone() for u in units for p, _ in u.rows}
+    for u in units:
+        _set(u.rows, None)
+    start = []
+    for v in views:
+        with frame_camera(sensor, v.scene.intrinsics):
+            start.append(_cost(v, sensor, occluder_m, absence_cap_m))
+    decisions = [[None] * len(v.scene.parts) for v in views]
+    chosen = []  # the rows to set to their refined values
+    for u in units:
+        candidates = [u.rows, u.rows[1:]]  # the whole correction; its translation only
+        maps = []  # per candidate, per view of the unit: (cost, owner)
+        for rows in candidates:
+            _set(rows, refined)
+            maps.append([_view_cost(sensor, views[i], occluder_m, absence_cap_m) for i in u.views])
+            _set(rows, None)
+        # one pixel set for all three: the part's held-out pixels at the start or at either candidate
+        judged = [views[i].heldout & ((start[i][1] == u.part) | (maps[0][j][1] == u.part) | (maps[1][j][1] == u.part))
+                  for j, i in enumerate(u.views)]  # fmt: skip
+        base = torch.cat([start[i][0][m] for i, m in zip(u.views, judged)]).double()
+        full, shift = (torch.cat([c[j][0][m] for j, m in enumerate(judged)]).double() for c in maps)
+        pixels = int(base.numel())
+        before, after = float(base.sum()), [float(full.sum()), float(shift.sum())]
+        # The turn is dropped only if that lowers the cost by more than twice the noise of the difference (its
+        # pixel-wise spread; neighbouring pixels counted as a quarter as many): a turn is not lost to noise.
+        difference = full - shift
+        noise = float(difference.std()) * (4.0 * max(pixels, 1)) ** 0.5 if pixels > 1 else 0.0
+        best = 1 if after[0] - after[1] > 2.0 * noise else 0
+        keep = pixels > 0 and after[best] < before
+        if keep:
+            chosen.append(candidates[best])
+        n = max(pixels, 1)
+        decision = PartDecision(u.part, keep, before / n * 1000.0, (after[best] if keep else after[0]) / n * 1000.0,
+                                pixels, translation_only=keep and best == 1,
+                                candidates_mm=tuple(a / n * 1000.0 for a in after))  # fmt: skip
+        for i in u.views:
+            decisions[i][u.part] = decision
+    for rows in chosen:
+        _set(rows, refined)
+    return decisions
+
+
+def _set(rows, refined) -> None:
+    """Set the rows to their refined values (``refined``: {id(tensor): values}) or to 0 (None: the start)."""
+    with torch.no_grad():
+        for p, row in rows:
+            p[row] = 0.0 if refined is None else refined[id(p)][row]
+
+
+def _view_cost(sensor, v, occluder_m, absence_cap_m):
+    """:func:`_cost` of a view in its own camera."""
+    from ddsgen.realscan.simulate import frame_camera
+
+    with frame_camera(sensor, v.scene.intrinsics):
+        return _cost(v, sensor, occluder_m, absence_cap_m)
+
+
+def _cost(v, sensor, occluder_m, absence_cap_m):
+    """(cost (H, W) m with undefined pixels 0, owner image) of a view at its current poses."""
+    v.recast()
+    depth, valid, clean = v.render(sensor)
+    cost, defined = pixel_cost(depth, valid, clean, v.real, occluder_m, absence_cap_m, v.resolved_depth_m(sensor))
+    return torch.where(defined, cost, torch.zeros_like(cost)), torch.where(defined, owner_image(v.tensors), -1)
+
+
+def _units(views) -> list:
+    """The decisions to make: each free part of each view, a shared object's correction once for all views."""
+    units, shared_done = [], set()
+    for i, v in enumerate(views):
+        poses = v.scene.poses
+        n_shared = len(poses.shared) if poses.shared is not None else 0
+        free = poses.free.tolist()
+        for k in range(len(poses)):
+            if not free[k] and k >= n_shared:
+                continue
+            if k < n_shared:
+                if k in shared_done:
+                    continue
+                shared_done.add(k)
+                sharing = [j for j, w in enumerate(views) if w.scene.poses.shared is poses.shared]
+                units.append(_Unit([(poses.shared.rotation, k), (poses.shared.translation, k)], sharing, k))
+            else:
+                units.append(_Unit([(poses.rotation, k), (poses.translation, k)], [i], k))
+    return units
