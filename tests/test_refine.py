@@ -353,7 +353,8 @@ def test_refine_cli_writes_a_readable_manifest_with_refined_poses_and_a_report(r
         assert deg == pytest.approx(change["rotation_deg"], abs=1e-3) and mm == pytest.approx(change["translation_mm"], abs=1e-3)
         # The rendered poses are exact: 3 steps move them a little, not far, and a move is kept only if the
         # held-out pixels find it better; otherwise the start is written, exactly, and the report says why.
-        assert change["label"].split(" #")[0] == obj_old.class_name and change["decision"]
+        named = f"obj_id {obj_old.obj_id}" if obj_old.obj_id is not None else obj_old.class_name  # the dataset's id
+        assert change["label"].split(" #")[0] == named and change["decision"]
         if change["kept"]:
             assert 0 < mm < 5.0 and deg < 2.0
         else:
