@@ -26,13 +26,18 @@ adding groups leaves the clutter, the planes and the camera where they were)::
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 from ddsgen.errors import InputError, where
-from ddsgen.scene.fields import check_keys, describe, field_number, field_range, field_size2, field_vector
-
-if TYPE_CHECKING:
-    from ddsgen.scene.scenelist import ObjectSpec
+from ddsgen.scene.fields import (
+    check_keys,
+    describe,
+    field_number,
+    field_range,
+    field_size2,
+    field_vector,
+)
+from ddsgen.scene.object_spec import ObjectSpec
 
 #: Where a distractor group stands.
 SURFACES = ("floor", "ground")
@@ -43,7 +48,7 @@ class DistractorSpec:
     """One group of unlabelled objects: ``count`` drawn from ``objects`` onto ``surface`` within ``area`` about ``centre``."""
 
     surface: str  # "floor" | "ground"
-    objects: tuple["ObjectSpec", ...]
+    objects: tuple[ObjectSpec, ...]
     count: tuple[int, int] = (4, 8)
     area: tuple[float, float] = (5.0, 5.0)
     centre: tuple[float, float] = (0.0, 0.0)
@@ -51,7 +56,7 @@ class DistractorSpec:
     max_tries: int = 100
 
 
-def parse_distractors(source, key: str, data: Any, parse_object: Callable[[str, Any], "ObjectSpec"],
+def parse_distractors(source, key: str, data: Any, parse_object: Callable[[str, Any], ObjectSpec],
                       has_floor: bool, has_ground: bool) -> tuple[DistractorSpec, ...]:  # fmt: skip
     """Validate a scene's ``distractors:`` list (None: none).
 

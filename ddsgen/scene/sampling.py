@@ -35,7 +35,8 @@ import numpy as np
 from ddsgen.scene import shapes
 from ddsgen.scene.distractors import DistractorSpec
 from ddsgen.scene.footprints import Footprint, footprints_separated, rest_poses
-from ddsgen.scene.scenelist import ObjectSpec, SceneList, SceneSpec
+from ddsgen.scene.object_spec import ObjectSpec
+from ddsgen.scene.scenelist import SceneList, SceneSpec
 
 UP = np.array([0.0, 0.0, 1.0])
 

@@ -81,6 +81,7 @@ from ddsgen.scene.fields import (
 )
 from ddsgen.scene.identity import ClassEntry, class_table
 from ddsgen.scene.meshes import load_mesh
+from ddsgen.scene.object_spec import ObjectSpec
 from ddsgen.yamlfile import read_yaml
 
 DEFAULT_SOURCE = "<built-in default scene list>"
@@ -91,27 +92,6 @@ MODELS_ENV = "DDSGEN_MODELS"
 
 # ----------------------------------------------------------------------------------------------------------------
 # Specs (plain, picklable: they travel to worker processes; meshes are loaded and cached per process)
-
-
-@dataclasses.dataclass(frozen=True)
-class ObjectSpec:
-    """One entry of a scene's object pool."""
-
-    class_name: str
-    mesh_ref: str  # absolute file path, or "shape:NAME(params)"
-    scale: float = 1.0  # file units -> metres (1 for shapes)
-    albedo: tuple[float, float] = (0.5, 0.5)  # uniform range
-    weight: float = 1.0
-    rest: str = "stable"  # "stable" | "upright"
-    obj_id: int | None = None  # the entry's `obj_id:` key; the resolved id is in SceneList.classes
-
-    @property
-    def is_shape(self) -> bool:
-        return self.mesh_ref.startswith("shape:")
-
-    def mesh(self):
-        """The mesh in metres, object frame (cached per process)."""
-        return load_mesh(self.mesh_ref, self.scale)
 
 
 @dataclasses.dataclass(frozen=True)
