@@ -19,6 +19,7 @@ from typing import Any
 import yaml
 
 from ddsgen.atomic import atomic_write_text
+from ddsgen.effect_params import validate_effects
 from ddsgen.errors import InputError, did_you_mean, where
 from ddsgen.parameters import PARAMETERS, REQUIRED, Parameter
 from ddsgen.yamlfile import read_yaml
@@ -213,11 +214,6 @@ def _check_effects(source, value) -> tuple:
             if not all(_finite_number(x) for x in numbers) or not numbers:
                 raise InputError(f"{where(source, key + '.' + str(param))}expected a finite number, got {number!r}")
         effects.append(dict(entry))
-    # The effect library validates names and parameters (imported lazily: it needs torch).
-    try:
-        from ddsgen.sensor.effects import validate_effects
-    except ImportError:
-        return tuple(effects)
     return tuple(validate_effects(effects, source))
 
 

@@ -18,6 +18,7 @@ from ddsgen.sensor.effects import REGISTRY, build_effects, validate_effects
 from ddsgen.sensor.effects.features import edge_distance, image_radius, incidence_angle_deg, local_signal
 from ddsgen.sensor.effects.library import LensDistortion
 from effects_geometry import plane_geometry, small_preset, tilted_normal
+from tiny_inputs import tiny_preset_yaml
 
 REQUIRED = {"lens_distortion", "disparity_offset", "grazing_dropout", "edge_dropout"}
 RECT = dict(z=1.0, x0=-0.12, x1=0.12, y0=-0.10, y1=0.10, albedo=0.5)
@@ -317,3 +318,31 @@ def test_build_effects_follows_the_entries():
     assert [e.name for e in effects] == ["depth_scale", "edge_dropout"]
     assert effects[0].values()["scale_error"] == pytest.approx(0.02, abs=1e-6)
     assert local_signal(torch.ones(5, 7), 3).shape == (5, 7)
+
+
+def test_every_effect_class_takes_its_declaration_from_the_one_table():
+    """The library's classes and the table presets are checked against (ddsgen.effect_params) cannot drift apart."""
+    from ddsgen.effect_params import EFFECTS
+
+    assert set(REGISTRY) == set(EFFECTS)
+    for name, cls in REGISTRY.items():
+        spec = EFFECTS[name]
+        assert (cls.stage, cls.params, cls.options, cls.groups, cls.generic) == (
+            spec.stage, spec.params, spec.options, spec.groups, spec.generic), name
+
+
+def test_a_preset_and_its_effects_are_checked_without_the_sensor(tmp_path):
+    """Loading a preset checks its effects from the declarations alone: the preset layer does not import the sensor
+    (torch is blocked in the child process; the one-line error names the entry)."""
+    import subprocess
+    import sys
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(tiny_preset_yaml(96, 72) + "effects: [{name: edge_dropout, width_px: 99}]\n")
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from ddsgen.errors import InputError\nfrom ddsgen.preset import load_preset\n"
+            "assert load_preset('kinect_v1').name == 'kinect_v1'\n"
+            f"try:\n    load_preset({str(bad)!r})\nexcept InputError as error:\n    print(error)\n")  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "effects[0].width_px: must be in [0, 20] px, got 99" in result.stdout

@@ -24,25 +24,9 @@ import numpy as np
 import torch
 
 from ddsgen.sensor.effects import register
-from ddsgen.sensor.effects.base import Effect, EffectParam
+from ddsgen.effect_params import AXIS_DOMAINS, COEFFICIENTS, EFFECTS, N_COEFFICIENTS
+from ddsgen.sensor.effects.base import Effect
 from ddsgen.sensor.effects.features import PIXEL_AXES, pixel_axis
-
-#: Number of Legendre coefficients (degrees 0 .. N_COEFFICIENTS - 1).
-N_COEFFICIENTS = 5
-COEFFICIENTS = tuple(f"c{k}" for k in range(N_COEFFICIENTS))
-
-#: Axis -> (low, high) of the range the basis spans, in the axis' units (see PIXEL_AXES); ``signal`` is
-#: spanned in log10(counts). Image coordinates cover a Kinect-like field of view (57 x 43 deg: |x| <= 0.56,
-#: |y| <= 0.42, r <= 0.70); values beyond a range get the term's value at its end.
-AXIS_DOMAINS: dict[str, tuple[float, float]] = {
-    "radius": (0.0, 0.75),
-    "row": (-0.48, 0.48),
-    "column": (-0.6, 0.6),
-    "edge_distance": (0.0, 30.0),
-    "incidence": (0.0, 90.0),
-    "depth": (0.3, 5.0),
-    "signal": (-1.0, 3.0),  # log10 of the local signal in counts: 0.1 .. 1000
-}
 
 #: Physical effects that leave a smooth residual along each axis (what a user should look at).
 PHYSICAL_CAUSES: dict[str, tuple[str, ...]] = {
@@ -88,8 +72,8 @@ class _AxisTerm(Effect):
     generic = True
     signature = "a smooth bias or dropout profile along one pixel axis, fitted rather than derived from a cause"
     axis = "radius"  # default; each instance follows its own ``axis`` option
-    options = {"axis": tuple(AXIS_DOMAINS)}
-    groups = {"coefficients": COEFFICIENTS}
+    options = EFFECTS["axis_disparity_term"].options  # the two terms share their axes and coefficients
+    groups = EFFECTS["axis_disparity_term"].groups
     unit: str = ""
 
     def __init__(self, **values):
@@ -128,11 +112,7 @@ class AxisDisparityTerm(_AxisTerm):
     stage = "disparity"
     unit = "px"
     description = "An unnamed smooth disparity bias that varies along one pixel axis."
-    params = {
-        k: EffectParam(0.0, -2.0, 2.0, "px", f"coefficient of the Legendre polynomial P{k[1:]} of the disparity bias",
-                       typical=0.1)
-        for k in COEFFICIENTS
-    }  # fmt: skip
+    params = EFFECTS["axis_disparity_term"].params
 
     def forward(self, disparity: torch.Tensor, ctx: dict) -> torch.Tensor:
         """disparity (H, W) px -> disparity + s(axis) where a match exists (> 0)."""
@@ -148,11 +128,7 @@ class AxisValidityTerm(_AxisTerm):
     stage = "validity"
     unit = "logit"
     description = "An unnamed smooth dropout whose probability varies along one pixel axis."
-    params = {
-        k: EffectParam(0.0, -20.0, 20.0, "logit", f"coefficient of the Legendre polynomial P{k[1:]} of the keep logit",
-                       typical=2.0)
-        for k in COEFFICIENTS
-    }  # fmt: skip
+    params = EFFECTS["axis_validity_term"].params
 
     def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
         """depth (H, W) m -> keep-probability min(1, 2 sigmoid(s(axis))) (H, W)."""

@@ -17,29 +17,20 @@ Two optional class tables serve effects with many parameters or a discrete setti
 * ``options`` -- named choices that are not fitted (e.g. ``axis: radius``); the first
   choice is the default;
 * ``groups`` -- a preset may give a run of scalar parameters as one list
-  (e.g. ``coefficients: [0.1, 0, 0.05]``), expanded by :func:`~ddsgen.sensor.effects.validate_effects`.
+  (e.g. ``coefficients: [0.1, 0, 0.05]``), expanded by :func:`~ddsgen.effect_params.validate_effects`.
+
+The parameters, options and groups of every library effect are declared in :data:`ddsgen.effect_params.EFFECTS`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
 from torch import nn
 
-
-@dataclass(frozen=True)
-class EffectParam:
-    """One physical parameter of an effect."""
-
-    neutral: float  # value that makes the effect a no-op
-    low: float  # physical range (inclusive)
-    high: float
-    unit: str
-    help: str
-    typical: float | None = None  # a realistic strength, used as a fitting start
+from ddsgen.effect_params import EffectParam
 
 
 class Effect(nn.Module):

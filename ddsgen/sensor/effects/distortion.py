@@ -36,14 +36,13 @@ import torch.nn.functional as F
 
 from ddsgen.sensor.effects import register
 from ddsgen.sensor.effects.axis_terms import least_squares
-from ddsgen.sensor.effects.base import Effect, EffectParam
+from ddsgen.effect_params import EFFECTS, GRID_COLS, GRID_KEYS, GRID_ROWS
+from ddsgen.sensor.effects.base import Effect
 from ddsgen.sensor.effects.features import normalised_coordinates
 
-GRID_ROWS, GRID_COLS = 3, 5
 #: Half-extent of the control grid in normalised image coordinates (a 57 x 43 deg Kinect image spans
 #: |x| <= 0.56, |y| <= 0.42); points beyond it take the value at the grid's border.
 X_EXTENT, Y_EXTENT = 0.6, 0.48
-GRID_KEYS = tuple(f"d_r{r}c{c}" for r in range(GRID_ROWS) for c in range(GRID_COLS))
 
 
 def sample_field(grid: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -77,17 +76,8 @@ class DisparityDistortion(Effect):
         "growing faster than z^2 with depth, the same in every frame"
     )
     axis = "radius"
-    params = {
-        **{
-            k: EffectParam(0.0, -2.0, 2.0, "px", f"distortion at zero disparity, control point row {k[3]} column "
-                           f"{k[5]} of the {GRID_ROWS}x{GRID_COLS} grid", typical=0.2)
-            for k in GRID_KEYS
-        },
-        "alpha0": EffectParam(0.0, -3.0, 3.0, "1", "log gain of the pattern: d' = d + D exp(alpha0 - alpha1 d)",
-                              typical=0.0),
-        "alpha1": EffectParam(0.0, -0.1, 0.1, "1/px", "decay rate of the pattern with disparity (< 0: grows)", typical=0.02),
-    }  # fmt: skip
-    groups = {"grid": GRID_KEYS}
+    params = EFFECTS["disparity_distortion"].params
+    groups = EFFECTS["disparity_distortion"].groups
 
     def grid(self) -> torch.Tensor:
         """(GRID_ROWS, GRID_COLS) control values (px, differentiable)."""

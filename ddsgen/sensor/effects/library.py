@@ -17,7 +17,8 @@ from __future__ import annotations
 import torch
 
 from ddsgen.sensor.effects import register
-from ddsgen.sensor.effects.base import Effect, EffectParam
+from ddsgen.effect_params import EFFECTS
+from ddsgen.sensor.effects.base import Effect
 from ddsgen.sensor.effects.features import (
     cached,
     edge_distance,
@@ -62,10 +63,7 @@ class LensDistortion(Effect):
         "with depth, with opposite signs left and right of the principal point; more dropout in the corners"
     )
     axis = "radius"
-    params = {
-        "k1": EffectParam(0.0, -0.1, 0.1, "1", "radial distortion coefficient of r^2", typical=-0.006),
-        "k2": EffectParam(0.0, -0.1, 0.1, "1", "radial distortion coefficient of r^4", typical=0.0),
-    }
+    params = EFFECTS["lens_distortion"].params
 
     def displacement(self, height: int, width: int, ctx: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """(du, dv) (H, W) px: pixel (u, v) of the distorted image shows the ideal image at (u + du, v + dv)."""
@@ -95,9 +93,7 @@ class DisparityOffset(Effect):
     )
     signature = "depth bias proportional to z^2 (sign of -offset), independent of angle and image position"
     axis = "depth"
-    params = {
-        "offset_px": EffectParam(0.0, -3.0, 3.0, "px", "disparity added to every match", typical=0.3),
-    }
+    params = EFFECTS["disparity_offset"].params
 
     def forward(self, disparity: torch.Tensor, ctx: dict) -> torch.Tensor:
         return disparity + self.value("offset_px")
@@ -115,9 +111,7 @@ class DepthScale(Effect):
     )
     signature = "depth bias proportional to z (a constant relative error), independent of angle and image position"
     axis = "depth"
-    params = {
-        "scale_error": EffectParam(0.0, -0.1, 0.1, "1", "relative depth error epsilon: z' = (1 + epsilon) z", typical=0.01),
-    }
+    params = EFFECTS["depth_scale"].params
 
     def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
         return depth * (1.0 + self.value("scale_error"))
@@ -136,11 +130,7 @@ class GrazingDropout(Effect):
     signature = "missing depth on steeply tilted surfaces (floor far away, object sides), none on surfaces facing the camera"
     axis = "incidence"
     RAMP_DEG = 3.0  # keep-probability falls from 1 to 0 between angle_deg and angle_deg + RAMP_DEG
-    params = {
-        "angle_deg": EffectParam(
-            90.0, 30.0, 95.0, "deg", "incidence angle (normal vs. viewing ray) where returns start to fail", typical=72.0
-        ),
-    }
+    params = EFFECTS["grazing_dropout"].params
 
     def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
         g = ctx["geometry"]
@@ -160,9 +150,7 @@ class EdgeDropout(Effect):
     )
     signature = "missing depth within a few pixels of depth edges (object silhouettes), full coverage elsewhere"
     axis = "edge_distance"
-    params = {
-        "width_px": EffectParam(0.0, 0.0, 20.0, "px", "width of the failed band on each side of a depth edge", typical=3.0),
-    }
+    params = EFFECTS["edge_dropout"].params
 
     def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
         dist = cached(ctx, "edge_distance", lambda: edge_distance(ctx["geometry"].clean_depth))
@@ -183,11 +171,7 @@ class LowSignalDropout(Effect):
     signature = "missing depth on low-albedo objects and far surfaces, growing as the IR signal falls"
     axis = "signal"
     SHARPNESS = 4.0  # keep = 1 / (1 + (threshold / signal)^SHARPNESS), computed as a sigmoid of the log ratio
-    params = {
-        "threshold_counts": EffectParam(
-            0.0, 0.0, 20.0, "IR counts", "local mean dot signal (9x9 window) below which depth is dropped", typical=1.5
-        ),
-    }
+    params = EFFECTS["low_signal_dropout"].params
 
     def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
         level = cached(ctx, "local_signal", lambda: local_signal(ctx["signal"]))
