@@ -1,7 +1,6 @@
 """Holes at depth jumps: where a structured-light depth frame leaves a near surface's edge open, and on which side.
 
-Three statistics of :func:`ddsgen.depth_statistics.realism_statistics` (definitions those of issue 12 and
-``../shared/data/README.md``):
+Three statistics of :func:`ddsgen.depth_statistics.realism_statistics` (definitions as in docs/validation.md):
 
 * **holes at depth jumps**: along each image row, a *jump* is a near surface beside a far one
   (depths differing by more than ``JUMP_MIN_RELATIVE`` = 6 %, each flat over ``JUMP_FLAT_PX`` = 4

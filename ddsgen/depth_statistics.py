@@ -1,9 +1,8 @@
 """Statistics that tell a real structured-light depth frame from a simulated one.
 
 Plain numpy functions on one depth image, used by ``compare`` (real and simulated side by
-side), the realism benchmark and the presets' tuning. Definitions (the ones of
-``../shared/data/README.md`` and issue 12, so numbers are comparable with those measured
-there):
+side), the realism benchmark and the presets' tuning. Definitions (those docs/validation.md
+reports real and simulated frames by):
 
 * **isolated dropout**: a connected component (8-connected) of invalid pixels with fewer
   than ``ISOLATED_MAX_PX`` = 20 pixels. Real PrimeSense frames have 21-46 per 640x480 frame

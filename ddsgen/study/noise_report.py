@@ -13,7 +13,7 @@ from ddsgen.study.lateral import nguyen_lateral_px
 from ddsgen.study.noise import NoisePoint, khoshelham_sigma, nguyen_sigma
 from ddsgen.study.quantisation import RealQuantisation, local_steps, quantisation_step
 
-#: A point agrees with a published curve when its std is within this fraction of it (issue 12's +-30 %).
+#: A point agrees with a published curve when its std is within this fraction of it (+-30 %).
 AGREEMENT = 0.3
 #: Khoshelham & Oude Elberink measured their random error on a plane facing the sensor: their curve judges the points
 #: tilted by at most this much.
