@@ -14,12 +14,17 @@ When no named effect clears the acceptance rule, diagnose tries the generic term
 
 The fitted shape is scaled by a few factors and the factor with the largest credited fall of the
 gap on the fit frames is kept (:func:`fit_axis_candidate`); it is then judged on the held-out
-frames by the same rule as every named effect. An accepted term is reported as an *unnamed
+frames by the same rule as every named effect. A term that cannot be fitted is a failed fit
+(:class:`FailedFit`), never tried on the held-out frames: one whose coefficients reach their
+bounds (the least-squares shape did not fit inside the physical range: the residual along that
+axis is not a smooth term's), or one that does not lower the gap on the fit frames themselves. An accepted term is reported as an *unnamed
 effect along that axis* with its shape and the physical effects that produce such a shape.
 Axis values are in the effects' units (:data:`~ddsgen.sensor.effects.features.PIXEL_AXES`).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import torch
@@ -33,6 +38,15 @@ from ddsgen.sensor.effects.axis_terms import COEFFICIENTS, axis_coordinate, fit_
 from ddsgen.sensor.effects.features import edge_distance, local_signal, normalised_coordinates
 
 DISPARITY_TERM, VALIDITY_TERM = "axis_disparity_term", "axis_validity_term"
+#: A coefficient within this fraction of its bound counts as at the bound.
+AT_BOUND = 0.98
+
+
+@dataclasses.dataclass(frozen=True)
+class FailedFit:
+    """A generic term that could not be fitted on the fit frames, and why (it is not judged on held-out frames)."""
+
+    reason: str
 #: Factors of the least-squares shape tried on the fit frames (the fit of a noisy residual is shrunk or not).
 SCALES = (0.5, 0.75, 1.0, 1.25)
 #: Axes tried per kind of term: the strongest ones with structure beyond noise.
@@ -117,20 +131,24 @@ def validity_guess(axis: str, frames, sims) -> list[float] | None:
     ok = n > 0
     w = np.sqrt(n[ok])
     coef = np.linalg.lstsq(design[ok] * w[:, None], logit[ok] * w, rcond=None)[0]
-    return [float(np.clip(c, -20.0, 20.0)) for c in coef]
+    return [float(c) for c in coef]  # unclipped: a shape beyond the bounds is a failed fit (fit_axis_candidate)
 
 
 def fit_axis_candidate(sensor, name: str, axis: str, frames, config, base, sims):
     """Add ``name`` along ``axis`` to a copy of ``sensor``, its shape read off the residual and its scale searched.
 
     ``frames`` are fit frames re-planed under ``sensor``, ``base`` its evaluation on them and ``sims`` its
-    simulations of them. Returns (sensor with the term, values, -credited fall) or None when there is nothing to fit.
+    simulations of them. Returns (sensor with the term, values, -credited fall), a :class:`FailedFit` (its
+    coefficients at their bounds, or no fall of the gap on the fit frames), or None when there is nothing to fit.
     """
     coef = disparity_guess(axis, sensor, frames, sims) if name == DISPARITY_TERM else validity_guess(axis, frames, sims)
     if coef is None or not np.any(np.abs(coef) > 1e-9):
         return None
     moves_depth = name == DISPARITY_TERM
     bound = REGISTRY[name].params[COEFFICIENTS[0]].high
+    if np.any(np.abs(coef) >= AT_BOUND * bound):
+        shape = ", ".join(f"{c:.3g}" for c in coef)
+        return FailedFit(f"its least-squares coefficients reach their bounds (+-{bound:g}: {shape})")
     best = None
     for m in SCALES:
         values = {k: float(np.clip(m * c, -bound, bound)) for k, c in zip(COEFFICIENTS, coef)}
@@ -139,6 +157,8 @@ def fit_axis_candidate(sensor, name: str, axis: str, frames, config, base, sims)
         score = -relative_fall(base, evaluate(candidate, trial, config.seed))
         if best is None or score < best[2]:
             best = (candidate, candidate.effects[-1].values(), score)
+    if best[2] >= 0.0:  # never worse than no term on the frames it was fitted on
+        return FailedFit(f"it does not lower the gap on the fit frames (best credited fall {-100 * best[2]:+.1f} %)")
     return best
 
 

@@ -89,7 +89,9 @@ from ddsgen.diagnose.acceptance import (
     relative_fall,
     unexplained_axes,
 )
-from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, axes_to_try, fit_axis_candidate, label, split_label
+from ddsgen.diagnose.axis_candidates import (
+    DISPARITY_TERM, FailedFit, axes_to_try, fit_axis_candidate, label, split_label,
+)
 from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.candidates import changes_depth, copy_of, fit_any, spec
 from ddsgen.diagnose.device_candidates import device_candidates, is_device
@@ -307,7 +309,10 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                         search_frames, search_base, search_sims = search_sets[term == DISPARITY_TERM]
                         fitted = fit_axis_candidate(sensor, term, axis, search_frames, config, search_base,
                                                     search_sims)  # fmt: skip
-                        if fitted is not None:
+                        if isinstance(fitted, FailedFit):
+                            echo(f"      {label(term, axis)} failed fit: {fitted.reason}; not tried on the held-out "
+                                 f"frames")  # fmt: skip
+                        elif fitted is not None:
                             tried.append(judge(label(term, axis), fitted))
                 if tried:
                     echo("      (generic axis terms: tried because no named effect clears the rule)")
