@@ -467,26 +467,6 @@ def test_device_preset_gradients_match_finite_differences(name):
     assert autograd == pytest.approx((plus - minus) / (2 * eps), rel=0.03, abs=1e-8)
 
 
-# ---- lens defocus (an option, off in both presets: see docs/realism.md) -----------------------------
-def test_defocus_blur_grows_away_from_the_focus_and_keeps_the_light():
-    from ddsgen.sensor.optics import defocus_blur, defocus_sigma_px
-
-    depth = torch.tensor([[0.5, 1.0, 2.0, 4.0]])
-    sigma = defocus_sigma_px(depth, 572.41, 0.003, 2.0)
-    # thin lens: disc diameter f_px * A * |1/z - 1/z_f|, sigma a quarter of it
-    assert torch.allclose(sigma, 0.25 * 572.41 * 0.003 * (1 / depth - 0.5).abs())
-    assert sigma[0, 2] == 0 and sigma[0, 0] > sigma[0, 1] > sigma[0, 3] > 0
-    dots = torch.zeros(40, 40)
-    dots[20, 20] = dots[12, 25] = 100.0
-    for s in (0.0, 0.5, 1.2):  # blurring moves light, it does not remove it
-        assert float(defocus_blur(dots, torch.full((40, 40), s)).sum()) == pytest.approx(200.0, rel=1e-4)
-    peaks = [float(defocus_blur(dots, torch.full((40, 40), s)).max()) for s in (0.0, 0.5, 1.2)]
-    assert peaks[0] > peaks[1] > peaks[2]  # a defocused dot is dimmer at its centre
-    image = torch.rand(16, 16, requires_grad=True)
-    defocus_blur(image, torch.full((16, 16), 0.6)).sum().backward()
-    assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
-
-
 def test_device_frame_is_the_same_bytes_whatever_the_thread_count():
     """Scene-seeded speckle, shot noise and the OpenCV clean-up add no run-to-run or thread-count variation."""
     geometry = plane_geometry(_device(160, 120).intr, 1.7, tilt_deg=35.0)

@@ -72,18 +72,17 @@ def test_the_c_ir_image_is_the_torch_definition_operation_by_operation(monkeypat
     assert torch.equal(signal_c, signal_exact) and torch.equal(ir_c, ir_exact)
 
 
-def test_the_c_ir_image_leaves_gradients_defocus_and_fractional_powers_to_the_definition():
-    """Where the definition must run, the C pass declines: a parameter that wants a gradient, a defocus blur, a
+def test_the_c_ir_image_leaves_gradients_and_fractional_powers_to_the_definition():
+    """Where the definition must run, the C pass declines: a parameter that wants a gradient, a
     fall-off exponent that is not a whole number from 0 to 8, no noise."""
     if ir_kernel._library() is None:
         pytest.skip("no C compiler: the torch definition is the only path")
     args = list(_inputs(4, 4, 31.0))
     base = dict(ir_bits=args[16], quantise=True, projector_falloff_exponent=4.0, vignetting_exponent=4.0,
-                electrons_per_count=31.0, lens_aperture_m=0.0, pattern_unit=1.0)  # fmt: skip
+                electrons_per_count=31.0, pattern_unit=1.0)  # fmt: skip
     positional = args[:16]
     with torch.no_grad():
         assert ir_kernel.render_ir_c(*positional, **base) is not None
-        assert ir_kernel.render_ir_c(*positional, **{**base, "lens_aperture_m": 0.002}) is None
         assert ir_kernel.render_ir_c(*positional, **{**base, "projector_falloff_exponent": 2.5}) is None
         assert ir_kernel.render_ir_c(*positional, **{**base, "vignetting_exponent": 9.0}) is None
         assert ir_kernel.render_ir_c(*positional[:15], None, **base) is None

@@ -16,7 +16,7 @@ from ddsgen.scene.shapes import plane_mesh
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.sensor_cast import cast_for_sensor
 from ddsgen.sensor.registration import (
-    band_hole_fill_index, cropped_index, forward_registration_index, output_projector_x_m, register, splat_fill_index,
+    cropped_index, forward_registration_index, output_projector_x_m, register, splat_fill_index,
 )
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -168,35 +168,6 @@ def test_the_dense_splat_closes_one_pixel_holes_from_their_lower_right():
     holes = {tuple(p) for p in torch.nonzero(filled == 0).tolist()}
     assert holes == {(3, 3), (3, 4), (5, 6)}  # the 2 x 3 hole lost its right column and bottom row
     assert torch.equal(filled[valid], depth[valid])
-
-
-def test_band_holes_inside_one_surface_take_their_nearest_valid_source_and_others_stay():
-    """Only a small hole the registration made (most pixels unseen by the IR camera) whose rim is one surface
-    (disparities within 1 px) is filled, each pixel from its nearest valid pixel's IR source; a band hole at a
-    depth edge, the matcher's own hole inside a surface and a band hole too large for the fill keep their pixels."""
-    height, width = 12, 40
-    index = torch.arange(height * width).reshape(height, width) + 1000  # IR sources, all distinct
-    disparity = torch.full((height, width), 50.0)
-    disparity[:, 30:] = 30.0  # a far surface from column 30 on
-    valid = torch.ones(height, width, dtype=torch.bool)
-    unseen = torch.zeros(height, width, dtype=torch.bool)
-    band = (2, slice(4, 7))  # 3 unseen px inside the near surface -> filled
-    edge_band = (2, slice(28, 30))  # 2 unseen px with the far surface on their right -> kept
-    matcher_hole = (6, slice(4, 7))  # 3 px the matcher left inside the surface (seen) -> kept
-    wide_band = (9, slice(10, 20))  # 10 unseen px, the fill takes fewer than 8 -> kept
-    for rows, cols in (band, edge_band, matcher_hole, wide_band):
-        valid[rows, cols] = False
-    for rows, cols in (band, edge_band, wide_band):
-        unseen[rows, cols] = True
-        index[rows, cols] = -1
-    filled = band_hole_fill_index(index, unseen, valid, torch.where(valid, disparity, 0.0), 8, 1.0)
-    assert (filled[band] >= 1000).all()
-    for col in range(4, 7):  # the source of a valid pixel 1 px away (the nearest; equidistant ones: either)
-        assert int(filled[2, col]) in {int(index[2 + dy, col + dx]) for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1))
-                                       if valid[2 + dy, col + dx]}  # fmt: skip
-    assert (filled[edge_band] == -1).all() and (filled[wide_band] == -1).all()
-    assert torch.equal(filled[matcher_hole], index[matcher_hole])  # left to the IR-view clean-up: still a hole
-    assert torch.equal(filled[valid], index[valid])  # valid pixels keep their sources
 
 
 def test_a_slanted_edge_before_a_far_wall_has_no_dashed_line():

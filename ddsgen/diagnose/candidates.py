@@ -41,7 +41,7 @@ SNR_FACTORS = (1.15, 1.3, 1.5, 1.75, 2.0)
 #: The factors of a screening search (one frame, :data:`~ddsgen.diagnose.loop.SCREEN_FRACTION`): every other one.
 #: The screen asks whether the effect explains anything on held-out frames, not where its optimum lies; each factor
 #: costs a front end and the threshold's whole grid (9 trials of two simulations), and with all five the screen was
-#: the diagnosis' dearest (8-10 s of the 640 x 480 bench, session 31), mostly for candidates crediting nothing.
+#: the diagnosis' dearest (8-10 s of the 640 x 480 bench), mostly for candidates crediting nothing.
 SCREEN_SNR_FACTORS = (1.3, 1.75)
 
 #: Values tried for the other parameters of an effect, one at a time, after its first parameter is set.

@@ -109,17 +109,16 @@ from ddsgen.fit.fitting import fit_sensor, split_frames
 from ddsgen.realscan.simulate import simulate, twin_draws
 from ddsgen.sensor.effects import REGISTRY, library_names
 
-#: Screening rule (speed, issue 15). Each candidate's search runs first on the first ``screen_frames`` fit frames of
+#: Screening rule (speed). Each candidate's search runs first on the first ``screen_frames`` fit frames of
 #: its search set (a quarter to a fifth of the work) and is judged on the held-out frames at the values found there.
 #: When its credited held-out fall is below SCREEN_FRACTION times the acceptance threshold (0.6 x 5 % = 3 %), the
 #: full search is skipped and that judgement stands (its log line says "screened"); such a candidate cannot be
 #: accepted, so screening never accepts an effect fitted on one frame. Otherwise the screening result is discarded
 #: and the candidate is searched on every search frame and judged again, exactly as without screening. The margin,
-#: measured on the 18 distinct screen / full-search pairs in the logs of sessions 26-31 (bench and test runs): those
-#: that explain nothing screened at +1.3 .. +3.5 % (their full searches -2.0 .. +2.1 %); those that explain screened
-#: at +22.5 .. +68.8 % (full +25.5 .. +80 %), 0.63 to 1.06 of their full fall, so an effect at the acceptance
-#: threshold screens at about 3.2 % or more and is searched in full. Until session 31 the rule was a fifth (1 %): in
-#: the bench a noise-level screen (+1.8 %, +2.4 %) then cost a full depth search of 12-15 s that credited nothing.
+#: measured on 18 screen / full-search pairs (bench and test runs): those that explain nothing screened at
+#: +1.3 .. +3.5 % (their full searches -2.0 .. +2.1 %); those that explain screened at +22.5 .. +68.8 % (full +25.5 ..
+#: +80 %), 0.63 to 1.06 of their full fall, so an effect at the acceptance threshold screens at about 3.2 % or more
+#: and is searched in full; a lower margin let noise-level screens (+1.8 %, +2.4 %) cost full searches of 12-15 s.
 #: The best fall on the search frames themselves is no screen (a maximum over many noisy trials on one frame: +0.9 %
 #: .. +2 % for candidates at -2 % .. -7 % on held-out frames, measured).
 SCREEN_FRACTION = 0.6
@@ -182,7 +181,7 @@ def refit(sensor, frames, config: DiagnoseConfig, progress: bool) -> None:
 
 #: Named effects tried only when asked for (--candidates): a 3x5 disparity-distortion field is flexible
 #: enough to absorb part of an offset, a scale or a lens distortion, so by default the simpler effects
-#: are tried alone (named effects' precedence by simplicity is issue 15's work).
+#: are tried alone (named effects are not ranked by simplicity).
 OPT_IN_CANDIDATES = ("disparity_distortion",)
 
 

@@ -114,8 +114,7 @@ def fill_small_holes(valid: np.ndarray, hole_px: int, disparity: np.ndarray | No
         hole_px: invalid 8-connected components of fewer pixels are filled (0: none).
         disparity: (H, W) px; with ``max_diff_px``, only holes whose rim is one surface (8-adjacent
             rim pixels within ``max_diff_px``) are filled (None: every small hole).
-        mostly_in: (H, W) bool or None; only holes at least half of whose pixels it marks are filled (the
-            registration's band holes, :func:`ddsgen.sensor.registration.band_hole_fill_index`).
+        mostly_in: (H, W) bool or None; only holes at least half of whose pixels it marks are filled.
 
     Returns:
         source: (H, W) int64 flat index of the pixel whose value each pixel takes (itself unless filled).

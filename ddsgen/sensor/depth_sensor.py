@@ -29,9 +29,8 @@ from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
 from ddsgen.sensor.registration import (
-    band_hole_fill_index, dense_splat_index, forward_registration_index, gather_flat, register, register_images,
+    dense_splat_index, forward_registration_index, gather_flat, register_images,
 )
-from ddsgen.sensor.reference_speckle import reference_speckle_factor
 from ddsgen.sensor.row_smoothing import smooth_along_rows
 from ddsgen.sensor.speckle import scene_speckle
 
@@ -90,14 +89,10 @@ def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pa
 
 @functools.lru_cache(maxsize=8)
 def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int, speckle_contrast: float):
-    """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin), with the
-    stored reference's own speckle of ``speckle_contrast`` (:mod:`ddsgen.sensor.reference_speckle`)."""
+                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int):
+    """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin)."""
     field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px, unit)
-    phases = field.reference_phases(ir_width, height, pad, n_sub)
-    if speckle_contrast > 0:
-        phases = phases * reference_speckle_factor(*phases.shape, speckle_contrast, unit).to(phases.device)
-    return phases
+    return field.reference_phases(ir_width, height, pad, n_sub)
 
 
 def _log_param(value: float) -> nn.Parameter:
@@ -219,7 +214,7 @@ class DepthSensor(nn.Module):
         cached once per process and sensor."""
         width = self.intr.width if ir_width is None else int(ir_width)
         p = self.preset
-        phases = _reference_phases(*self._pattern_key(), p.subpixel_level, width, 0.0)
+        phases = _reference_phases(*self._pattern_key(), p.subpixel_level, width)
         return phases.to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
@@ -278,8 +273,7 @@ class DepthSensor(nn.Module):
             seen.points, seen.normals, seen.albedo, lit_seen, self.pattern_field(),
             fx, fy, cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
             self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
-            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count, 0.0,
-            2.0,
+            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count,
         )  # fmt: skip
         ctx = {
             "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": cx, "cy": intr.cy,
@@ -376,9 +370,6 @@ class DepthSensor(nn.Module):
                                                    p.registration_forward_fill_rows, geometry.registration)  # fmt: skip
             if p.registration_dense:  # the device's 2x2 splat closes 1-px holes
                 index = dense_splat_index(index, valid)
-            if False and p.cleanup_hole_px:  # as the device's forward map would
-                index = band_hole_fill_index(index, geometry.registration < 0, register(valid, index),
-                                             register(disparity, index), p.cleanup_hole_px, p.cleanup_max_diff_px)
             depth, valid, valid_soft, disparity, confidence, raw_depth = register_images(
                 (depth, valid, valid_soft, disparity, confidence, raw_depth), index)  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,

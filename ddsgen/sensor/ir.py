@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from ddsgen.sensor.ir_kernel import render_ir_c
-from ddsgen.sensor.optics import defocus_blur, defocus_sigma_px
 from ddsgen.sensor.pattern import PatternField
 from ddsgen.sensor.speckle import speckle_field
 
@@ -148,8 +147,6 @@ def render_ir(
     projector_falloff_exponent: float = 0.0,
     vignetting_exponent: float = 0.0,
     electrons_per_count: float = 0.0,
-    lens_aperture_m: float = 0.0,
-    focus_distance_m: float = 2.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Simulate the IR camera image.
 
@@ -172,9 +169,6 @@ def render_ir(
         vignetting_exponent: n of the IR lens's fall-off cos^n(angle off the camera's axis).
         electrons_per_count: photo-electrons per IR count; > 0 adds photon shot noise (variance
             = light / electrons_per_count counts^2) to the read noise; 0: read noise only.
-        lens_aperture_m, focus_distance_m: the IR lens's aperture diameter and focus distance (m); an
-            aperture > 0 blurs the projected dots by the defocus at each pixel's depth
-            (:mod:`ddsgen.sensor.optics`); 0: a pinhole, everything sharp.
 
     Returns:
         ir: (H, W) IR image in counts.
@@ -183,8 +177,7 @@ def render_ir(
     """
     fast = render_ir_c(points, normals, albedo, lit, field, fx, fy, cx, cy, baseline, emitted_intensity, ambient,
                        speckle_scale, read_noise_mean, read_noise_std, noise, ir_bits, quantise,
-                       projector_falloff_exponent, vignetting_exponent, electrons_per_count, lens_aperture_m,
-                       PATTERN_UNIT)  # fmt: skip
+                       projector_falloff_exponent, vignetting_exponent, electrons_per_count, PATTERN_UNIT)  # fmt: skip
     if fast is not None:  # in C where no gradient is taken (ir_kernel: the same operations, exact square roots)
         return fast
     u_p, v_p = projector_coordinates(points, fx, fy, cx, cy, baseline)
@@ -204,9 +197,6 @@ def render_ir(
     if vignetting_exponent:
         camera_distance = (x * x + yy_zz).sqrt().clamp_min(1e-6)
         signal = signal * _power((z / camera_distance).clamp(0.0, 1.0), vignetting_exponent)
-    if lens_aperture_m > 0:
-        depth = torch.where(lit > 0, z, torch.zeros_like(z)).detach()
-        signal = defocus_blur(signal, defocus_sigma_px(depth, float(fx), lens_aperture_m, focus_distance_m))
     if noise is None:
         return signal + ambient, signal
     noise = noise.columns(signal.shape[1])  # draws for a wider IR image (an IR margin) serve its first columns

@@ -7,7 +7,7 @@ correctly rounded square roots, which torch's CPU float32 ``sqrt`` is not (about
 off): the signal agrees within a few ulp, and 3 IR counts of 16 default renders differ by one
 (tests/test_ir_kernel.py checks both, and bit-for-bit equality with correct square roots on both sides).
 :func:`render_ir_c` returns None where the definition must run instead: no C compiler (or ``DDSGEN_NO_C_KERNEL``),
-a gradient wanted, another device or dtype, no noise, a defocus blur, or a fall-off exponent that is not a whole
+a gradient wanted, another device or dtype, no noise, or a fall-off exponent that is not a whole
 number from 0 to 8.
 """
 
@@ -48,13 +48,13 @@ def float32_value(value) -> float:
 def render_ir_c(points: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor, lit: torch.Tensor, field,
                 fx, fy, cx, cy, baseline, emitted_intensity, ambient, speckle_scale, read_noise_mean, read_noise_std,
                 noise, ir_bits: int, quantise: bool, projector_falloff_exponent: float, vignetting_exponent: float,
-                electrons_per_count: float, lens_aperture_m: float, pattern_unit: float):  # fmt: skip
+                electrons_per_count: float, pattern_unit: float):  # fmt: skip
     """``(ir, signal)`` as :func:`ddsgen.sensor.ir.render_ir` returns them (same arguments), or None where its
     definition must run (module docstring)."""
     tensors = (points, normals, albedo, lit, noise.speckle_unit, noise.read_unit) if noise is not None else ()
     scalars = (fx, fy, cx, cy, baseline, emitted_intensity, ambient, speckle_scale, read_noise_mean, read_noise_std)
     falloff, vignetting = _whole_exponent(projector_falloff_exponent), _whole_exponent(vignetting_exponent)
-    if (noise is None or lens_aperture_m > 0 or falloff is None or vignetting is None
+    if (noise is None or falloff is None or vignetting is None
             or any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors)
             or (torch.is_grad_enabled() and any(torch.is_tensor(v) and v.requires_grad for v in tensors + scalars))
             or field.raster.dtype != torch.float32):  # fmt: skip

@@ -25,8 +25,8 @@ is differentiable in the IR-frame depth. The real device forward-maps its measur
 back with the ray-cast depth differs by the noise's effect on the shift (f b_r dZ / Z^2, 0.05 px at 1 m)
 and, where the matcher carried a near surface past its edge, by where that carry shows: one band further
 on, beside the far surface, instead of beside the near one. :func:`forward_registration_index`
-(``registration_forward_gap_px`` > 0; kinect_v1 since session 35) maps forward as the device does, and the
-real LineMOD cat fits it better (docs/realism.md, sessions 34-35); the map back remains the default of a preset
+(``registration_forward_gap_px`` > 0; kinect_v1) maps forward as the device does, and the
+real LineMOD cat fits it better (docs/model.md, registration); the map back remains the default of a preset
 without the key, and the ray-cast index still tells the forward map's fill across rows which pixels the IR camera
 saw.
 """
@@ -40,7 +40,6 @@ import torch
 
 from ddsgen.preset import Intrinsics
 from ddsgen.sensor import registration_kernel
-from ddsgen.sensor.cleanup import fill_small_holes
 
 #: Depth agreement of an output pixel's point and the IR pixel it maps to, besides half a pixel's slope:
 #: a relative part (m/m) and an absolute part (m), for the float32 ray casts.
@@ -191,41 +190,6 @@ def dense_splat_index(index: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(fill >= 0, gather_flat(index, fill.clamp(min=0)), -1)
 
 
-def band_hole_fill_index(index: torch.Tensor, unseen: torch.Tensor, valid: torch.Tensor, disparity: torch.Tensor,
-                         hole_px: int, max_diff_px: float) -> torch.Tensor:
-    """(H, W) int64: a registration ``index`` (after the splat) in which the small holes the registration made
-    inside one surface take their nearest valid pixel's source.
-
-    A real device maps each IR pixel forward by its *measured* depth. Past a near surface's edge the matcher
-    carries the near surface a few pixels onto the far one (edge fattening); forward-mapped with the near depth,
-    those pixels land next to the near surface, in the band of RGB-view pixels the IR camera does not see, and
-    cover it. :func:`registration_index` maps back by the ray-cast geometry: it leaves that band open and shows
-    the carried pixels one band further on, so along a near-horizontal edge (a table's front edge above the
-    floor) every row keeps a 1-3 px hole with the near surface above and below it: a dashed line inside one
-    surface. Measured (docs/realism.md): 45 % of the isolated dropouts of 16 rendered frames had a rim within
-    one surface (54 % at tabletop range), against 18 % on the 11 real frames; the real LineMOD table edge has none.
-    A hole is the registration's when at least half its pixels are ``unseen``; holes the matcher made in the IR
-    image keep their pixels.
-
-    Args:
-        index: (H, W) int64 flat IR-image index of each output pixel, -1 where none (after the splat).
-        unseen: (H, W) bool, output pixels whose surface point the IR camera does not see (the ray-cast
-            :func:`registration_index` is -1 there; after the splat every unfilled hole is -1).
-        valid: (H, W) bool, the registered validity (through ``index``).
-        disparity: (H, W) px, the registered disparity (any grad; read only).
-        hole_px, max_diff_px: the device's hole fill (``cleanup_hole_px``, ``cleanup_max_diff_px``).
-    """
-    source, filled = fill_small_holes(valid.detach().cpu().numpy(), hole_px, disparity.detach().cpu().numpy(),
-                                      max_diff_px, mostly_in=unseen.cpu().numpy())  # fmt: skip
-    chosen = np.flatnonzero(filled)
-    if not len(chosen):
-        return index
-    flat = index.reshape(-1).clone()
-    chosen_t = torch.from_numpy(chosen).to(index.device)
-    flat[chosen_t] = flat[torch.from_numpy(source.reshape(-1)[chosen]).to(index.device)]
-    return flat.reshape(index.shape)
-
-
 def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_px: float, focal_offset_px_m: float,
                                gap_px: int, fill_rows: int = 0, seen: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
     """(H, W) int64: the IR image's depth mapped forward into the output (RGB) image, as the device does: for each
@@ -237,7 +201,7 @@ def forward_registration_index(valid: torch.Tensor, depth: torch.Tensor, shift_p
     resampling cracks and narrow bands close). Unlike :func:`registration_index` (back by the ray-cast geometry),
     the near surface the matcher carried past a depth edge lands next to that surface, and the band right of it
     (f b_r (1/Z_near - 1/Z_far) px) stays a hole between the two surfaces when wider than ``gap_px``: real
-    registered frames keep bands of 6 px and more open at 98 % of such edges (docs/realism.md, session 34).
+    registered frames keep bands of 6 px and more open at 98 % of such edges (docs/model.md, registration).
 
     Args:
         valid: (H, W) bool, the IR image's valid pixels.
