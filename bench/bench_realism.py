@@ -220,7 +220,7 @@ def rendered(preset_name: str, n: int, pictures: Path | None, real_roughness: li
     if pictures is not None and real_roughness:
         roughness_picture(pictures / "realism_roughness_by_depth.png", real_roughness, roughness, preset_name, fb)
     # Issue 12's per-frame targets for rendered frames: 10-120 isolated dropouts holding at most 2 % of the invalid
-    # pixels (with --frames 16, seed 0: the frames docs/realism.md reports).
+    # pixels (with --frames 16, seed 0: the frames docs/validation.md reports).
     counts = [10 <= s["isolated_dropouts"] <= 120 for s in stats]
     shares = [s["isolated_dropout_share"] is not None and s["isolated_dropout_share"] <= 0.02 for s in stats]
     print(f"bench: sim_render_frames_with_10_to_120_isolated {sum(counts)} of {len(stats)}", flush=True)

@@ -1,4 +1,4 @@
-"""Feature distance or patch discriminator? The measurement behind docs/unpaired_fit.md.
+"""Feature distance or patch discriminator? The measurement behind docs/validation.md.
 
 Renders 8 frames each of: sensor S1 (the stock preset) on scene list A, S1 on scene list B,
 sensor S2 (other SNR, beta, confidence threshold, n_sub) on A -- at WIDTH x 3/4 WIDTH. Then:

@@ -39,7 +39,7 @@ class FitRule:
     * ``name`` -- the key's name in ``--params``; ``order`` -- its place in that table (the order the help lists the
       names and the device keys are searched in);
     * ``attr`` -- the :class:`~ddsgen.sensor.depth_sensor.DepthSensor` tensor that stores it (``None``: a device key of
-      the preset, fitted by a 1-D search over its bounds, :mod:`ddsgen.fit.device_keys`, docs/fit_transfer.md);
+      the preset, fitted by a 1-D search over its bounds, :mod:`ddsgen.fit.device_keys`, docs/validation.md);
       ``log`` -- whether that tensor is the logarithm of the physical value; ``tensor_is_ratio`` -- the tensor holds
       the value's ratio to the preset's (the focal scale f / f_preset), not the value;
     * ``bound`` -- where the fitted value must stay: ``("factor", lo, hi)`` = within [lo, hi] x the start (input

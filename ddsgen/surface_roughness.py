@@ -236,8 +236,7 @@ def flat_roughness_by_depth(frames: Iterable[SurfaceResiduals], bins=DEPTH_BINS_
     """The flat roughness (slopes :data:`FLAT_SLOPE`) per depth bin, pooled over frames.
 
     The sensor's disparity noise against distance, measured where real frames have it without ground truth: a
-    real PrimeSense device's stays near 0.06 px from 0.5 to 2.2 m (docs/noise_study.md, "The near range, the same
-    way").
+    real PrimeSense device's stays near 0.06 px from 0.5 to 2.2 m (docs/validation.md).
 
     Args:
         frames: each frame's :func:`surface_residuals` (one sensor: the same f b).

@@ -335,7 +335,7 @@ def test_compare_real_cat_cropped_statistics_on_whole_frames(linemod, tmp_path, 
     assert frame["sim"]["region"]["depth_step_at_1m_mm"] == pytest.approx(quantum_mm, rel=0.1)
     assert frame["sim"]["modelled"]["pixels"] < frame["real"]["whole_frame"]["pixels"] / 10  # the crop only
     # The cat's outline: the real sensor carries it about a pixel past the ray-cast silhouette and draws it ragged by
-    # under a pixel; the simulation within half a pixel of both (docs/noise_study.md, session 43).
+    # under a pixel; the simulation within half a pixel of both (docs/validation.md).
     real_edges, sim_edges = frame["edges"]["real"], frame["edges"]["sim"]
     assert real_edges["edge_rows"] > 40 and sim_edges["edge_rows"] > 40
     assert -0.5 < real_edges["edge_fattening_px"] < 2.0 and 0.3 < real_edges["edge_jitter_px"] < 1.5

@@ -58,10 +58,7 @@ def tiny_renders(tmp_path_factory):
 
 #: Documents whose examples do not run yet, and why. Strict: an example that starts running fails the test until its
 #: document leaves this list.
-KNOWN_BROKEN = {
-    "scene_gradients.md": "its Python API example uses frame_scene, intrinsics, sensor, preset and real without "
-                          "defining them",
-}
+KNOWN_BROKEN: dict[str, str] = {}
 #: docs/data.md runs in test_the_training_script_trains_on_both_folders, which also checks what it prints.
 RUNNABLE = [path for path in DOCUMENTS if python_script(path) and path.name != "data.md"]
 

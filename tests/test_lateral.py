@@ -102,7 +102,7 @@ def test_device_edges_wander_by_about_a_pixel_and_fatten(device_and_intrinsics):
     """Through the device sensor the edges wander (the correlation window's decision follows the dots it sees):
     clearly more than the clean edges' grid error, of the order of a real Kinect's 0.8 px. And the board is carried
     past its edges onto the wall by a few pixels, as a real Kinect carries a partition 2.4 m away past its edges
-    over a background at 7-8 m (TUM frame against its RGB edges: about 3 px a side, docs/noise_study.md)."""
+    over a background at 7-8 m (TUM frame against its RGB edges: about 3 px a side, docs/validation.md)."""
     preset, _ = device_and_intrinsics
     points = run_lateral_study(preset, [1.0, 2.0], [0.0], frames=2, rows=ROWS)
     for point in points:

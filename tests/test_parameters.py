@@ -291,3 +291,12 @@ def test_no_range_of_a_preset_key_is_written_outside_the_registry():
                  if path != REGISTRY_MODULE and (hits := range_literals(path.read_text()))}  # fmt: skip
     assert not offenders, f"ranges of preset keys belong in ddsgen/parameters.py: {offenders}"
     assert range_literals(REGISTRY_MODULE.read_text())  # the finder does see the registry's own
+
+
+def test_the_model_manual_names_every_preset_key():
+    """docs/model.md lists each stage's keys: a key added to the registry is documented there too."""
+    from pathlib import Path
+
+    manual = (Path(__file__).resolve().parents[1] / "docs" / "model.md").read_text()
+    missing = [name for name in PARAMETERS if name != "name" and f"`{name}`" not in manual]
+    assert not missing, missing

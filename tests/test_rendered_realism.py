@@ -65,7 +65,7 @@ def test_rendered_frames_leave_narrow_registration_bands_as_a_slit_like_real_one
     """Real devices leave a 1-2 px slit at 14-23 % of the rows crossing a 3-6 px band (three devices). The renders
     close them, or leave the whole band: measured on these four frames 20 of 641 (0.03). A fill of 3 px instead of 4
     reaches 0.20 on 16 frames but closes only 14 % of the 4-6 px bands (real 43-70 %): the slits are a per-row
-    effect the map does not have (docs/realism.md, session 48)."""
+    effect the map does not have (docs/validation.md)."""
     slits, jumps = np.sum([narrow_band_slits(depth) for depth in default_frames], axis=0)
     assert jumps >= 50
     assert slits >= 0.10 * jumps
@@ -95,7 +95,7 @@ def test_rendered_frames_outlines_are_as_ragged_as_real_ones(default_frames):
 def test_rendered_frames_have_isolated_dropouts_as_small_as_real_ones(default_frames):
     """Real frames: mean isolated-dropout size 2.8-4.6 px per frame (IC-BIN; the cat 3.7, TUM 2.5), 1-2 px holes
     most common. Measured on these four frames: 4.8, 6.8, 6.7, 7.1 px (48 frames: median 6.1, 2.5-10.7): fragments of
-    projector shadows and registration bands along slanted edges, 3-6 px wide and 2-4 rows tall (docs/realism.md,
+    projector shadows and registration bands along slanted edges, 3-6 px wide and 2-4 rows tall (docs/validation.md,
     "The size of the isolated dropouts"). Strict: it fails loudly once the renders get there."""
     sizes = [realism_statistics(depth)["isolated_dropout_mean_px"] for depth in default_frames]
     assert np.median(sizes) <= 5.0, sizes
@@ -105,7 +105,7 @@ def test_rendered_frames_have_isolated_dropouts_as_small_as_real_ones(default_fr
 def test_rendered_frames_are_as_rough_as_real_ones_where_flat_and_where_slanted(default_frames):
     """Roughness in disparity and its grain (ddsgen.surface_roughness) on the renders, against the real frames'
     (IC-BIN 0.048-0.066 px where flat, slanted / flat 1.28-1.72, median 1.56; the LineMOD cat 0.060 and 1.85). The
-    paper preset's renders are 0.069-0.102 px where flat and rise 1.06-1.64x (docs/noise_study.md, session 44)."""
+    paper preset's renders are 0.069-0.102 px where flat and rise 1.06-1.64x (docs/validation.md)."""
     rows = [realism_statistics(depth, disparity_fb=RENDER_FB) for depth in default_frames]
     assert all(0.045 <= row["flat_roughness_px"] <= 0.075 for row in rows), rows
     assert 1.3 <= float(np.median([row["slant_roughness_ratio"] for row in rows])) <= 2.0, rows
@@ -125,7 +125,7 @@ def test_rendered_frames_are_as_rough_as_real_ones_at_every_depth(default_frames
     frames 0.061, 0.059, 0.061, 0.061, 0.063, 0.059, 0.055 (16 frames 0.053-0.063); the paper preset's 0.097-0.102.
     Nguyen 2012's sigma_z read as disparity (sigma_z f b / z^2) rises to 0.176 px at 0.55 m, 2.8x the real frames'
     roughness there: the near-range points of `ddsgen study noise` are judged against these frames too
-    (docs/noise_study.md, "The near range, the same way")."""
+    (docs/validation.md)."""
     import cv2
 
     from ddsgen.study.noise import nguyen_sigma_px

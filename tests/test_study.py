@@ -161,7 +161,7 @@ def study_run(tmp_path_factory):
     z = ",".join(f"{v:g}" for v in Z_GRID)
     angles = ",".join(f"{v:g}" for v in ANGLES)
     # The paper's model: its grazing-angle break-down is what these trend checks were written against
-    # (the device preset is measured against Nguyen 2012 in docs/noise_study.md).
+    # (the device preset is measured against Nguyen 2012 in docs/validation.md).
     code = main(["study", "noise", "kinect_v1_paper", "--z", z, "--angles", angles, "--frames", "2", "--rows", "48",
                  "--out", str(out), "--quiet"])  # fmt: skip
     assert code == 0

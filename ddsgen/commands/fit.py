@@ -63,7 +63,7 @@ from ddsgen.atomic import atomic_folder, check_can_create_folder
                    "applied to every frame of the scene.")
 @click.option("--unpaired", is_flag=True,
               help="REAL_DIR is any folder of depth images (16-bit PNG, EXR in m), no poses: fit the sensor by "
-                   "matching distributions of patch features on renders of --scenes (docs/unpaired_fit.md). "
+                   "matching distributions of patch features on renders of --scenes (docs/validation.md). "
                    "The output window (border columns/rows empty in every frame) is measured from the folder: "
                    "give frames of varied views, or a camera that always sees nothing at one border gets a band. "
                    "Each value is reported with the range that fits as well against the scene content of the fit "

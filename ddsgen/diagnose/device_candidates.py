@@ -12,7 +12,7 @@ rule as every effect, and named in the report like one.
 
 Measured on the real LineMOD cat, objects' region (``ddsgen compare``, one key of ``kinect_v1`` at a time on
 ``kinect_v1_paper``): gap beyond the floor 1.69 mm -> 0.58 (windows across edges kept), 0.76 (the clean-up),
-0.15 with every device key of ``kinect_v1`` (docs/diagnose_real.md).
+0.15 with every device key of ``kinect_v1`` (docs/validation.md).
 """
 
 from __future__ import annotations

@@ -359,7 +359,7 @@ def simulate(sensor, frame: FrameData, seed: int = 0):
 TWIN_SEED_OFFSET, TWIN_UNIT = 1000, 1
 #: Unit draws the floor of a comparison averages at least, spread over its frames (:func:`twin_draws`). One
 #: unit's draw on one frame scatters by tens of percent: on the LineMOD cat's object region the floor is
-#: 0.40-1.50 mm against units 1-8 (mean 0.68); over 9 frames units 1-4 agree within 3 % (docs/diagnose_real.md).
+#: 0.40-1.50 mm against units 1-8 (mean 0.68); over 9 frames units 1-4 agree within 3 % (docs/validation.md).
 FLOOR_DRAWS = 4
 
 
@@ -380,7 +380,7 @@ def simulate_twin(sensor, frame: FrameData, seed: int = 0, draw: int = 0):
     ``TWIN_UNIT + draw``). A real scan was taken by a unit whose speckle and dots the model cannot know, so
     the gap between ``simulate(sensor, frame, seed)`` and this twin is the noise floor a perfect model scores
     against real data. (A twin that shared the speckle with the simulation scored far lower: 4.4 against
-    8.8 mm on the blind diagnose scans, docs/diagnose_real.md.) ``draw`` 0, 1, ...: further units, for a
+    8.8 mm on the blind diagnose scans, docs/validation.md.) ``draw`` 0, 1, ...: further units, for a
     floor averaged over several (:func:`twin_draws`).
     """
     with sensor_unit(sensor, TWIN_UNIT + int(draw)):

@@ -21,7 +21,7 @@ OpenCV's, model that:
   centred in a projector shadow or crack that narrow is mostly lit (w = 4 of a 9-px window leaves 5 lit
   columns) and matches the surface it sees; the ray-cast shadow mask and the matcher's ragged decisions at
   such edges leave 1-3 px bands instead, which the registration's shift and 2x2 splat break into fragments:
-  5-10 times the real frames' isolated holes per length of depth edge (docs/realism.md). Deciding by the
+  5-10 times the real frames' isolated holes per length of depth edge (docs/validation.md). Deciding by the
   window, not per row and column, fills or keeps a shadow band along a slanted edge as a whole.
 
 All three are a selection, not arithmetic: the output at a pixel is the matcher's disparity of

@@ -8,5 +8,5 @@ Modules: :mod:`.realfolder` (read any folder of depth images), :mod:`.features`
 (scene-independent patch features, pooled per frame so frames can be resampled),
 :mod:`.parameters` (the table of fitted preset keys), :mod:`.search` (rendering and the
 fitting loop), :mod:`.report` (plots, JSON). Why a feature distance and not a
-discriminator: docs/unpaired_fit.md.
+discriminator: docs/validation.md.
 """

@@ -26,7 +26,7 @@ hold other objects. So every feature is conditioned on local geometry or depth:
   noise's amplitude (beta, the SNR: measured on IC-BIN from kinect_v1, beta 10-25 moves it by
   0.01) nor, unlike the second differences, on how much of the scene slants (a quantised slope
   is a staircase): what sets it is how the device combines neighbouring matches (measured on
-  real Kinect V1 frames: 0.62 along the rows, 0.43 down the columns; docs/noise_study.md).
+  real Kinect V1 frames: 0.62 along the rows, 0.43 down the columns; docs/validation.md).
 
 Counts add over frames (:func:`pool`), so a bootstrap over frames only re-sums arrays.
 """

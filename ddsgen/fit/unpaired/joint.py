@@ -4,7 +4,7 @@ The profiles of :func:`~.search.fit_unpaired` vary one key with the others held 
 values, so their spread is *conditional*: when two keys trade off (a lower IR signal-to-noise
 ratio everywhere against darker corners; a higher confidence threshold against a lower SNR),
 each profile is sharp while the distance is nearly flat along the diagonal, and the conditional
-spread understates how far the value can move. Measured on hidden devices (docs/unpaired_fit.md):
+spread understates how far the value can move. Measured on hidden devices (docs/validation.md):
 most continuous keys landed outside twice their conditional spread.
 
 Here the total distance is evaluated on a small design around the fitted values (the centre, half a

@@ -5,7 +5,7 @@ registry (:mod:`ddsgen.parameters`). The fit sets values through ``SensorPreset.
 the sensor, so any preset key works. Adding a parameter (e.g. a fall-off exponent of a device-faithful
 preset) is an ``unpaired`` record on its key in :data:`ddsgen.parameters.PARAMETERS`.
 
-What depth alone constrains (see docs/unpaired_fit.md): the IR signal-to-noise ratio
+What depth alone constrains (see docs/validation.md): the IR signal-to-noise ratio
 (eta_c against the fixed read noise: only their ratio is identifiable from depth), the
 soft-argmax temperature beta (noise texture), the device's smoothing along its rows (the noise's
 correlation with the next pixel in the row), the confidence threshold (dropouts), the

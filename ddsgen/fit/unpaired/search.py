@@ -25,7 +25,7 @@
    barely changes the frames has a distance that is flat next to the real frames' own
    scatter, and a resample of other real frames then puts its minimum anywhere: measured on
    hidden devices, a profile of +-1/2 step reported the fall-off as 16 +- 2 for a hidden 7
-   whose fall-off moved the corner validity by 0.003 (docs/unpaired_fit.md). When more than
+   whose fall-off moved the corner validity by 0.003 (docs/validation.md). When more than
    20 % of the vertices sit on the search bounds, the spread is flagged as a lower bound
    (``bootstrap[key]["lower_bound"]``). The continuous keys are then bootstrapped
    together on a quadratic response surface (:mod:`.joint`: trade-offs between keys widen it).

@@ -4,7 +4,7 @@ The bootstrap (:func:`~.search.fit_unpaired`) resamples frames, so its spread is
 error of *these* scenes. It misses what the issue asks the fit to be robust to: the real frames
 show other scenes than the fit's list. A key whose whole range changes the frames less than
 two sets of scenes do is not determined by the frames, however consistent the bootstrap is.
-Measured on hidden devices (docs/unpaired_fit.md): the beam fall-off moved the radius term of
+Measured on hidden devices (docs/validation.md): the beam fall-off moved the radius term of
 draw 1 by 9 % over its whole range 0-16 and the bootstrap still reported 16 +- 2.5 for a hidden 7.
 
 The scale of scene content is measured on the fit's own frames: the key's objective between
