@@ -6,7 +6,7 @@ where Pi is the pattern in units of LIT_DOT_INTENSITY / 255 per 8-bit value.
     I      = quantise(clip(signal * speckle + ambient + read_noise))
 
 with the projector a pinhole of the camera's intrinsics at t_p = (+b, 0, 0) in the
-camera frame (DESIGN.md §2), so a hit point P = (X, Y, Z) lands on projector pixel
+camera frame (docs/model.md, "Camera and ray cast"), so a hit point P = (X, Y, Z) lands on projector pixel
 u_p = fx (X - b) / Z + cx, v_p = fy Y / Z + cy. Sampling the pattern field there is
 bilinear, so the image is differentiable in b and f. Noise constants follow Landau
 et al. 2016 (Kinect V1): speckle ~ Gamma(shape, scale) multiplicative, read noise

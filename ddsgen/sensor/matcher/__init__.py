@@ -1,7 +1,7 @@
 """The differentiable block matcher: ZNCC, integer search, sub-pixel soft-argmax, row bands.
 
 The observed IR image I_o(u, v) is compared with the reference R(u - d, v) for d in
-[d_min, d_max] (DESIGN.md §2, "projector geometry"). Two stages:
+[d_min, d_max] (docs/model.md, "Block matcher"). Two stages:
 
 1. **Integer search** (no gradient: an argmax is piecewise constant). Zero-mean normalised
    cross-correlation (ZNCC) over block x block windows for every integer disparity, keeping
