@@ -120,7 +120,10 @@ def test_sigterm_mid_render_ends_every_worker_and_the_run_resumes(inputs, tmp_pa
 
     done = {r["frame"] for r in read_manifest(out / "manifest.jsonl")}
     assert len(done) == 2, f"the manifest holds {len(done)} records at the pause after the 2nd"
-    n = max(done) + 2  # the same run (seed, preset, scenes), finished a little further
+    # The same run (seed, preset, scenes), finished a little further: past any frame a worker had written the files
+    # of without its record (the resume renders those again and replaces them).
+    written = {int(path.stem) for path in (out / "depth").glob("[0-9]*.png")}  # not a temporary (".NNNNNN...")
+    n = max(done | written) + 2
     summary = render_dataset(preset, scenes, n, str(out), workers=1, progress=False)
     assert summary.frames_skipped == len(done) and summary.frames_rendered == n - len(done)
     assert [r["frame"] for r in read_manifest(out / "manifest.jsonl")] == list(range(n))

@@ -18,6 +18,7 @@ Measured on the real LineMOD cat, objects' region (``ddsgen compare``, one key o
 from __future__ import annotations
 
 import dataclasses
+
 import torch
 
 from ddsgen.diagnose.acceptance import relative_fall
@@ -25,8 +26,8 @@ from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.plane import replaned
 from ddsgen.parameters import behaviours
+from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.effects.base import EffectParam
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,8 +74,6 @@ def device_candidates(preset) -> list[str]:
 def sensor_like(sensor, preset):
     """A new DepthSensor of ``preset`` with ``sensor``'s camera and device, its parameters frozen (candidates are
     searched, not trained)."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     new = DepthSensor(preset, intrinsics=sensor.intr, device=sensor.device_)
     # The tensors ``sensor`` shares with it are copied, not rebuilt from the preset: exp then log moves a fitted
     # value by an ulp, and the candidate would no longer be the current model plus one thing (nor share its

@@ -16,7 +16,14 @@ import dataclasses
 import numpy as np
 import torch
 
-from ddsgen.realscan.local_patches import FramePatches, patch_count, patch_share, patches_against
+from ddsgen.diagnose.evaluation import evaluate
+from ddsgen.diagnose.plane import replaned
+from ddsgen.realscan.local_patches import (
+    FramePatches,
+    patch_count,
+    patch_share,
+    patches_against,
+)
 from ddsgen.realscan.losses import local_window
 from ddsgen.realscan.simulate import simulate, simulate_twin
 
@@ -91,9 +98,6 @@ def local_reading(sensor, frames, held_frames, seed: int, before, floor_draws: i
     evaluation on ``held_frames`` (:class:`~ddsgen.diagnose.evaluation.Evaluation`) and ``floor_draws`` the units
     it averaged its floor over, so both evaluations report the same floor.
     """
-    from ddsgen.diagnose.evaluation import evaluate
-    from ddsgen.diagnose.plane import replaned
-
     split = len(frames) == 1
     whole = replaned(sensor, frames, seed, replane_steps) if split else held_frames
     patches = frame_patches(sensor, whole, seed)

@@ -90,10 +90,15 @@ from ddsgen.diagnose.acceptance import (
     unexplained_axes,
 )
 from ddsgen.diagnose.axis_candidates import (
-    DISPARITY_TERM, FailedFit, axes_to_try, fit_axis_candidate, label, split_label,
+    DISPARITY_TERM,
+    FailedFit,
+    axes_to_try,
+    fit_axis_candidate,
+    label,
+    split_label,
 )
-from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.candidates import changes_depth, copy_of, fit_any, spec
+from ddsgen.diagnose.config import DiagnoseConfig
 from ddsgen.diagnose.device_candidates import device_candidates, is_device
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.local_patches import local_reading
@@ -101,12 +106,13 @@ from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
 from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import analyse, pixel_residuals
-from ddsgen.diagnose.split import split_note, split_single_frame
-from ddsgen.diagnose.window import with_measured_window
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.diagnose.sentences import format_values, step_sentence, structure_summary
+from ddsgen.diagnose.split import split_note, split_single_frame
+from ddsgen.diagnose.window import with_measured_window
 from ddsgen.fit.fitting import fit_sensor, split_frames
 from ddsgen.realscan.simulate import simulate, twin_draws
+from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.effects import REGISTRY, library_names
 
 #: Screening rule (speed). Each candidate's search runs first on the first ``screen_frames`` fit frames of
@@ -202,8 +208,6 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
         progress: tqdm bars of the fits.
         analysis_stride: pixel subsampling of the residual analysis (1 = every pixel).
     """
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     config = config or DiagnoseConfig()
     names = list(config.candidates) if config.candidates else default_candidates() + device_candidates(preset)
     unknown = [n for n in names if n not in REGISTRY and not is_device(n)]

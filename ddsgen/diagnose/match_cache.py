@@ -21,7 +21,9 @@ from collections import OrderedDict
 
 import torch
 
+import ddsgen.sensor.depth_sensor as depth_sensor
 from ddsgen.parameters import PARAMETERS, fit_rules, stage_keys
+from ddsgen.sensor.depth_sensor import DepthSensor
 
 #: Entries kept by each cache. At 640 x 480 a match result holds 5 maps (~6 MB), a front end ~7 maps and its
 #: noise draws (~15 MB): 32 front ends cover the fit frames x two noise draws of a candidate search with room to
@@ -57,8 +59,6 @@ def reuse_matches(size: int = MATCH_ENTRIES):
     (same bytes) and identical settings is computed once and reused. With only post-matching
     effect parameters free, every simulation after the first of a frame skips the matcher.
     """
-    import ddsgen.sensor.depth_sensor as depth_sensor
-
     original = depth_sensor.match
     cache = LruCache(size)
 
@@ -118,8 +118,6 @@ def reuse_front_ends(size: int = FRONT_END_ENTRIES):
     so the same seed returns the same object; front ends by that noise object, the geometry object and
     :func:`front_end_state`. The cached objects are kept alive by the cache, so their ids stay unique.
     """
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     original_noise, original_front = DepthSensor.draw_noise, DepthSensor.front_end
     noises, fronts = LruCache(size), LruCache(size)
 
@@ -152,8 +150,6 @@ def counting_computed_stages():
     :class:`~ddsgen.sensor.depth_sensor.DepthSensor` methods. Enter it *before* :func:`reuse_front_ends`
     wraps them, so that what the caches serve is not counted (machine-independent work, for
     benchmarks and tests)."""
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     counts = {"front_end": 0, "validity_stage": 0}
     originals = {name: getattr(DepthSensor, name) for name in counts}
 

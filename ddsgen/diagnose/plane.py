@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ddsgen.realscan.simulate import simulate
+from ddsgen.realscan.support_plane import Plane
 
 
 def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
@@ -29,8 +30,6 @@ def replane(frame, sim, min_pixels: int = 200, clip_quantile: float = 0.1):
 
     Returns ``frame`` itself when it has no plane or too few plane pixels.
     """
-    from ddsgen.realscan.support_plane import Plane
-
     if frame.plane is None:
         return frame
     g = frame.geometry

@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ddsgen.atomic import atomic_folder, atomic_path, atomic_write_text
 from ddsgen.diagnose.acceptance import RULE
 from ddsgen.diagnose.maps import ResidualMap, crop_zoom, region_box
-from ddsgen.realscan.gap_report import BELOW_FLOOR
 from ddsgen.diagnose.residuals import AXES, AXIS_WORDS, AxisStats
-from ddsgen.atomic import atomic_folder
-
+from ddsgen.realscan.gap_report import BELOW_FLOOR
+from ddsgen.sensor.effects.axis_terms import axis_shape
+from ddsgen.sensor.effects.features import PIXEL_AXES
 
 #: Where the report's figures go, relative to the report folder (report.html references them).
 PLOTS = "plots"
@@ -31,8 +32,6 @@ def _figure(width_px: int, height_px: int):
 
 
 def _save(fig, path: Path) -> None:
-    from ddsgen.atomic import atomic_path
-
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=DPI, format="png", metadata={"Software": None})
@@ -64,9 +63,6 @@ def profile_figure(curves: list[tuple[str, AxisStats]], axis: str, path: Path, t
 
 def shape_figure(effect, path: Path) -> None:
     """The fitted shape of a generic axis term along its axis -> PNG ``path`` (700 x 400 px)."""
-    from ddsgen.sensor.effects.axis_terms import axis_shape
-    from ddsgen.sensor.effects.features import PIXEL_AXES
-
     x, y = axis_shape(effect)
     fig = _figure(700, 400)
     ax = fig.subplots()
@@ -160,8 +156,6 @@ def residual_map_figure(panels: list[tuple[str, ResidualMap]], path: Path, title
 
 
 def write_json(path: Path, result: dict) -> None:
-    from ddsgen.atomic import atomic_write_text
-
     atomic_write_text(path, json.dumps(result, indent=1) + "\n")
 
 
@@ -180,8 +174,6 @@ def write_html(path: Path, title: str, summary: list[str], steps: list[dict], ov
                maps: list[tuple[str, str]] = ()) -> None:  # fmt: skip
     """``steps``: dicts with effect, sentence, params, gap_before, gap_after, axis, figure (PNG path relative to
     the report); ``overview`` and ``maps``: (caption, PNG path relative to the report)."""
-    from ddsgen.atomic import atomic_write_text
-
     e = html.escape
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'>",

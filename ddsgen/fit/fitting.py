@@ -49,11 +49,24 @@ import torch
 
 from ddsgen.errors import InputError
 from ddsgen.fit.device_keys import is_device_key, search_device_keys
-from ddsgen.realscan.losses import LossWeights, frame_loss, snr_search_weights
-from ddsgen.fit.parameters import DEFAULT_PARAMS, SENSOR_PARAMS, physical_values, resolve_params
+from ddsgen.fit.parameters import (
+    DEFAULT_PARAMS,
+    SENSOR_PARAMS,
+    physical_values,
+    resolve_params,
+)
 from ddsgen.fit.priors import DEFAULT_PRIOR_MM, Priors
-from ddsgen.realscan.simulate import FrameData, simulate
+from ddsgen.fit.starts import start_distortion_grid
 from ddsgen.fit.tiles import step_tiles
+from ddsgen.realscan.losses import LossWeights, frame_loss, snr_search_weights
+from ddsgen.realscan.simulate import FrameData, prepare_frames, simulate
+from ddsgen.scene_gradients.refine import RefineSettings
+from ddsgen.scene_gradients.scan import (
+    object_changes,
+    refine_scan_frame,
+    refine_static_scan,
+    static_scenes,
+)
 
 LOG_LR_SCALE = 30.0
 LATTICE_MIN_COHERENCE = 0.3
@@ -252,8 +265,6 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
     searched: set[str] = set()
     # The distortion first: the SNR search's validity and texture terms are judged with it in place.
     if start_effects and any(n.startswith("effect:disparity_distortion.d_r") for n in resolved):
-        from ddsgen.fit.starts import start_distortion_grid
-
         searches["distortion"] = start_distortion_grid(sensor, frames, seed)
     if search and "baseline" in resolved:
         searches["baseline"] = estimate_baseline(sensor, frames)
@@ -363,10 +374,6 @@ def refine_frame_poses(sensor, preset, scans: list, steps: int, progress: bool =
     Returns:
         (the new FrameData list, per frame {frame, objects: [{id, rotation_deg, translation_mm}]}).
     """
-    from ddsgen.realscan.simulate import prepare_frames
-    from ddsgen.scene_gradients.refine import RefineSettings
-    from ddsgen.scene_gradients.scan import object_changes, refine_scan_frame, refine_static_scan, static_scenes
-
     settings, plane = RefineSettings(steps=steps, seed=seed), prepare_options.get("support_plane", True)
     refined = {}  # frame name -> {object id: refined cam_T_obj}
     if static_views > 0:

@@ -18,6 +18,8 @@ from ddsgen.errors import InputError
 from ddsgen.fit.device_keys import device_key_values, is_device_key, mirror
 from ddsgen.fit.priors import SensorParam
 from ddsgen.parameters import fit_rules
+from ddsgen.sensor.effects import REGISTRY
+from ddsgen.sensor.postprocess import PostProcessCNN
 
 DEFAULT_PARAMS = ("emitted_intensity", "read_noise_std", "beta", "baseline")
 #: Fittable sensor parameters by CLI name: the DepthSensor tensor, bounds, prior and group (:class:`SensorParam`), in
@@ -52,8 +54,6 @@ def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
         elif name.startswith("effect:"):
             effect_name, _, key = name[len("effect:"):].partition(".")
             if effect_name not in effects:
-                from ddsgen.sensor.effects import REGISTRY
-
                 fix = (f"; to fit it, list it under the preset's effects: (- name: {effect_name}), or let "
                        f"ddsgen diagnose --candidates {effect_name} --apply add it" if effect_name in REGISTRY else
                        f"; the library has no such effect either (known: {', '.join(sorted(REGISTRY))})")  # fmt: skip
@@ -68,8 +68,6 @@ def resolve_params(sensor, names) -> dict[str, list[torch.nn.Parameter]]:
                     out[f"effect:{effect_name}.{k}"] = [p]
         elif name == "cnn":
             if sensor.postprocess is None:
-                from ddsgen.sensor.postprocess import PostProcessCNN
-
                 sensor.postprocess = PostProcessCNN().to(sensor.device_)
             out["cnn"] = list(sensor.postprocess.parameters())
         else:

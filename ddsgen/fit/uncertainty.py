@@ -29,9 +29,15 @@ import math
 import torch
 
 from ddsgen.fit.device_keys import integer_key, is_device_key, set_key, stored
-from ddsgen.realscan.losses import LossWeights, frame_loss, local_window, snr_search_weights
-from ddsgen.realscan.simulate import simulate
+from ddsgen.fit.parameters import physical_values
 from ddsgen.fit.tiles import crop_frame
+from ddsgen.realscan.losses import (
+    LossWeights,
+    frame_loss,
+    local_window,
+    snr_search_weights,
+)
+from ddsgen.realscan.simulate import simulate
 
 #: Tile side in loss windows (15 px at 640 x 480 -> 90 px tiles).
 TILE_WINDOWS = 6
@@ -203,8 +209,6 @@ def _device_key_entry(sensor, frames, tiles, name, spec, result, seed, weights, 
 
 
 def _physical(sensor, name: str, table: dict) -> float:
-    from ddsgen.fit.parameters import physical_values
-
     values = physical_values(sensor)
     return float(values[table[name].key] if name in table else values[name])
 

@@ -27,6 +27,8 @@ import dataclasses
 import numpy as np
 import torch
 
+from ddsgen.realscan.simulate import frame_camera
+
 #: Hold-out pattern: the checkerboard's phase of a view comes from rng([seed, HOLDOUT_STREAM, view]).
 HOLDOUT_STREAM = 16065
 
@@ -103,8 +105,6 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
     Returns:
         per view, per part: a :class:`PartDecision` (None for a part that does not move).
     """
-    from ddsgen.realscan.simulate import frame_camera
-
     units = _units(views)
     refined = {id(p): p.detach().clone() for u in units for p, _ in u.rows}
     for u in units:
@@ -157,8 +157,6 @@ def _set(rows, refined) -> None:
 
 def _view_cost(sensor, v, occluder_m, absence_cap_m):
     """:func:`_cost` of a view in its own camera."""
-    from ddsgen.realscan.simulate import frame_camera
-
     with frame_camera(sensor, v.scene.intrinsics):
         return _cost(v, sensor, occluder_m, absence_cap_m)
 

@@ -28,10 +28,11 @@ import numpy as np
 import torch
 
 from ddsgen.realscan.losses import resolved_depth_m
+from ddsgen.realscan.simulate import frame_camera
 from ddsgen.scene_gradients.acceptance import accept_parts, heldout_blocks, owner_image
-from ddsgen.scene_gradients.identifiability import object_identifiability
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
+from ddsgen.scene_gradients.identifiability import object_identifiability
 from ddsgen.scene_gradients.scene import RefinableScene
 
 #: Simulated-noise stream of refinement: step k draws rng([seed, REFINE_STREAM, k]); the evaluations rng([seed, REFINE_STREAM]).
@@ -342,8 +343,6 @@ class _View:
 
 def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
     from tqdm import tqdm
-
-    from ddsgen.realscan.simulate import frame_camera
 
     views = [_View(i, scene, real, s) for i, scene, real in zip(range(len(scenes)), scenes, reals)]
     all_poses = [v.scene.poses for v in views]

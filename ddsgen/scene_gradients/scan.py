@@ -6,9 +6,14 @@ import dataclasses
 
 import numpy as np
 
+from ddsgen.errors import InputError
 from ddsgen.preset import SensorPreset
+from ddsgen.realscan.simulate import frame_scene, prepare_frame
+from ddsgen.scene_gradients.poses import pose_difference
 from ddsgen.scene_gradients.refine import RefineResult, RefineSettings, refine_poses
 from ddsgen.scene_gradients.scene import RefinableScene
+from ddsgen.scene_gradients.static_scene import refine_static_scene
+from ddsgen.sensor.depth_sensor import DepthSensor
 
 
 @dataclasses.dataclass
@@ -75,8 +80,6 @@ class FrameRefinement:
 def object_changes(object_ids, initial, refined) -> list[dict]:
     """Per object: {id, rotation_deg, translation_mm}, the change from its ``initial`` to its ``refined`` (4, 4)
     pose (both in object order; extra rows, e.g. a support plane's, are ignored)."""
-    from ddsgen.scene_gradients.poses import pose_difference
-
     out = []
     for k, obj_id in enumerate(object_ids):
         deg, mm = pose_difference(initial[k], refined[k])
@@ -112,8 +115,6 @@ def refine_scan_frame(preset: SensorPreset, frame, index: int = 0, settings: Ref
         sensor: a :class:`~ddsgen.sensor.depth_sensor.DepthSensor` to use (e.g. one being fitted; its
             camera is set to the window's for the call); default: a new one from ``preset``.
     """
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     s = settings or RefineSettings()
     sensor = sensor if sensor is not None else DepthSensor(preset)  # refine_poses gives it the window's camera
     view = _ScanView(preset, frame, index, s, support_plane, crop_margin_px, float(sensor.baseline.detach()))
@@ -138,11 +139,6 @@ def refine_static_scan(preset: SensorPreset, frames: list, settings: RefineSetti
         (one :class:`FrameRefinement` per simulated frame, {frame name: {object id: (4, 4) refined
         ``cam_T_obj``}} for every frame of the scene).
     """
-    from ddsgen.errors import InputError
-    from ddsgen.realscan.simulate import frame_scene
-    from ddsgen.scene_gradients.static_scene import refine_static_scene
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
     classes = [o.class_name for o in frames[0].objects]
     for frame in frames[1:]:
         if [o.class_name for o in frame.objects] != classes:
@@ -199,13 +195,9 @@ class _ScanView:
     """One scan frame made ready to refine: its window, scene at the annotated poses, real depth."""
 
     def __init__(self, preset, frame, index, s, support_plane, crop_margin_px, baseline_m):
-        from ddsgen.realscan.simulate import frame_scene, prepare_frame
-
         prepared = prepare_frame(preset, frame, index, support_plane=support_plane, crop=True,
                                  crop_margin_px=crop_margin_px, seed=s.seed)  # fmt: skip
         if not bool((prepared.instance > 0).any()):
-            from ddsgen.errors import InputError
-
             raise InputError(f"{frame.source_depth_path}: frame {frame.name}: no annotated object is in view at its "
                              "pose (nothing to refine; check the poses, mesh units and intrinsics)")  # fmt: skip
         self.frame, self.crop, self.plane_fitted = frame, tuple(int(v) for v in prepared.crop), prepared.plane is not None

@@ -7,8 +7,10 @@ import dataclasses
 import numpy as np
 
 from ddsgen.preset import Intrinsics
+from ddsgen.raycast import cast, ray_directions
 from ddsgen.scene_gradients.hits import SceneTensors, scene_tensors
 from ddsgen.scene_gradients.poses import ScenePoses
+from ddsgen.sensor.ir_margin import margin_intrinsics
 
 
 class RefinableScene:
@@ -53,10 +55,6 @@ class RefinableScene:
 
     def cast(self) -> SceneTensors:
         """Ray-cast the scene at the current poses (visibility, triangle ids, projector shadows)."""
-        from ddsgen.raycast import cast, ray_directions
-
-        from ddsgen.sensor.ir_margin import margin_intrinsics
-
         scene, meshes = self.current_scene(), [p.mesh for p in self.parts]
         hits = cast(scene, self.intrinsics, self.baseline_m, self.shadow_bias_m)
         tensors = scene_tensors(meshes, hits, ray_directions(self.intrinsics))

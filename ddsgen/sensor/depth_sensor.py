@@ -28,8 +28,12 @@ from ddsgen.sensor.ir import IRNoise, render_ir
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
+from ddsgen.sensor.postprocess import load_postprocess
 from ddsgen.sensor.registration import (
-    dense_splat_index, forward_registration_index, gather_flat, register_images,
+    dense_splat_index,
+    forward_registration_index,
+    gather_flat,
+    register_images,
 )
 from ddsgen.sensor.row_smoothing import smooth_along_rows
 from ddsgen.sensor.speckle import scene_speckle
@@ -139,8 +143,6 @@ class DepthSensor(nn.Module):
         # (depth, valid, valid_soft, geometry) -> (depth, valid, valid_soft).
         self.postprocess: nn.Module | None = None
         if preset.postprocess:
-            from ddsgen.sensor.postprocess import load_postprocess
-
             self.postprocess = load_postprocess(preset.resolve_path(preset.postprocess))
         # Reference padding: the largest disparity the matcher may search, plus the window.
         self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px

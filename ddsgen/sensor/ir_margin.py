@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 
 from ddsgen.preset import Intrinsics
+from ddsgen.raycast import cast
 
 
 def margin_intrinsics(intrinsics: Intrinsics, margin_px: int) -> Intrinsics:
@@ -34,8 +35,6 @@ def cast_margin(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: float
     (H, ``margin_px``)), or None when ``margin_px`` is 0."""
     if margin_px <= 0:
         return None
-    from ddsgen.raycast import cast
-
     return cast(scene, margin_intrinsics(intrinsics, margin_px), baseline_m, shadow_bias_m)
 
 
@@ -46,7 +45,5 @@ def cast_widened(scene, intrinsics: Intrinsics, margin_px: int, baseline_m: floa
     its ``coverage`` counts the widened image. For a view whose coverage nobody reads (a registered device's IR
     camera): :meth:`ddsgen.sensor.geometry.SensorGeometry.from_hits` with ``width=W`` takes it apart without a
     copy. With ``margin_px`` 0: the plain cast."""
-    from ddsgen.raycast import cast
-
     return cast(scene, dataclasses.replace(intrinsics, width=int(intrinsics.width) + max(int(margin_px), 0)),
                 baseline_m, shadow_bias_m)  # fmt: skip

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ddsgen.sensor.registration import ir_frame_validity, is_registered
+
 #: Preset keys of the window, in the order of :class:`OutputWindow`'s fields.
 WINDOW_KEYS = ("output_left_border_px", "output_right_border_px", "output_top_border_px", "output_bottom_border_px")
 
@@ -117,8 +119,6 @@ def measure_device_window(depth_frames, preset, max_valid_share: float = 0.01) -
     band's last column (left) and row (top) with its neighbour's depth: those sides are one pixel wider than
     the maps show.
     """
-    from ddsgen.sensor.registration import ir_frame_validity, is_registered
-
     depths = [np.asarray(d) for d in depth_frames]
     if not is_registered(preset):
         return measure_output_window([d > 0 for d in depths], max_valid_share)

@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from ddsgen.atomic import atomic_write_bytes
 from ddsgen.errors import InputError
 
 DEPTH_UNIT_M = 0.01
@@ -66,8 +67,6 @@ def parameter_count(module: nn.Module) -> int:
 def save_postprocess(module: PostProcessCNN, path: str | Path) -> None:
     """Write the weights (atomic)."""
     import io
-
-    from ddsgen.atomic import atomic_write_bytes
 
     buffer = io.BytesIO()
     torch.save({"format": "ddsgen-postprocess-v1", "state_dict": module.state_dict()}, buffer)

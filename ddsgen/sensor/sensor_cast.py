@@ -8,7 +8,15 @@ Every command that simulates scenes goes through here (render, the noise study a
 from __future__ import annotations
 
 from ddsgen.preset import Intrinsics
+from ddsgen.raycast import cast
+from ddsgen.sensor.geometry import SensorGeometry
 from ddsgen.sensor.ir_margin import cast_margin, cast_widened
+from ddsgen.sensor.registration import (
+    ir_view,
+    is_registered,
+    output_projector_x_m,
+    registration_index,
+)
 
 
 def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool = True):
@@ -18,9 +26,6 @@ def cast_for_sensor(scene, intrinsics: Intrinsics, preset, output_shadows: bool 
     ``output_shadows=False``: a registered device's output view skips its shadow rays (``hits.shadow`` is None;
     the sensor runs on the IR camera's view, which has its own): 25-30 ms of a 640x480 frame. An unregistered
     device's output view is the sensor's, so it always has them."""
-    from ddsgen.raycast import cast
-    from ddsgen.sensor.registration import is_registered, output_projector_x_m
-
     shadows = output_shadows or not is_registered(preset)
     hits = cast(scene, intrinsics, output_projector_x_m(preset), preset.shadow_bias_m, shadows=shadows)
     return hits, sensor_geometry(scene, intrinsics, preset, hits)
@@ -30,9 +35,6 @@ def sensor_geometry(scene, intrinsics: Intrinsics, preset, hits):
     """The :class:`~ddsgen.sensor.geometry.SensorGeometry` of ``scene`` given its output image's ``hits``:
     the IR image with the preset's margin strip; for a device registered to an RGB camera
     (:mod:`ddsgen.sensor.registration`) the IR camera's own view and the map back to the output image."""
-    from ddsgen.sensor.geometry import SensorGeometry
-    from ddsgen.sensor.registration import ir_view, is_registered, registration_index
-
     if not is_registered(preset):
         margin = cast_margin(scene, intrinsics, preset.ir_margin_right_px, preset.baseline_m, preset.shadow_bias_m)
         return SensorGeometry.from_hits(hits, ir_margin=margin)

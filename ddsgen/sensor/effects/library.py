@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import torch
 
-from ddsgen.sensor.effects import register
 from ddsgen.effect_params import EFFECTS
+from ddsgen.sensor.effects import REGISTRY, register
 from ddsgen.sensor.effects.base import Effect
 from ddsgen.sensor.effects.features import (
     cached,
@@ -181,8 +181,6 @@ class LowSignalDropout(Effect):
 
 def describe_library() -> list[dict]:
     """The library as plain data (name, stage, description, signature, axis, params) for reports and --help."""
-    from ddsgen.sensor.effects import REGISTRY
-
     out = []
     for name, cls in sorted(REGISTRY.items()):
         out.append(

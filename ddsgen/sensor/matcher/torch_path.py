@@ -11,6 +11,7 @@ import os
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from ddsgen.cache import configure_torch_compile_cache
 from ddsgen.sensor.matcher.reference import RefineGeometry, _Reference
 from ddsgen.sensor.matcher.windows import _EXCLUDED_INT, _EXCLUDED_SCORE
 
@@ -118,8 +119,6 @@ def _compiled(fn, compile_mode: bool):
     if not compile_mode or _COMPILE_FAILED:
         return fn
     if fn not in _COMPILED:
-        from ddsgen.cache import configure_torch_compile_cache
-
         configure_torch_compile_cache()
         _COMPILED[fn] = torch.compile(fn, dynamic=False)
     return _COMPILED[fn]
