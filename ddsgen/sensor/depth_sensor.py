@@ -123,14 +123,23 @@ class DepthSensor(nn.Module):
     dots' sub-pixel positions. A real scan was taken by a unit whose patterns the model cannot know, so the
     noise floor of a comparison is measured against another unit (:func:`ddsgen.realscan.simulate.simulate_twin`).
     Renders use unit 0.
+
+    ``matcher`` is the block matcher, :func:`ddsgen.sensor.matcher.match` or a callable with its signature.
+    ``stage_cache`` (None by default: every stage is computed) is an object sensors may share to have stage results
+    served while their inputs do not change (:class:`ddsgen.diagnose.stage_cache.StageCache`): the sensor asks its
+    ``noise(sensor, seed, geometry, draw)``, ``front_end(sensor, geometry, noise, quantise, compute)`` and
+    ``match(matcher, *args, **kwargs)`` for those values, passing the function that computes each, and calls its
+    ``count(stage)`` for each "front_end" and "validity_stage" it computes.
     """
 
-    def __init__(self, preset: SensorPreset, intrinsics: Intrinsics | None = None, device="cpu"):
+    def __init__(self, preset: SensorPreset, intrinsics: Intrinsics | None = None, device="cpu", stage_cache=None):
         super().__init__()
         self.preset = preset
         self.intr = intrinsics or preset.intrinsics
         self.device_ = torch.device(device)
         self.unit = 0
+        self.matcher = match
+        self.stage_cache = stage_cache
         self.log_emitted_intensity = _log_param(preset.emitted_intensity)
         self.log_speckle_scale = _log_param(preset.speckle_scale)
         self.log_read_noise_std = _log_param(max(preset.read_noise_std_counts, 1e-6))
@@ -229,6 +238,11 @@ class DepthSensor(nn.Module):
         and the sensor's ``unit`` (the same static scene gets the same speckle whatever the frame
         seed; another unit sees another speckle); the read noise always comes from ``seed``.
         """
+        if self.stage_cache is not None:
+            return self.stage_cache.noise(self, seed, geometry, self._draw_noise)
+        return self._draw_noise(seed, geometry)
+
+    def _draw_noise(self, seed, geometry: SensorGeometry | None) -> IRNoise:
         p = self.preset
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
@@ -263,7 +277,14 @@ class DepthSensor(nn.Module):
         """Everything before the validity stage: IR image, ir effects, block matching, disparity and depth
         effects, and the matcher's keep-probability. Depends on the geometry, the noise and every parameter
         except those of validity-stage effects and the post-processing (see
-        :func:`ddsgen.diagnose.match_cache.front_end_state`)."""
+        :func:`ddsgen.diagnose.stage_cache.front_end_state`)."""
+        if self.stage_cache is not None:
+            return self.stage_cache.front_end(self, geometry, noise, quantise, self._front_end)
+        return self._front_end(geometry, noise, quantise)
+
+    def _front_end(self, geometry: SensorGeometry, noise: IRNoise, quantise: bool) -> "FrontEnd":
+        if self.stage_cache is not None:
+            self.stage_cache.count("front_end")
         p, intr = self.preset, self.intr
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
@@ -298,11 +319,13 @@ class DepthSensor(nn.Module):
         # smoothing values already on the 2^-n px quantum and rounding again moves a pixel only when w times its
         # neighbours' offset reaches half a step (a step function of w, with ties at w = 1/4).
         smooths = p.row_smoothing_weight > 0
-        result = match(
-            ir, self.reference_phases(ir_width), self.pad, d_min, d_max, p.block_size_px, self.beta,
-            p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise and not smooths,
-            confirmed_match_zncc=p.confirmed_match_zncc,
-        )  # fmt: skip
+        args = (ir, self.reference_phases(ir_width), self.pad, d_min, d_max, p.block_size_px, self.beta,
+                p.subpixel_level, p.band_rows, p.min_confidence)  # fmt: skip
+        settings = {"quantize": quantise and not smooths, "confirmed_match_zncc": p.confirmed_match_zncc}
+        if self.stage_cache is not None:
+            result = self.stage_cache.match(self.matcher, *args, **settings)
+        else:
+            result = self.matcher(*args, **settings)
         if ir_width != width:  # back to the depth image's grid
             result = result.columns(width)
             ir, signal = ir[:, :width], signal[:, :width]
@@ -331,6 +354,8 @@ class DepthSensor(nn.Module):
 
     def validity_stage(self, front: "FrontEnd", geometry: SensorGeometry) -> SensorOutput:
         """Validity effects, range, the device's clean-up, output window and post-processing -> SensorOutput."""
+        if self.stage_cache is not None:
+            self.stage_cache.count("validity_stage")
         p, intr = self.preset, self.intr
         ctx, raw_depth, disparity = front.ctx, front.raw_depth, front.disparity
         keep = front.keep
