@@ -795,9 +795,10 @@ def test_a_validity_candidate_is_judged_on_the_current_models_planes_and_front_e
 def test_a_diagnosis_patches_no_class_or_module_global_its_stage_cache_travels_with_its_sensors(tmp_path):
     """The diagnosis' caches are an object its sensors hold, not a patch: ``DepthSensor``'s class attributes and
     ``ddsgen.sensor.depth_sensor``'s globals are the same objects before, at every line the diagnosis reports (the
-    candidate search among them, while the cache serves) and after; and the cache did serve (a validity candidate
+    candidate search among them, while the cache serves) and after, as are the stages module's; and the cache did serve (a validity candidate
     runs the validity stage on front ends it did not compute)."""
     import ddsgen.sensor.depth_sensor as depth_sensor
+    import ddsgen.sensor.stages as stages
     from ddsgen.diagnose.stage_cache import StageCache
     from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
@@ -811,7 +812,7 @@ def test_a_diagnosis_patches_no_class_or_module_global_its_stage_cache_travels_w
     frames = prepare_frames(base, read_scan_folder(tmp_path / "scans"), progress=False)
 
     def snapshot() -> dict:
-        return {"class": dict(vars(DepthSensor)), "module": dict(vars(depth_sensor))}
+        return {"class": dict(vars(DepthSensor)), "module": dict(vars(depth_sensor)), "stages": dict(vars(stages))}
 
     before = snapshot()
     changed: list[str] = []
