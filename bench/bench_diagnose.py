@@ -70,7 +70,7 @@ def main() -> int:
         torch.set_num_threads(args.threads)
         frames = prepare_frames(stock, read_scan_folder(Path(tmp) / "scans"), progress=False)
 
-    from ddsgen.diagnose.match_cache import counting_computed_stages
+    from ddsgen.diagnose.stage_cache import StageCache
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     sensor = DepthSensor(stock)
@@ -95,8 +95,9 @@ def main() -> int:
     def timed(line: str) -> None:  # each stage line with the wall time it was reached at: where the time goes
         log.append(f"{time.perf_counter() - wall:6.1f} s  {line}")
 
-    with counting_computed_stages() as counts:  # outside diagnose's caches: what they serve is not counted
-        result = diagnose(stock, frames, config, echo=timed)
+    cache = StageCache()  # counts the stages computed (what it serves is not counted)
+    result = diagnose(stock, frames, config, echo=timed, stage_cache=cache)
+    counts = cache.computed
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print("\n".join("# " + line for line in log), flush=True)
     bench("diagnose_640x480_8frames_s", wall, "s")

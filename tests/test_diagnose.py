@@ -461,7 +461,7 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path):
     screening, the candidates that explain nothing are judged at their one-frame values, and fewer simulations run
     (validity stages actually computed, i.e. not served by the caches; front ends at most 5 % more)."""
     from ddsgen.diagnose.loop import SCREEN_FRACTION
-    from ddsgen.diagnose.match_cache import counting_computed_stages
+    from ddsgen.diagnose.stage_cache import StageCache
     from ddsgen.realscan.simulate import prepare_frames
     from ddsgen.io.scanfolder import read_scan_folder
     from ddsgen.runner import render_dataset
@@ -480,10 +480,12 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path):
     runs = {}
     for screen in (0, 1):
         log: list[str] = []
-        # Every simulation runs a validity stage (its front end computed or served from the cache); counted
-        # outside diagnose's caches, so only computed stages count.
-        with counting_computed_stages() as calls:
-            result = diagnose(base, frames, dataclasses.replace(config, screen_frames=screen), echo=log.append)
+        # Every simulation runs a validity stage (its front end computed or served from the cache); the cache
+        # counts only the stages its sensors computed.
+        cache = StageCache()
+        result = diagnose(base, frames, dataclasses.replace(config, screen_frames=screen), echo=log.append,
+                          stage_cache=cache)  # fmt: skip
+        calls = cache.computed
         runs[screen] = (result, calls["validity_stage"], calls["front_end"], "\n".join(log))
     (plain, plain_sims, plain_fronts, plain_log), (screened, sims, fronts, log) = runs[0], runs[1]
     text = f"without screening:\n{plain_log}\nwith screening:\n{log}"
@@ -758,17 +760,19 @@ def test_a_validity_candidate_is_judged_on_the_current_models_planes_and_front_e
     from ddsgen.diagnose.candidates import with_effect
     from ddsgen.diagnose.evaluation import evaluate
     from ddsgen.diagnose.loop import HELD_REPLANE_STEPS, held_frames_for
-    from ddsgen.diagnose.match_cache import counting_computed_stages, reuse_front_ends, reuse_matches
     from ddsgen.diagnose.plane import replaned
+    from ddsgen.diagnose.stage_cache import StageCache
     from ddsgen.sensor.depth_sensor import DepthSensor
 
     held = [_plane_frame()]
-    sensor = DepthSensor(small_preset(160, 120))
+    cache = StageCache()
+    sensor = DepthSensor(small_preset(160, 120), stage_cache=cache)
     sensor.requires_grad_(False)
     with torch.no_grad():  # fitted values: their exp-log round trip through a preset is not exact
         sensor.log_read_noise_std.add_(-0.2)
         sensor.log_emitted_intensity.add_(0.123456)
-    with counting_computed_stages() as counts, reuse_matches(), reuse_front_ends():
+    counts = cache.computed
+    with cache.serving():
         held_now = replaned(sensor, held, 1, HELD_REPLANE_STEPS)
         current = evaluate(sensor, held_now, 1)
         before = dict(counts)
@@ -786,3 +790,45 @@ def test_a_validity_candidate_is_judged_on_the_current_models_planes_and_front_e
     shift = moved[0].plane.offset - held_now[0].plane.offset
     print(f"plane moved by {shift:.4f} m")
     assert 0.05 < shift < 0.15
+
+
+def test_a_diagnosis_patches_no_class_or_module_global_its_stage_cache_travels_with_its_sensors(tmp_path):
+    """The diagnosis' caches are an object its sensors hold, not a patch: ``DepthSensor``'s class attributes and
+    ``ddsgen.sensor.depth_sensor``'s globals are the same objects before, at every line the diagnosis reports (the
+    candidate search among them, while the cache serves) and after, as are the stages module's; and the cache did serve (a validity candidate
+    runs the validity stage on front ends it did not compute)."""
+    import ddsgen.sensor.depth_sensor as depth_sensor
+    import ddsgen.sensor.stages as stages
+    from ddsgen.diagnose.stage_cache import StageCache
+    from ddsgen.realscan.simulate import prepare_frames
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.runner import render_dataset
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    base = small_preset(160, 120)
+    save_preset(base.replace(effects=[CASES["grazing_dropout"]]), tmp_path / "truth.yaml")
+    render_dataset(str(tmp_path / "truth.yaml"), str(SCENES), 3, str(tmp_path / "scans"), workers=1, seed=5,
+                   progress=False)  # fmt: skip
+    frames = prepare_frames(base, read_scan_folder(tmp_path / "scans"), progress=False)
+
+    def snapshot() -> dict:
+        return {"class": dict(vars(DepthSensor)), "module": dict(vars(depth_sensor)), "stages": dict(vars(stages))}
+
+    before = snapshot()
+    changed: list[str] = []
+
+    def echo(line: str) -> None:
+        now = snapshot()
+        for part in before:
+            if now[part].keys() != before[part].keys() or any(now[part][k] is not v for k, v in before[part].items()):
+                changed.append(f"{part} changed at: {line}")
+
+    cache = StageCache()
+    config = DiagnoseConfig(base_steps=0, refit_steps=0, grid_frames=1, refine_rounds=1, max_steps=1,
+                            axis_terms=False, screen_frames=0, candidates=("grazing_dropout", "disparity_offset"))
+    diagnose(base, frames, config, echo=echo, stage_cache=cache)
+    echo("after the diagnosis")
+    assert not changed, changed
+    assert not cache.serve  # serving ends with the loop
+    assert cache.front_ends.entries and cache.matches.entries
+    assert cache.computed["validity_stage"] > cache.computed["front_end"] > 0

@@ -7,6 +7,8 @@ without it, so the change it makes is exact, not statistical.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 
 import numpy as np
@@ -43,6 +45,8 @@ from ddsgen.sensor.effects.distortion import (
     sample_field,
 )
 from ddsgen.sensor.effects.features import edge_distance, normalised_coordinates, pixel_axis
+from ddsgen.sensor.matcher import match
+from ddsgen.sensor.stages import BlockMatcher
 
 #: A Herrera-like pattern (px at zero disparity): strong at the corners and edges, slightly negative in the middle.
 BOWL = [0.5, 0.2, 0.0, 0.2, 0.5,
@@ -384,28 +388,34 @@ def test_gradients_reach_every_new_parameter_through_the_full_sensor():
 # Recovery by ``fit`` (effect:NAME parameters)
 
 
-@pytest.fixture
-def matcher_once(monkeypatch):
-    """Block matching memoised per IR image: the fitted parameters all act after the matcher, so its
-    result for a frame is the same at every step (the fit itself runs unchanged)."""
-    import hashlib
+class MatchOnce:
+    """A block-matching function memoised per IR image (``len``: the images matched): the fitted parameters all act
+    after the matcher, so its result for a frame is the same at every step (the fit itself runs unchanged)."""
 
-    import ddsgen.sensor.depth_sensor as depth_sensor
+    def __init__(self):
+        self.results = {}
 
-    original = depth_sensor.match
-    cache = {}
+    def __len__(self) -> int:
+        return len(self.results)
 
-    def match(observed, *args, **kwargs):
+    def __call__(self, observed, *args, **kwargs):
         assert not observed.requires_grad
         key = (hashlib.blake2b(observed.contiguous().numpy().tobytes(), digest_size=16).hexdigest(), tuple(observed.shape),
                tuple(float(a) if isinstance(a, (int, float)) or torch.is_tensor(a) and a.numel() == 1 else id(a) for a in args))  # fmt: skip
-        if key not in cache:
-            cache[key] = original(observed, *args, **kwargs)
-        return cache[key]
+        if key not in self.results:
+            self.results[key] = match(observed, *args, **kwargs)
+        return self.results[key]
 
-    monkeypatch.setattr(depth_sensor, "match", match)
+    def sensor(self, preset) -> DepthSensor:
+        """A sensor of ``preset`` whose matcher stage uses this function."""
+        return DepthSensor(preset, stages={"matcher": dataclasses.replace(BlockMatcher.from_preset(preset),
+                                                                           function=self)})  # fmt: skip
+
+
+@pytest.fixture
+def matcher_once():
     with torch_threads(1):  # many small steps: one thread is faster on a shared machine
-        yield cache
+        yield MatchOnce()
 
 
 def frames_with(truth, geometries, seed: int = 7) -> list[FrameData]:
@@ -451,7 +461,7 @@ def test_fit_recovers_a_disparity_distortion_field(matcher_once):
     truth = preset.replace(effects=[{"name": "disparity_distortion", "grid": BOWL, "alpha1": 0.05}])
     start = preset.replace(effects=[{"name": "disparity_distortion"}])  # neutral start
     frames = frames_with(truth, walls(preset.intrinsics))
-    sensor = DepthSensor(start)
+    sensor = matcher_once.sensor(start)
     matched_before = len(matcher_once)
     result = fit_sensor(sensor, frames, ["effect:disparity_distortion"], steps=40, lr=3e-3, progress=False,
                         search=False)  # fmt: skip
@@ -476,7 +486,7 @@ def test_fit_recovers_an_axis_disparity_term_along_columns(matcher_once):
     truth = preset.replace(effects=[{"name": "axis_disparity_term", "axis": "column", "coefficients": true_c}])
     start = preset.replace(effects=[{"name": "axis_disparity_term", "axis": "column"}])
     frames = frames_with(truth, walls(preset.intrinsics))
-    sensor = DepthSensor(start)
+    sensor = matcher_once.sensor(start)
     fit_sensor(sensor, frames, ["effect:axis_disparity_term"], steps=30, lr=3e-3, progress=False, search=False)
     effect = sensor.effects[0]
     values, fitted = axis_shape(effect, 25)
@@ -504,7 +514,7 @@ def test_fit_recovers_an_axis_validity_term_along_columns(matcher_once):
     truth = preset.replace(effects=[{"name": "axis_validity_term", "axis": "column", "coefficients": true_c}])
     start = preset.replace(effects=[{"name": "axis_validity_term", "axis": "column"}])
     frames = frames_with(truth, walls(preset.intrinsics))
-    sensor = DepthSensor(start)
+    sensor = matcher_once.sensor(start)
     fit_sensor(sensor, frames, ["effect:axis_validity_term"], steps=30, progress=False, search=False)
     true_sensor = DepthSensor(truth)
     disagree, dropped = [], []

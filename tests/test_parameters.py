@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from ddsgen.diagnose.device_candidates import BEHAVIOURS
-from ddsgen.diagnose.match_cache import PARAMETER_KEYS, VALIDITY_STAGE_KEYS
+from ddsgen.diagnose.stage_cache import PARAMETER_KEYS, VALIDITY_STAGE_KEYS
 from ddsgen.fit.parameters import SENSOR_PARAMS
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.parameters import PARAMETERS, REQUIRED, STAGES, stage_keys

@@ -1,5 +1,6 @@
 """The differentiable sensor end to end: depth of planes, noise growth, IR physics, gradients."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,6 +11,8 @@ import torch
 from ddsgen.preset import load_preset
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.geometry import SensorGeometry
+from ddsgen.sensor.matcher import match
+from ddsgen.sensor.stages import BlockMatcher
 from sensor_scenes import plane_geometry, small_kinect
 
 
@@ -354,22 +357,21 @@ def test_depth_edges_keep_their_depth_and_only_the_projector_shadow_is_lost(boar
     assert off_both.mean() < 0.02, (off_both.mean(), disparity[off_both])
 
 
-def test_edge_windows_whose_best_peak_is_neither_surface_keep_the_confirmed_second(monkeypatch):
+def test_edge_windows_whose_best_peak_is_neither_surface_keep_the_confirmed_second():
     """Board 1.0 m before a wall at 1.6 m: some windows across its edges score best at a disparity of
     neither surface (another alignment of the dot pattern beats both half-window peaks) and have one
     of the surfaces as their second peak. Where a unique neighbour on that surface confirms the second
     peak, the pixel is kept with that surface's depth, as the best peak is kept elsewhere."""
-    import ddsgen.sensor.depth_sensor as depth_sensor
-
     results = []
-    original = depth_sensor.match
-    monkeypatch.setattr(depth_sensor, "match", lambda *a, **k: results.append(original(*a, **k)) or results[-1])
     device = small_kinect(320, 240)
+    # A matcher stage whose matching function keeps each result: handed to both sensors, each with its own settings.
+    recording = dataclasses.replace(BlockMatcher.from_preset(device),
+                                    function=lambda *a, **k: results.append(match(*a, **k)) or results[-1])
     geometry, _, _ = _board_before_wall(device.intrinsics, device.baseline_m)
     fb = device.focal_px * device.baseline_m
     with torch.no_grad():
-        DepthSensor(device.replace(confirmed_match_zncc=1.0))(geometry, seed=3)  # uniqueness only
-        output = DepthSensor(device)(geometry, seed=3)
+        DepthSensor(device.replace(confirmed_match_zncc=1.0), stages={"matcher": recording})(geometry, seed=3)
+        output = DepthSensor(device, stages={"matcher": recording})(geometry, seed=3)  # the rule at 0.35
     alone, rule = results
     surfaces = torch.tensor([fb / 1.0, fb / 1.6])
 

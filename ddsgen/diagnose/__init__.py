@@ -10,7 +10,7 @@ Modules, in the order the loop uses them:
 * :mod:`~ddsgen.diagnose.residuals` -- residual binned along physical axes, structure beyond noise;
 * :mod:`~ddsgen.diagnose.candidates` -- each library effect added and its parameters searched;
 * :mod:`~ddsgen.diagnose.acceptance` -- the credited fall and the rule that accepts a candidate;
-* :mod:`~ddsgen.diagnose.match_cache` -- the matcher's results reused while its input is unchanged;
+* :mod:`~ddsgen.diagnose.stage_cache` -- the sensors' matches and front ends reused while their inputs are unchanged;
 * :mod:`~ddsgen.diagnose.results` -- steps, candidates, ``diagnosis.json``;
 * :mod:`~ddsgen.diagnose.sentences` -- the sentences that name an accepted effect, and the log's summaries;
 * :mod:`~ddsgen.diagnose.maps` -- full-resolution residual maps of held-out frames, for the report;

@@ -72,9 +72,11 @@ def device_candidates(preset) -> list[str]:
 
 
 def sensor_like(sensor, preset):
-    """A new DepthSensor of ``preset`` with ``sensor``'s camera and device, its parameters frozen (candidates are
-    searched, not trained)."""
-    new = DepthSensor(preset, intrinsics=sensor.intr, device=sensor.device_)
+    """A new DepthSensor of ``preset`` with ``sensor``'s camera, device, stages (given ``preset``'s settings) and
+    stage cache (the candidate shares its model's cached stages), its parameters frozen (candidates are searched,
+    not trained)."""
+    new = DepthSensor(preset, intrinsics=sensor.intr, device=sensor.device_, stage_cache=sensor.stage_cache,
+                      stages=sensor.stages())  # fmt: skip
     # The tensors ``sensor`` shares with it are copied, not rebuilt from the preset: exp then log moves a fitted
     # value by an ulp, and the candidate would no longer be the current model plus one thing (nor share its
     # cached front ends). The focal scale stays 1: the preset's focal length already carries it.

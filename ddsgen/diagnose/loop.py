@@ -65,10 +65,10 @@ Two things make the comparison fair to every candidate:
   offset, a depth scale error); a model with that effect would apply it twice.
 
 Speed: effects that act after block matching (disparity, depth and validity stages) do not
-change the matcher's input, so :func:`~ddsgen.diagnose.match_cache.reuse_matches` serves the
-matcher's result from a cache keyed by the IR image; validity effects do not move the plane
-either, so their whole search reuses the sensor's front end (IR image, matching, depth:
-:func:`~ddsgen.diagnose.match_cache.reuse_front_ends`) and uses every fit frame, and they are judged on the
+change the matcher's input, so the diagnosis' :class:`~ddsgen.diagnose.stage_cache.StageCache` (held by every
+sensor it makes) serves the matcher's result from a cache keyed by the IR image; validity effects do not move the
+plane either, so their whole search reuses the sensor's front end (IR image, matching, depth) and uses every fit
+frame, and they are judged on the
 held-out planes re-estimated under the current model (:data:`HELD_REPLANE_STEPS`); depth effects
 are searched on at most :attr:`DiagnoseConfig.grid_frames` fit frames. **Screening** (:data:`SCREEN_FRACTION`):
 each candidate is first searched on one fit frame and judged on the held-out frames at those values; only a
@@ -103,7 +103,7 @@ from ddsgen.diagnose.device_candidates import device_candidates, is_device
 from ddsgen.diagnose.evaluation import Evaluation, evaluate
 from ddsgen.diagnose.local_patches import local_reading
 from ddsgen.diagnose.maps import MAP_FRAMES, residual_maps
-from ddsgen.diagnose.match_cache import reuse_front_ends, reuse_matches
+from ddsgen.diagnose.stage_cache import StageCache
 from ddsgen.diagnose.plane import replaned
 from ddsgen.diagnose.residuals import analyse, pixel_residuals
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
@@ -197,7 +197,8 @@ def default_candidates() -> list[str]:
 
 
 def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callable[[str], None] = print,
-             progress: bool = False, analysis_stride: int = 1) -> Diagnosis:  # fmt: skip
+             progress: bool = False, analysis_stride: int = 1,
+             stage_cache: StageCache | None = None) -> Diagnosis:  # fmt: skip
     """Run the diagnosis loop (see the module docstring) on prepared frames.
 
     Args:
@@ -207,6 +208,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
         echo: receives one line per stage (progress output).
         progress: tqdm bars of the fits.
         analysis_stride: pixel subsampling of the residual analysis (1 = every pixel).
+        stage_cache: the cache every sensor of the diagnosis holds (default: a new one); it serves while the
+            candidates are searched and judged, and counts the stages computed throughout.
     """
     config = config or DiagnoseConfig()
     names = list(config.candidates) if config.candidates else default_candidates() + device_candidates(preset)
@@ -229,7 +232,8 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
 
     echo(f"[1/5] base fit of {', '.join(config.base_params)} on {len(fit_frames)} fit frame(s) "
          f"({len(held)} held out)")  # fmt: skip
-    sensor = DepthSensor(preset)
+    cache = StageCache() if stage_cache is None else stage_cache
+    sensor = DepthSensor(preset, stage_cache=cache)
     fit_sensor(sensor, fit_frames, list(config.base_params), steps=config.base_steps, lr=config.lr, progress=progress,
                seed=config.seed, batch_frames=config.batch_frames, tile_px=config.tile_px)  # fmt: skip
     # Gaps beyond the floor average the floor over several units, as compare does (a split frame counts as one
@@ -252,7 +256,7 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
     steps: list[Step] = []
     rounds: list[list[Candidate]] = []
     in_model = {e.name for e in sensor.effects}
-    with reuse_matches(), reuse_front_ends():
+    with cache.serving():
         while len(steps) < config.max_steps:
             todo = [n for n in names if n not in in_model]
             if not todo and not config.axis_terms:

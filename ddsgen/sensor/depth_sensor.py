@@ -1,8 +1,10 @@
 """DepthSensor: the differentiable structured-light sensor, from hit geometry to depth.
 
-    geometry (ray cast, constant) -> IR image -> [ir effects] -> block matching
-    -> the device's smoothing along the rows -> [disparity effects] -> depth z = f b / d -> [depth effects] -> validity
-    -> the device's clean-up (specks and small holes) (-> optional post-processing CNN)
+The sensor is a composition of stages (:mod:`ddsgen.sensor.stages`), each built from its keys of the preset::
+
+    geometry (ray cast, constant) -> projector -> IR image -> [ir effects] -> block matcher
+    -> row smoothing and quantum -> [disparity effects] -> depth z = f b / d -> [depth effects]
+    -> [validity effects] -> validity -> clean-up -> output borders (-> optional post-processing CNN) -> registration
 
 Everything in :meth:`DepthSensor.forward` is a torch function of the sensor's
 parameters. Positive parameters are stored as logarithms (baseline, focal length,
@@ -12,37 +14,31 @@ never make them negative.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import nn
 
 from ddsgen.preset import Intrinsics, SensorPreset
-from ddsgen.sensor.cleanup import device_cleanup
 from ddsgen.sensor.effects import build_effects
 from ddsgen.sensor.geometry import SensorGeometry
-from ddsgen.sensor.ir import IRNoise, render_ir
-from ddsgen.sensor.matcher import match
-from ddsgen.sensor.output_window import OutputWindow
-from ddsgen.sensor.pattern import PatternField, fit_pattern, load_pattern
-from ddsgen.sensor.postprocess import load_postprocess
-from ddsgen.sensor.registration import (
-    dense_splat_index,
-    forward_registration_index,
-    gather_flat,
-    register_images,
-)
-from ddsgen.sensor.row_smoothing import smooth_along_rows
-from ddsgen.sensor.speckle import scene_speckle
+from ddsgen.sensor.ir import IRNoise
+from ddsgen.sensor.pattern import PatternField
+from ddsgen.sensor.stages import (
+    BlockMatcher, Cleanup, IRImage, OutputBorders, Projector, Registration, RowSmoothing, Stage, Validity,
+)  # fmt: skip
 
 # Fraction of disparity range added to the reference padding, so that fitting the
 # baseline or focal length a little up does not run out of reference pattern.
 _PAD_MARGIN = 1.15
-# Width of the soft validity step around the confidence threshold (confidence units).
-_SOFT_VALIDITY_WIDTH = 0.02
+
+#: The sensor's stages: attribute name -> the class built from the preset when none is handed in, in the order a
+#: frame passes them.
+STAGES: dict[str, type[Stage]] = {
+    "projector": Projector, "ir_image": IRImage, "matcher": BlockMatcher, "row_smoothing": RowSmoothing,
+    "validity": Validity, "cleanup": Cleanup, "output_borders": OutputBorders, "registration": Registration,
+}  # fmt: skip
 
 
 @dataclass
@@ -82,23 +78,6 @@ class FrontEnd:
     ctx: dict
 
 
-@functools.lru_cache(maxsize=8)
-def _pattern_field(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                   dot_jitter_px: float = 0.0, unit: int = 0) -> PatternField:
-    """The pattern field for one sensor geometry (and unit), built once per process."""
-    pattern = load_pattern(pattern_path)
-    geometry = fit_pattern(pattern.shape, width, height, pad_left=pad, margin=margin)
-    return PatternField(pattern, geometry, psf_px=psf_px, dot_jitter_px=dot_jitter_px, unit=unit)
-
-
-@functools.lru_cache(maxsize=8)
-def _reference_phases(pattern_path: str, psf_px: float, width: int, height: int, pad: int, margin: int,
-                      dot_jitter_px: float, unit: int, n_sub: int, ir_width: int):
-    """Reference images for an IR image ``ir_width`` columns wide (>= ``width`` with an IR margin)."""
-    field = _pattern_field(pattern_path, psf_px, width, height, pad, margin, dot_jitter_px, unit)
-    return field.reference_phases(ir_width, height, pad, n_sub)
-
-
 def _log_param(value: float) -> nn.Parameter:
     return nn.Parameter(torch.tensor(math.log(value), dtype=torch.float32))
 
@@ -111,25 +90,46 @@ class DepthSensor(nn.Module):
         intrinsics: override the preset's intrinsics (e.g. a real scan's); same image size
             as the geometry passed to :meth:`forward`.
         device: torch device for the computation.
+        stage_cache: see below (None: every stage is computed).
+        stages: {name: stage} of :data:`STAGES` to use instead of the preset's own (given the preset's settings;
+            e.g. a :class:`~ddsgen.sensor.stages.BlockMatcher` with another matching function).
 
     Trainable parameters (all ``nn.Parameter``; callers choose which require grad):
     ``log_emitted_intensity``, ``log_speckle_scale``, ``log_read_noise_std``,
     ``read_noise_mean``, ``log_ambient``, ``log_beta``, ``log_baseline``,
     ``log_focal_scale`` (f / f_preset, scales fx and fy together), and the effects'.
 
+    The stages (:data:`STAGES`: ``projector``, ``ir_image``, ``matcher``, ``row_smoothing``, ``validity``,
+    ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting :attr:`preset` gives
+    each its new settings. The sensor itself owns the camera (intrinsics, baseline, depth range), the effects
+    (``effects``, applied at their stage) and the optional post-processing CNN (``postprocess``).
+
     ``unit`` (int, 0 by default) says which unit of the device model this is. Every unit has the same
     parameters; each has its own scene-fixed random patterns: the laser speckle a static scene shows and the
     dots' sub-pixel positions. A real scan was taken by a unit whose patterns the model cannot know, so the
     noise floor of a comparison is measured against another unit (:func:`ddsgen.realscan.simulate.simulate_twin`).
     Renders use unit 0.
+
+    ``stage_cache`` is an object sensors may share to have stage results served while their inputs do not change
+    (:class:`ddsgen.diagnose.stage_cache.StageCache`): the sensor asks its ``noise(sensor, seed, geometry, draw)``,
+    ``front_end(sensor, geometry, noise, quantise, compute)`` and ``match(matching_function, *args, **kwargs)`` for
+    those values, passing the function that computes each, and calls its ``count(stage)`` for each "front_end" and
+    "validity_stage" it computes.
     """
 
-    def __init__(self, preset: SensorPreset, intrinsics: Intrinsics | None = None, device="cpu"):
+    def __init__(self, preset: SensorPreset, intrinsics: Intrinsics | None = None, device="cpu", stage_cache=None,
+                 stages: dict[str, Stage] | None = None):  # fmt: skip
         super().__init__()
-        self.preset = preset
+        unknown = sorted(set(stages or {}) - set(STAGES))
+        if unknown:
+            raise ValueError(f"unknown sensor stage(s) {unknown} (known: {', '.join(STAGES)})")
+        for name, default in STAGES.items():
+            setattr(self, name, (stages or {}).get(name) or default.from_preset(preset))
+        self.preset = preset  # gives every stage the preset's settings
         self.intr = intrinsics or preset.intrinsics
         self.device_ = torch.device(device)
         self.unit = 0
+        self.stage_cache = stage_cache
         self.log_emitted_intensity = _log_param(preset.emitted_intensity)
         self.log_speckle_scale = _log_param(preset.speckle_scale)
         self.log_read_noise_std = _log_param(max(preset.read_noise_std_counts, 1e-6))
@@ -143,14 +143,30 @@ class DepthSensor(nn.Module):
         # (depth, valid, valid_soft, geometry) -> (depth, valid, valid_soft).
         self.postprocess: nn.Module | None = None
         if preset.postprocess:
+            from ddsgen.sensor.postprocess import load_postprocess
+
             self.postprocess = load_postprocess(preset.resolve_path(preset.postprocess))
         # Reference padding: the largest disparity the matcher may search, plus the window.
         self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px
         # Columns the IR camera sees beyond the depth image's right edge (ddsgen.sensor.ir_margin).
-        self.ir_margin_px = int(preset.ir_margin_right_px)
+        self.ir_margin_px = self.ir_image.margin_px
         # Columns of pattern beyond the image (and the reference padding) on every side; covers the IR margin.
         self.margin = preset.block_size_px + 2 + self.ir_margin_px
         self.to(self.device_)
+
+    @property
+    def preset(self) -> SensorPreset:
+        return self._preset
+
+    @preset.setter
+    def preset(self, preset: SensorPreset) -> None:
+        self._preset = preset
+        for name in STAGES:
+            setattr(self, name, getattr(self, name).configured(preset))
+
+    def stages(self) -> dict[str, Stage]:
+        """{name: stage} of :data:`STAGES`, in the order a frame passes them."""
+        return {name: getattr(self, name) for name in STAGES}
 
     # ---- physical parameter values -------------------------------------------------
     @property
@@ -203,20 +219,17 @@ class DepthSensor(nn.Module):
         return self.preset.replace(**self.physical_parameters(), effects=[e.to_entry() for e in self.effects])
 
     # ---- cached per-sensor data ---------------------------------------------------------
-    def _pattern_key(self) -> tuple:
-        p = self.preset
-        return (str(p.resolve_path(p.pattern)), p.pattern_psf_px, self.intr.width, self.intr.height, self.pad, self.margin,
-                p.pattern_dot_jitter_px, self.unit)  # fmt: skip
-
     def pattern_field(self) -> PatternField:
-        return _pattern_field(*self._pattern_key()).to(self.device_)
+        intr = self.intr
+        return self.projector.field(intr.width, intr.height, self.pad, self.margin, self.unit).to(self.device_)
 
     def reference_phases(self, ir_width: int | None = None) -> torch.Tensor:
         """(S, H, ir_width + pad) reference images at infinity (default ``ir_width``: the image width W),
         cached once per process and sensor."""
-        width = self.intr.width if ir_width is None else int(ir_width)
-        p = self.preset
-        phases = _reference_phases(*self._pattern_key(), p.subpixel_level, width)
+        intr = self.intr
+        width = intr.width if ir_width is None else int(ir_width)
+        phases = self.projector.reference_phases(intr.width, intr.height, self.pad, self.margin, self.unit,
+                                                 self.matcher.subpixel_level, width)  # fmt: skip
         return phases.to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
@@ -226,15 +239,21 @@ class DepthSensor(nn.Module):
         and the sensor's ``unit`` (the same static scene gets the same speckle whatever the frame
         seed; another unit sees another speckle); the read noise always comes from ``seed``.
         """
-        p = self.preset
-        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        if self.stage_cache is not None:
+            return self.stage_cache.noise(self, seed, geometry, self._draw_noise)
+        return self._draw_noise(seed, geometry)
+
+    def _draw_noise(self, seed, geometry: SensorGeometry | None) -> IRNoise:
         # Drawn for the whole IR image (the margin included); a geometry without a margin uses the first W columns.
         height, width = self.intr.height, self.intr.width + self.ir_margin_px
-        speckle = None
-        if p.speckle_fixed_to_scene and geometry is not None:
-            unit_salt = [self.unit] if self.unit else []  # unit 0: the seed renders have always used
-            speckle = scene_speckle(geometry, unit_salt, height, width, p.speckle_shape, p.speckle_grain_px)
-        return IRNoise.draw(height, width, p.speckle_shape, rng, self.device_, p.speckle_grain_px, speckle)
+        return self.ir_image.draw_noise(seed, geometry, height, width, self.unit, self.device_)
+
+    def _effects(self, stage: str, x: torch.Tensor, ctx: dict) -> torch.Tensor:
+        """``x`` passed through the effects of ``stage`` ("ir", "disparity" or "depth") in the preset's order."""
+        for effect in self.effects:
+            if effect.stage == stage:
+                x = effect(x, ctx)
+        return x
 
     # ---- the pipeline ---------------------------------------------------------------------
     def forward(
@@ -257,10 +276,17 @@ class DepthSensor(nn.Module):
         return self.validity_stage(self.front_end(geometry, noise, quantise), geometry)
 
     def front_end(self, geometry: SensorGeometry, noise: IRNoise, quantise: bool = True) -> "FrontEnd":
-        """Everything before the validity stage: IR image, ir effects, block matching, disparity and depth
-        effects, and the matcher's keep-probability. Depends on the geometry, the noise and every parameter
+        """Everything before the validity stage: IR image, ir effects, block matching, row smoothing, disparity and
+        depth effects, and the matcher's keep-probability. Depends on the geometry, the noise and every parameter
         except those of validity-stage effects and the post-processing (see
-        :func:`ddsgen.diagnose.match_cache.front_end_state`)."""
+        :func:`ddsgen.diagnose.stage_cache.front_end_state`)."""
+        if self.stage_cache is not None:
+            return self.stage_cache.front_end(self, geometry, noise, quantise, self._front_end)
+        return self._front_end(geometry, noise, quantise)
+
+    def _front_end(self, geometry: SensorGeometry, noise: IRNoise, quantise: bool) -> "FrontEnd":
+        if self.stage_cache is not None:
+            self.stage_cache.count("front_end")
         p, intr = self.preset, self.intr
         fx = intr.fx * self.focal_scale
         fy = intr.fy * self.focal_scale
@@ -271,108 +297,64 @@ class DepthSensor(nn.Module):
         width, ir_width = geometry.shape[1], seen.shape[1]
         noise = noise.columns(ir_width)
         lit_seen = (seen.hit & ~seen.shadow).float()
-        ir, signal = render_ir(
-            seen.points, seen.normals, seen.albedo, lit_seen, self.pattern_field(),
-            fx, fy, cx, intr.cy, baseline, self.emitted_intensity, self.ambient,
-            self.speckle_scale, self.read_noise_mean, self.read_noise_std, noise, p.ir_bits, quantise,
-            p.projector_falloff_exponent, p.vignetting_exponent, p.electrons_per_count,
-        )  # fmt: skip
+        ir, signal = self.ir_image(seen, lit_seen, self.pattern_field(), fx, fy, cx, intr.cy, baseline,
+                                   self.emitted_intensity, self.ambient, self.speckle_scale, self.read_noise_mean,
+                                   self.read_noise_std, noise, quantise)  # fmt: skip
         ctx = {
             "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": cx, "cy": intr.cy,
-            "baseline": baseline, "ir_max": 2.0**p.ir_bits - 1.0, "noise": noise,
+            "baseline": baseline, "ir_max": self.ir_image.ir_max, "noise": noise,
         }  # fmt: skip
-        for effect in self.effects:
-            if effect.stage == "ir":
-                ir = effect(ir, ctx)
+        ir = self._effects("ir", ir, ctx)
         lit = lit_seen[:, :width]
 
         # Disparity search range from the current geometry (plain floats: the range is discrete).
         fb = float((fx * baseline).detach())
         d_min = max(fb / p.z_max_m, 0.0)
-        d_max = min(fb / p.z_min_m, float(self.pad - p.block_size_px))
+        d_max = min(fb / p.z_min_m, float(self.pad - self.matcher.block_size_px))
         # A device that smooths along its rows averages the matcher's sub-pixel estimates and quantises once after:
         # smoothing values already on the 2^-n px quantum and rounding again moves a pixel only when w times its
         # neighbours' offset reaches half a step (a step function of w, with ties at w = 1/4).
-        smooths = p.row_smoothing_weight > 0
-        result = match(
-            ir, self.reference_phases(ir_width), self.pad, d_min, d_max, p.block_size_px, self.beta,
-            p.subpixel_level, p.band_rows, p.min_confidence, quantize=quantise and not smooths,
-            confirmed_match_zncc=p.confirmed_match_zncc,
-        )  # fmt: skip
+        result = self.matcher(ir, self.reference_phases(ir_width), self.pad, d_min, d_max, self.beta,
+                              quantize=quantise and not self.row_smoothing.active, cache=self.stage_cache)
         if ir_width != width:  # back to the depth image's grid
             result = result.columns(width)
             ir, signal = ir[:, :width], signal[:, :width]
             ctx.update(geometry=geometry, signal=signal, noise=noise.columns(width))
-        quantum = p.subpixel_step_px if quantise else None
-        disparity = smooth_along_rows(result.disparity, result.valid, p.row_smoothing_weight, quantum)
-        for effect in self.effects:
-            if effect.stage == "disparity":
-                disparity = effect(disparity, ctx)
+        disparity = self.row_smoothing(result.disparity, result.valid, self.matcher.step_px if quantise else None)
+        disparity = self._effects("disparity", disparity, ctx)
 
         positive = disparity > 1e-3
         safe = torch.where(positive, disparity, torch.ones_like(disparity))
         raw_depth = torch.where(positive, fx * baseline / safe, torch.zeros_like(disparity))
         ctx["raw_depth"] = raw_depth
-        for effect in self.effects:
-            if effect.stage == "depth":
-                raw_depth = effect(raw_depth, ctx)
+        raw_depth = self._effects("depth", raw_depth, ctx)
 
-        keep = torch.sigmoid((result.confidence - p.min_confidence) / _SOFT_VALIDITY_WIDTH)
-        if p.shadow_always_invalid:
-            keep = keep * lit
-        elif p.no_hit_always_invalid:
-            keep = keep * geometry.hit.float()
+        keep = self.validity.keep(self.matcher.keep_probability(result.confidence), lit, geometry)
         return FrontEnd(ir=ir, disparity=disparity, raw_depth=raw_depth, confidence=result.confidence,
                         matched=result.valid, keep=keep, ctx=ctx)  # fmt: skip
 
     def validity_stage(self, front: "FrontEnd", geometry: SensorGeometry) -> SensorOutput:
-        """Validity effects, range, the device's clean-up, output window and post-processing -> SensorOutput."""
+        """Validity effects, validity, the device's clean-up, output borders, post-processing and registration ->
+        SensorOutput."""
+        if self.stage_cache is not None:
+            self.stage_cache.count("validity_stage")
         p, intr = self.preset, self.intr
         ctx, raw_depth, disparity = front.ctx, front.raw_depth, front.disparity
         keep = front.keep
         for effect in self.effects:
             if effect.stage == "validity":
                 keep = keep * effect(raw_depth, ctx)
-        in_range = (raw_depth >= p.z_min_m) & (raw_depth <= p.z_max_m)
-        valid = front.matched & in_range & (keep > 0.5)
-        if p.no_hit_always_invalid or p.shadow_always_invalid:
-            valid = valid & geometry.hit
-        if p.shadow_always_invalid:
-            valid = valid & ~geometry.shadow
-        valid_soft = keep * in_range.float()
-        if p.cleanup_speckle_px or p.cleanup_hole_px or p.cleanup_fill_width_px:
-            # A selection: each pixel keeps its own value or copies its nearest valid neighbour's.
-            cleaned, source = device_cleanup(disparity, valid, p.cleanup_speckle_px, p.cleanup_max_diff_px,
-                                             p.cleanup_hole_px, p.cleanup_fill_width_px)  # fmt: skip
-            raw_depth, disparity, valid_soft = (gather_flat(x, source) for x in (raw_depth, disparity, valid_soft))
-            removed = valid & ~cleaned
-            valid_soft = valid_soft * (~removed).float()
-            valid = cleaned
-        window = OutputWindow.of(p)
-        if not window.is_full:
-            # The device's output window in the full image; a crop of it (compare --crop) is offset
-            # by the shift of its principal point.
-            crop_x, crop_y = intr.width < p.width_px, intr.height < p.height_px
-            x0 = int(round(p.cx_px - intr.cx)) if crop_x else 0
-            y0 = int(round(p.cy_px - intr.cy)) if crop_y else 0
-            full_h, full_w = (p.height_px if crop_y else intr.height), (p.width_px if crop_x else intr.width)
-            inside = torch.from_numpy(window.inside(*valid.shape, full_h, full_w, x0, y0)).to(valid.device)
-            valid = valid & inside
-            valid_soft = valid_soft * inside.to(valid_soft.dtype)
+        valid, valid_soft = self.validity(front.matched, raw_depth, keep, p.z_min_m, p.z_max_m, geometry)
+        raw_depth, disparity, valid, valid_soft = self.cleanup(raw_depth, disparity, valid, valid_soft)
+        valid, valid_soft = self.output_borders(valid, valid_soft, intr, p.width_px, p.height_px, p.cx_px, p.cy_px)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         if self.postprocess is not None:
             depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)
         disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
         confidence = front.confidence
         if geometry.registration is not None:  # the IR camera's depth, written in the RGB camera's image
-            index = geometry.registration
-            if p.registration_forward_gap_px:  # mapped forward by the measured depth, as the device does
-                index = forward_registration_index(valid, depth, p.registration_shift_px,
-                                                   intr.fx * p.registration_ir_offset_m, p.registration_forward_gap_px,
-                                                   p.registration_forward_fill_rows, geometry.registration)  # fmt: skip
-            if p.registration_dense:  # the device's 2x2 splat closes 1-px holes
-                index = dense_splat_index(index, valid)
-            depth, valid, valid_soft, disparity, confidence, raw_depth = register_images(
-                (depth, valid, valid_soft, disparity, confidence, raw_depth), index)  # fmt: skip
+            depth, valid, valid_soft, disparity, confidence, raw_depth = self.registration(
+                (depth, valid, valid_soft, disparity, confidence, raw_depth), valid, depth, geometry.registration,
+                intr.fx)  # fmt: skip
         return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
                             confidence=confidence, raw_depth=raw_depth)  # fmt: skip
