@@ -188,22 +188,22 @@ def test_interrupted_compare_leaves_no_report_nor_save_sim_and_reruns(small, tmp
 
 
 def test_interrupted_fit_leaves_no_report_nor_preset_and_reruns(small, tmp_path, monkeypatch):
-    import ddsgen.fit.fit_report
+    import ddsgen.fit.paired
 
     out = tmp_path / "fitted.yaml"
     report = tmp_path / "fitted_report"
     args = ["fit", str(small["stock"]), str(small["real"]), "--out", str(out), "--params", "beta", "--steps", "1",
             "--no-search", "--holdout", "0", "--quiet"]  # fmt: skip
-    original = ddsgen.fit.fit_report.write_fit_report
+    original = ddsgen.fit.paired.write_fit_report
 
     def interrupted(folder, **kwargs):  # comparison_before/after.json and residuals.png are written by now
         assert (Path(folder) / "comparison_before.json").is_file()
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(ddsgen.fit.fit_report, "write_fit_report", interrupted)
+    monkeypatch.setattr(ddsgen.fit.paired, "write_fit_report", interrupted)
     assert main(args) == 130
     assert not report.exists() and not out.exists() and leftovers(tmp_path) == []
-    monkeypatch.setattr(ddsgen.fit.fit_report, "write_fit_report", original)
+    monkeypatch.setattr(ddsgen.fit.paired, "write_fit_report", original)
     assert main(args) == 0
     assert out.is_file() and (report / "index.html").is_file() and (report / "fit_report.json").is_file()
     assert (report / "comparison_before.json").is_file() and leftovers(tmp_path) == []

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from ddsgen.commands import common_options, echo_stderr
-from ddsgen.errors import InputError
+from ddsgen.realscan.compare import run_compare
 
 
 @click.command("compare")
@@ -41,34 +39,5 @@ def compare(preset, real_dir, report_dir, save_sim, no_plane, crop, plausible_px
     REPORT/index.html showing them all, and prints a short table. With --save-sim DIR the
     simulated frames are also written as a scan folder (readable by compare/fit/diagnose).
     """
-    import contextlib
-
-    from ddsgen.realscan.gap import gap, table
-    from ddsgen.realscan.inputs import load_inputs
-    from ddsgen.realscan.outputs import FrameOutputs
-    from ddsgen.realscan.save_sim import SimFolderWriter, check_target
-    from ddsgen.atomic import atomic_folder, check_can_create_folder, overlap
-    from ddsgen.sensor.depth_sensor import DepthSensor
-
-    # Every output location is checked before any work.
-    check_can_create_folder(report_dir, "the report (--report)")
-    if save_sim is not None:
-        check_target(save_sim, inputs=(real_dir,))
-        where = overlap(save_sim, report_dir)
-        if where:
-            raise InputError(f"{save_sim}: --save-sim: {where} the --report folder {report_dir}; give another folder")
-    _, camera_preset, scans, frames = load_inputs(preset, real_dir, support_plane=not no_plane, crop=crop,
-                                                  plausible_px=plausible_px, seed=seed, progress=not quiet, echo=echo_stderr)  # fmt: skip
-    sensor = DepthSensor(camera_preset).eval()
-    title = f"{camera_preset.name} vs {real_dir} ({len(frames)} frame(s))"
-    # Both folders are built under temporary names and put in place only once complete: an interrupted run leaves
-    # neither. The report goes in first, --save-sim last: a re-run replaces a report but refuses a --save-sim.
-    with (SimFolderWriter(save_sim, camera_preset, seed) if save_sim else contextlib.nullcontext()) as writer, \
-            atomic_folder(report_dir, "the report (--report)", last="index.html") as building:
-        border = camera_preset.block_size_px // 2 + 1 if crop else 0  # as prepare_frame's crop region
-        outputs = FrameOutputs(scans, building, region, writer, border, camera_preset.baseline_m)
-        report = gap(sensor, frames, region=region, seed=seed, keep_maps=True, progress=not quiet, on_frame=outputs)
-        written = [Path(report_dir) / p.relative_to(building) for p in outputs.finish(report, title)]
-    click.echo(table(report, title))
-    saved = f"; simulated frames in {save_sim}" if save_sim else ""
-    click.echo(f"wrote {', '.join(str(p) for p in written)}{saved}")
+    run_compare(preset, real_dir, report_dir, save_sim, support_plane=not no_plane, crop=crop,
+                plausible_px=plausible_px, region=region, seed=seed, progress=not quiet, echo=echo_stderr)

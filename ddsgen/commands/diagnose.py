@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import click
 
 from ddsgen.commands import POSITIVE, SEED, echo_stderr, split_names, threads_option, use_threads
+from ddsgen.atomic import check_can_create_folder
+from ddsgen.diagnose.config import DiagnoseConfig
+from ddsgen.diagnose.device_candidates import BEHAVIOURS
+from ddsgen.diagnose.run import run_diagnose
 from ddsgen.errors import InputError
 from ddsgen.fit import DEFAULT_TILE_PX
-from ddsgen.atomic import check_can_create_folder
+from ddsgen.sensor.effects import REGISTRY
 
 
 @click.command("diagnose")
@@ -67,16 +70,6 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
     REPORT/report.html (one sentence per step; residual profiles before/after each step and
     full-resolution residual maps of held-out frames, as PNG files in REPORT/plots/).
     """
-    from ddsgen.realscan.gap_report import BELOW_FLOOR
-    from ddsgen.realscan.inputs import load_inputs
-    from ddsgen.diagnose import DiagnoseConfig
-    from ddsgen.diagnose import diagnose as run_diagnosis
-    from ddsgen.diagnose.report import write_diagnosis
-    from ddsgen.fit.parameters import preset_values
-    from ddsgen.preset import PATTERN_DIR, save_preset
-    from ddsgen.diagnose.device_candidates import BEHAVIOURS
-    from ddsgen.sensor.effects import REGISTRY
-
     if steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--steps")
     if refit_steps < 0:
@@ -103,54 +96,9 @@ def diagnose(preset, real_dir, report_dir, apply_path, holdout, steps, refit_ste
         raise InputError(f"--candidates: unknown effect(s) {', '.join(unknown)} "
                          f"(known: {', '.join(sorted(REGISTRY) + sorted(BEHAVIOURS))})")  # fmt: skip
 
-    progress = not quiet
     use_threads(threads)
-
-    def echo(line: str) -> None:
-        if progress:
-            click.echo(line, err=True)
-
-    original, camera_preset, _, frames = load_inputs(preset, real_dir, support_plane=not no_plane,
-                                                     plausible_px=plausible_px, seed=seed, progress=progress, echo=echo_stderr,
-                                                     window_hint=False)  # diagnose measures the window itself  # fmt: skip
-    if region == "objects":
-        frames = [dataclasses.replace(f, region=f.object_region.clone()) for f in frames]
-        if not any(bool(f.region.any()) for f in frames):
-            raise InputError(f"{real_dir}: --region objects: no annotated object is visible in any frame")
     config = DiagnoseConfig(holdout=holdout, base_steps=steps, refit_steps=refit_steps, max_steps=max_effects,
                             seed=seed, candidates=tuple(names) or None, grid_frames=grid_frames,
                             tile_px=tile_px or None)  # fmt: skip
-    result = run_diagnosis(camera_preset, frames, config, echo=echo, progress=progress)
-
-    written = write_diagnosis(result, report_dir, f"ddsgen diagnose: {original.name} vs {real_dir}",
-                              [f"Sensor preset {preset}; scans {real_dir} ({len(frames)} frame(s))."])  # fmt: skip
-    if apply_path is not None:
-        sensor = result.sensor
-        changes = dict(preset_values(sensor, original), effects=[e.to_entry() for e in sensor.effects],
-                       name=f"{original.name}_diagnosed")  # fmt: skip
-        for step in result.steps:  # accepted device behaviours are preset keys
-            if step.effect in BEHAVIOURS:
-                key = BEHAVIOURS[step.effect].key
-                changes[key] = getattr(sensor.preset, key)
-        if result.output_window is not None:  # measured on the scans: in the preset's own pixels
-            changes.update(result.output_window.rescaled(camera_preset.width_px, camera_preset.height_px,
-                                                         original.width_px, original.height_px).as_keys())  # fmt: skip
-        pattern_path = original.resolve_path(original.pattern)
-        if pattern_path.parent.resolve() != PATTERN_DIR.resolve():
-            changes["pattern"] = str(pattern_path.resolve())
-        if original.postprocess:
-            changes["postprocess"] = str(original.resolve_path(original.postprocess).resolve())
-        extended = original.replace(**changes)
-        Path(apply_path).parent.mkdir(parents=True, exist_ok=True)
-        added = ", ".join(s.effect for s in result.steps) or "none"
-        save_preset(extended, apply_path, comment=f"extended by ddsgen diagnose from {preset} on {real_dir}\n"
-                                                  f"effects added: {added}")  # fmt: skip
-        written.append(Path(apply_path))
-    summary = ", ".join(f"{s.effect} ({s.gap_before:.2f} -> {s.gap_after:.2f} mm)" for s in result.steps) or "none"
-    click.echo(f"held-out gap beyond the noise floor {result.baseline_gap:.2f} -> {result.final_gap:.2f} mm "
-               f"(compare gap {result.baseline.gap:.2f} -> {result.final.gap:.2f} mm); effects added: {summary}")
-    if result.final_gap < 0:
-        click.echo(f"  {BELOW_FLOOR}")
-    for u in result.unexplained:
-        click.echo(f"unexplained: residual varies along {u['axis']} ({u['strength']:.1f} mm beyond noise)")
-    click.echo(f"wrote {', '.join(str(p) for p in written)}")
+    run_diagnose(preset, real_dir, report_dir, config, region=region, support_plane=not no_plane,
+                 plausible_px=plausible_px, apply_path=apply_path, progress=not quiet, echo=echo_stderr)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from ddsgen.commands import REPRODUCIBLE_THREADS_HELP, SEED, threads_option, use_threads
-from ddsgen.errors import InputError
+from ddsgen.scene_gradients.refine import RefineSettings
+from ddsgen.scene_gradients.refine_folder import run_refine
 
 
 @click.command("refine")
@@ -55,16 +54,6 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
     with the refined poses in the input's layout, and OUT/report/ (refine_report.json: per-object pose
     change in deg/mm, gap before/after; one PNG per frame: real | before | after).
     """
-    from tqdm import tqdm
-
-    from ddsgen.atomic import atomic_folder, check_new_folder
-    from ddsgen.io.pose_writer import write_refined_poses
-    from ddsgen.io.scanfolder import read_scan_folder
-    from ddsgen.preset import load_preset
-    from ddsgen.scene_gradients.refine import RefineSettings
-    from ddsgen.scene_gradients.report import write_report
-    from ddsgen.scene_gradients.scan import refine_scan_frame, refine_static_scan, static_scenes
-
     use_threads(threads)
     if steps < 0:
         raise click.BadParameter("must be >= 0", param_hint="--steps")
@@ -78,57 +67,7 @@ def refine(preset, real_dir, out_dir, steps, recast_every, band_mm, gradient, ed
         raise click.BadParameter("must be >= 0", param_hint="--holdout-block-px")
     if static_views < 1:
         raise click.BadParameter("must be >= 1", param_hint="--static-views")
-    # Before any work: OUT is a new folder, not the input (whose manifest it would overwrite) nor in it.
-    check_new_folder(out_dir, "--out", inputs=(real_dir,))
-    base = load_preset(preset)
-    frames = read_scan_folder(real_dir)
-    if not frames:
-        raise InputError(f"{real_dir}: no frames")
-    for frame in frames:
-        if not frame.objects:
-            raise InputError(f"{frame.source_depth_path}: frame {frame.name} lists no objects (nothing to refine)")
     settings = RefineSettings(steps=steps, recast_every=recast_every, band_m=band_mm / 1000.0, seed=seed,
                               gradient=gradient, edge_weight=edge_weight, holdout_block_px=holdout_block_px)  # fmt: skip
-    refinements, refined = [], {}
-    if static_scene:
-        for first, scene_frames in tqdm(static_scenes(frames), desc="scenes", unit="scene", disable=quiet):
-            sensor_preset = _camera_preset(base, scene_frames)
-            simulated, poses = refine_static_scan(sensor_preset, scene_frames, settings, support_plane=not no_plane,
-                                                  progress=not quiet, first_index=first, max_views=static_views)  # fmt: skip
-            refinements += simulated
-            refined.update(poses)
-            for frame in scene_frames:
-                frame.release()
-    for index, frame in enumerate(tqdm([] if static_scene else frames, desc="frames", unit="frame", disable=quiet)):
-        refinements.append(refine_scan_frame(_camera_preset(base, [frame]), frame, index, settings,
-                                             support_plane=not no_plane, progress=not quiet))  # fmt: skip
-        refined[frame.name] = refinements[-1].refined_poses()
-        frame.release()
-    out = Path(out_dir)
-    with atomic_folder(out, "--out", merge=False) as building:  # OUT appears whole or not at all
-        written = write_refined_poses(frames, refined, building, final=out)
-        write_report(refinements, building / "report", {"preset": str(preset), "real_dir": str(real_dir),
-                     "static_scene": bool(static_scene), "static_views": int(static_views), **{k: v for k, v in vars(settings).items()}})  # fmt: skip
-    for r in refinements:
-        for change in r.object_changes():
-            seen = change.get("visible_fraction_dataset", change.get("visible_fraction_estimated"))
-            click.echo(f"{r.name} {change['label']}"
-                       + (f" ({100 * seen:.0f} % visible)" if seen is not None else "")
-                       + f": moved {change['rotation_deg']:.2f} deg, "
-                       f"{change['translation_mm']:.2f} mm; {change['decision']}"
-                       + (f"; not determined by the data, kept at the start: {', '.join(change['undetermined'])}"
-                          if change.get("undetermined") else ""))  # fmt: skip
-        verdict = (f" (optimised {r.result.gap_optimised_mm:.2f} mm, not lower: start poses kept)"
-                   if r.result.kept_start else "")  # fmt: skip
-        click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm{verdict}")
-    click.echo(f"wrote {', '.join(str(p) for p in written)} and {out / 'report'}/")
-
-
-def _camera_preset(base, frames):
-    """The preset with the frames' camera (one line naming the first frame if it does not fit)."""
-    from ddsgen.realscan.inputs import adopt_camera
-
-    try:
-        return adopt_camera(base, frames)[0]
-    except InputError as error:
-        raise InputError(f"{frames[0].source_depth_path}: the scan's camera does not fit the preset: {error}") from None
+    run_refine(preset, real_dir, out_dir, settings, static_scene=static_scene, static_views=static_views,
+               support_plane=not no_plane, progress=not quiet)

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from ddsgen.commands import SEED
+from ddsgen.preview import write_preview
 from ddsgen.runner import render_dataset
 
 
@@ -61,8 +62,6 @@ def render(preset, scenes, n, out, workers, seed, scheduler, batch_size, output_
                              models_dir=models_dir)  # fmt: skip
     sheet = None
     if not no_preview and summary.frames_total > 0:
-        from ddsgen.preview import write_preview
-
         # Drawn from the finished folder (not part of the manifest's frames): a resumed render redraws it.
         sheet, _ = write_preview(summary.out, Path(out) / "preview.png")
     if not quiet:

@@ -12,17 +12,19 @@ import math
 from pathlib import Path
 
 import click
+import cv2
 import numpy as np
+import torch
 
+from ddsgen.atomic import atomic_path, check_can_create_folder
 from ddsgen.errors import InputError
+from ddsgen.io.exr import write_exr
+from ddsgen.io.images import read_image
+from ddsgen.sensor.matcher import match, stereo_reference_phases
 
 
 def _read_grey(path: str) -> np.ndarray:
     """Image file -> float32 (H, W) grey levels; InputError if it cannot be read."""
-    import cv2
-
-    from ddsgen.io.images import read_image
-
     image = read_image(path, "image")
     if image.ndim == 3:
         if image.shape[2] == 4:
@@ -37,8 +39,6 @@ def _read_grey(path: str) -> np.ndarray:
 def _check_output(option: str, path: str, suffix: str, what: str, why: str) -> None:
     """Before any work: ``path`` ends in ``suffix`` (the format written; never EXR bytes in a .png file) and its
     folder can be created (not below a plain file)."""
-    from ddsgen.atomic import check_can_create_folder
-
     if Path(path).suffix.lower() != suffix:
         raise InputError(f"{option}: {path}: {why}; give a name ending in {suffix}")
     try:
@@ -48,10 +48,6 @@ def _check_output(option: str, path: str, suffix: str, what: str, why: str) -> N
 
 
 def _colour_png(path: Path, disparity: np.ndarray, valid: np.ndarray, max_disparity: float) -> None:
-    import cv2
-
-    from ddsgen.atomic import atomic_path
-
     scaled = np.clip(disparity / max(max_disparity, 1e-6), 0.0, 1.0)
     colour = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     colour[~valid] = 0
@@ -80,11 +76,6 @@ def stereo(left, right, max_disparity, min_disparity, block, n_sub, beta, min_co
     Grey or colour images (colour is converted to grey). Pixel u of LEFT matches u - d of
     RIGHT, d in [--min-disparity, --max-disparity]. Writes float32 disparity (px, 0 = invalid).
     """
-    import torch
-
-    from ddsgen.io.exr import write_exr
-    from ddsgen.sensor.matcher import match, stereo_reference_phases
-
     if block < 3 or block % 2 == 0:
         raise InputError(f"--block: must be odd and >= 3, got {block}")
     if not 0 <= n_sub <= 6:

@@ -41,6 +41,7 @@ from ddsgen.errors import InputError
 from ddsgen.preset import Intrinsics, SensorPreset
 from ddsgen.raycast import cast
 from ddsgen.realscan.losses import resolved_depth_m
+from ddsgen.realscan.region import comparison_region
 from ddsgen.realscan.support_plane import Plane, fit_support_plane, plane_pose
 from ddsgen.scene import shapes
 from ddsgen.scene.sampling import FrameScene, PlacedObject, sample_frame
@@ -229,7 +230,6 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
         pose_error = float(np.median(np.abs(real[both] - hits.depth[both])) * 1000.0)
 
     # Comparison region, on the whole frame (the support plane's real extent is a whole-frame notion).
-    from ddsgen.realscan.region import comparison_region
     region = comparison_region(real, hits.depth, hits.hit, object_px, hits.shadow, fb, plausible_px,
                                preset.block_size_px, plane is not None, OutputWindow.of(preset))  # fmt: skip
 

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from ddsgen.errors import InputError
+from ddsgen.io.images import read_image
 
 DOT_VALUE = 220  # 8-bit value of an ordinary dot
 MARKER_VALUE = 255  # 8-bit value of a tile's centre marker (brighter, 3x3 px)
@@ -165,8 +166,6 @@ def load_pattern(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: pattern file not found")
-    from ddsgen.io.images import read_image  # one line on a bad file, no library noise on stderr
-
     image = read_image(path, "pattern image")
     if image.ndim == 3:
         image = image[..., :3].mean(axis=2)

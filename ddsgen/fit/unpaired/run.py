@@ -9,8 +9,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import click
+
 from ddsgen.atomic import atomic_folder
 from ddsgen.errors import InputError
+from ddsgen.fit.fitted_preset import assemble_preset, write_preset
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.features import frame_features, pool
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
@@ -21,7 +24,7 @@ from ddsgen.fit.unpaired.search import (
     fit_unpaired,
     render_depths,
 )
-from ddsgen.preset import PATTERN_DIR, load_preset, save_preset
+from ddsgen.preset import load_preset
 from ddsgen.realscan.realfolder import read_depth_folder, round_like
 from ddsgen.scene.scenelist import load_scene_list
 
@@ -98,22 +101,14 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
-    changes = {**registration, **in_preset_px.as_keys(), **result.after}
-    for key in ("pattern", "postprocess"):  # files named relative to the preset: keep them reachable
-        name = getattr(original, key)
-        if name and not (key == "pattern" and (PATTERN_DIR / name).exists()):
-            changes[key] = str(original.resolve_path(name).resolve())
-    fitted = original.replace(**changes, name=f"{original.name}_unpaired")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    save_preset(fitted, out, comment=f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}\n"
-                                     f"params: {', '.join(result.after)}")  # fmt: skip
+    fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
+    write_preset(fitted, out, f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}\n"
+                              f"params: {', '.join(result.after)}")  # fmt: skip
     return content
 
 
 def print_summary(content: dict) -> None:
     """The command's closing lines: distance before/after, each value with its uncertainty."""
-    import click
-
     before, after = content["distance_before"]["total"], content["distance_after"]["total"]
     click.echo(f"feature distance: {before:.4f} (stock) -> {after:.4f} (fitted) over {len(content['real_frames'])} "
                f"real frame(s), {content['evaluations']} value sets, "
