@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 from effects_geometry import plane_geometry, small_preset, tilted_normal
-from test_effects import RECT, _fd_check, ctx_for, run
+from test_effects import RECT, _fd_check, ctx_for, fresh, in_double, run
 
 from torch_threads import torch_threads
 from ddsgen.errors import InputError
@@ -221,7 +221,7 @@ def test_axis_disparity_term_follows_its_coefficients_along_its_axis_only(axis):
     effect = AxisDisparityTerm(axis=axis, **dict(zip(COEFFICIENTS, coefficients)))
     disparity = torch.full(geometry.shape, 7.0)
     with torch.no_grad():
-        shift = (effect(disparity, dict(ctx)) - disparity).double()
+        shift = (effect(disparity, fresh(ctx)) - disparity).double()
     x, y = normalised_coordinates(intr.height, intr.width, intr.fx, intr.fy, intr.cx, intr.cy)
     value = {"column": x, "row": y, "radius": torch.sqrt(x * x + y * y)}[axis].double().numpy()
     low, high = AXIS_DOMAINS[axis]
@@ -235,7 +235,7 @@ def test_axis_disparity_term_follows_its_coefficients_along_its_axis_only(axis):
     else:  # constant on rings about the principal point: mirror images agree
         assert torch.allclose(shift, shift.flip(0).flip(1), atol=1e-5)  # cx, cy are the image centre
     # No match, no shift.
-    assert torch.equal(effect(torch.zeros(geometry.shape), dict(ctx)), torch.zeros(geometry.shape))
+    assert torch.equal(effect(torch.zeros(geometry.shape), fresh(ctx)), torch.zeros(geometry.shape))
 
 
 def test_axis_disparity_term_along_depth_changes_depth_by_its_profile():
@@ -292,7 +292,7 @@ def test_pixel_axes_read_the_context_like_the_named_effects():
     geometry = plane_geometry(preset.intrinsics, normal=tilted_normal(50), distance=1.5, rect=RECT)
     ctx = ctx_for(preset, geometry)
     depth = geometry.clean_depth
-    fb = float(ctx["fx"] * ctx["baseline"])
+    fb = float(ctx.fx * ctx.baseline)
     disparity = torch.where(depth > 0, fb / depth.clamp_min(1e-6), torch.zeros_like(depth))
     hit = geometry.hit
     assert torch.allclose(pixel_axis("depth", ctx, disparity, "disparity")[hit], depth[hit], rtol=1e-5)
@@ -361,12 +361,12 @@ def test_gradient_matches_finite_differences(name, key, values):
     preset = small_preset()
     geometry = plane_geometry(preset.intrinsics, normal=tilted_normal(55), distance=1.3, rect=RECT)
     ctx = ctx_for(preset, geometry, signal=geometry.albedo * 20.0 * (1 + torch.rand(geometry.shape)))
-    ctx = {k: (v.double() if torch.is_tensor(v) and v.is_floating_point() else v) for k, v in ctx.items()}
+    ctx = in_double(ctx)
     effect = build_effects(validate_effects([{"name": name, **values}]))[0].double()
     depth = geometry.clean_depth.double()
     x = 10.0 / depth.clamp_min(0.1) if effect.stage == "disparity" else depth
     weights = torch.rand(geometry.shape, dtype=torch.float64)
-    _fd_check(effect, key, lambda: (effect(x, dict(ctx)) * weights).sum())
+    _fd_check(effect, key, lambda: (effect(x, fresh(ctx)) * weights).sum())
 
 
 def test_gradients_reach_every_new_parameter_through_the_full_sensor():

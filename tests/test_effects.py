@@ -7,6 +7,7 @@ of a wall. Effects are compared against the same frame (same noise draws) withou
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -15,6 +16,7 @@ import torch
 from ddsgen.errors import InputError
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.effects import REGISTRY, build_effects, validate_effects
+from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.effects.features import edge_distance, image_radius, incidence_angle_deg, local_signal
 from ddsgen.sensor.effects.library import LensDistortion
 from effects_geometry import plane_geometry, small_preset, tilted_normal
@@ -31,13 +33,24 @@ def run(preset, geometry, effects=(), seed=3):
         return sensor(geometry, seed=seed)
 
 
-def ctx_for(preset, geometry, signal=None):
+def ctx_for(preset, geometry, signal=None) -> EffectContext:
     intr = preset.intrinsics
-    return {
-        "geometry": geometry, "signal": signal if signal is not None else geometry.albedo * 40.0,
-        "fx": torch.tensor(intr.fx), "fy": torch.tensor(intr.fy), "cx": intr.cx, "cy": intr.cy,
-        "baseline": torch.tensor(preset.baseline_m), "ir_max": 1023.0, "raw_depth": geometry.clean_depth,
-    }  # fmt: skip
+    return EffectContext(fx=torch.tensor(intr.fx), fy=torch.tensor(intr.fy), cx=intr.cx, cy=intr.cy,
+                         baseline=torch.tensor(preset.baseline_m), geometry=geometry,
+                         signal=signal if signal is not None else geometry.albedo * 40.0, ir_max=1023.0,
+                         raw_depth=geometry.clean_depth)  # fmt: skip
+
+
+def fresh(ctx: EffectContext) -> EffectContext:
+    """The same frame with no feature computed yet (each call of an effect as the sensor makes it)."""
+    return dataclasses.replace(ctx)
+
+
+def in_double(ctx: EffectContext) -> EffectContext:
+    """``ctx`` with every floating-point tensor in float64 (finite-difference checks)."""
+    values = {f.name: getattr(ctx, f.name) for f in dataclasses.fields(ctx) if f.init}
+    return EffectContext(**{k: (v.double() if torch.is_tensor(v) and v.is_floating_point() else v)
+                            for k, v in values.items()})  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -87,7 +100,7 @@ def test_each_neutral_effect_is_an_identity_on_its_stage():
     for cls in REGISTRY.values():
         effect = cls()  # all parameters neutral
         with torch.no_grad():
-            y = effect(x, dict(ctx))
+            y = effect(x, fresh(ctx))
         if cls.stage == "validity":
             lit = geometry.hit & ~geometry.shadow
             # exact up to the reparameterisation: a boundary neutral sits 1e-6 of the range inside it
@@ -273,7 +286,7 @@ def test_effect_gradient_matches_finite_differences(name, key, values):
     preset = small_preset()
     geometry = plane_geometry(preset.intrinsics, normal=tilted_normal(55), distance=1.3, rect=RECT)
     ctx = ctx_for(preset, geometry, signal=geometry.albedo * 20.0 * (1 + torch.rand(geometry.shape)))
-    ctx = {k: (v.double() if torch.is_tensor(v) and v.is_floating_point() else v) for k, v in ctx.items()}
+    ctx = in_double(ctx)
     effect = REGISTRY[name](**values).double()
     h, w = geometry.shape
     if name == "lens_distortion":  # a smooth image, so that bilinear sampling is differentiable enough for FD
@@ -283,7 +296,7 @@ def test_effect_gradient_matches_finite_differences(name, key, values):
     else:
         x = geometry.clean_depth.double() if effect.stage != "disparity" else 10.0 / geometry.clean_depth.double()
     weights = torch.rand(h, w, dtype=torch.float64)
-    _fd_check(effect, key, lambda: (effect(x, dict(ctx)) * weights).sum())
+    _fd_check(effect, key, lambda: (effect(x, fresh(ctx)) * weights).sum())
 
 
 def test_gradients_through_the_full_sensor_are_finite_for_every_effect():

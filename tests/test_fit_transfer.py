@@ -21,6 +21,7 @@ from ddsgen.realscan.gap import gap
 from ddsgen.fit.device_keys import search_grid, set_key
 from ddsgen.realscan.losses import FIT_WEIGHTS, LossWeights, without_plane_pose
 from ddsgen.realscan.plane_depth import plane_depth_for, undo_disparity_effects
+from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.fit.fit_report import at_bound
 from ddsgen.fit.fitting import fit_sensor
 from ddsgen.fit.parameters import SENSOR_PARAMS, resolve_params
@@ -384,11 +385,9 @@ def test_plane_depth_undoes_the_sensors_disparity_errors_and_the_fit_loss_ignore
     fb = intr.fx * preset.baseline_m
     z = np.fromfunction(lambda v, u: 1.0 + 0.004 * v + 0.001 * u, (intr.height, intr.width)).astype(np.float32)
     d = torch.from_numpy(fb / z)
-    ctx = {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy, "baseline": sensor.baseline}
+    ctx = EffectContext(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy, baseline=sensor.baseline)
     with torch.no_grad():
-        seen = d
-        for effect in sensor.effects:
-            seen = effect(seen, ctx)
+        seen = sensor.disparity_effects(d, ctx)
     observed = (fb / seen).numpy().astype(np.float32)
     observed[:5, :5] = 0.0  # invalid pixels stay invalid
     assert float(np.abs(observed[5:, 5:] - z[5:, 5:]).max()) > 0.02  # the errors are tens of mm

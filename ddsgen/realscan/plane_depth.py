@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ddsgen.sensor.effects.context import EffectContext
+
 #: Fixed-point iterations of the inverse (the error's slope in d is ~alpha1 * |D| << 1: converges fast).
 ITERATIONS = 4
 
@@ -35,8 +37,7 @@ def undo_disparity_effects(sensor, depth_m: np.ndarray, intrinsics) -> np.ndarra
         depth_m: the real depth (H, W) m, 0 where invalid.
         intrinsics: the frame's camera (the effects' image coordinates).
     """
-    effects = [e for e in sensor.effects if e.stage == "disparity"]
-    if not effects:
+    if not sensor.disparity_effects.effects:
         return depth_m
     with torch.no_grad():
         fx = intrinsics.fx * float(sensor.focal_scale)
@@ -45,17 +46,13 @@ def undo_disparity_effects(sensor, depth_m: np.ndarray, intrinsics) -> np.ndarra
         z = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32))
         valid = z > 0
         observed = torch.where(valid, fb / z.clamp_min(1e-6), torch.zeros_like(z))
-        ctx = {"fx": fx, "fy": fy, "cx": intrinsics.cx, "cy": intrinsics.cy, "baseline": sensor.baseline}
+        ctx = EffectContext(fx=fx, fy=fy, cx=intrinsics.cx, cy=intrinsics.cy, baseline=sensor.baseline)
         d = observed.clone()
-        modelled = observed
-        for effect in effects:
-            modelled = effect(modelled, ctx)
+        modelled = sensor.disparity_effects(observed, ctx)
         if torch.equal(modelled, observed):  # neutral effects: the raw depth, bit for bit
             return depth_m
         for _ in range(ITERATIONS):
-            modelled = d
-            for effect in effects:
-                modelled = effect(modelled, ctx)
+            modelled = sensor.disparity_effects(d, ctx)
             d = torch.where(valid, d + (observed - modelled), d)  # d_real = d + e(d)  =>  d <- d_real - e(d)
         ok = valid & (d > 1e-3)
         out = torch.where(ok, fb / torch.where(ok, d, torch.ones_like(d)), torch.zeros_like(d))

@@ -1,10 +1,11 @@
 """DepthSensor: the differentiable structured-light sensor, from hit geometry to depth.
 
-The sensor is a composition of stages (:mod:`ddsgen.sensor.stages`), each built from its keys of the preset::
+The sensor is a composition of stages (:mod:`ddsgen.sensor.stages`), each built from its keys of the preset, with
+the preset's optional physics (effects) plugged in as stages of their own (:mod:`ddsgen.sensor.effect_stages`)::
 
-    geometry (ray cast, constant) -> projector -> IR image -> [ir effects] -> block matcher
-    -> row smoothing and quantum -> [disparity effects] -> depth z = f b / d -> [depth effects]
-    -> [validity effects] -> validity -> clean-up -> output borders (-> optional post-processing CNN) -> registration
+    geometry (ray cast, constant) -> projector -> IR image -> ir effects -> block matcher
+    -> row smoothing and quantum -> disparity effects -> depth z = f b / d -> depth effects
+    -> validity effects -> validity -> clean-up -> output borders (-> optional post-processing CNN) -> registration
 
 Everything in :meth:`DepthSensor.forward` is a torch function of the sensor's
 parameters. Positive parameters are stored as logarithms (baseline, focal length,
@@ -21,10 +22,13 @@ import torch
 from torch import nn
 
 from ddsgen.preset import Intrinsics, SensorPreset
+from ddsgen.sensor.effect_stages import effect_stages
 from ddsgen.sensor.effects import build_effects
+from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.geometry import SensorGeometry
 from ddsgen.sensor.ir import IRNoise
 from ddsgen.sensor.pattern import PatternField
+from ddsgen.sensor.postprocess import load_postprocess
 from ddsgen.sensor.stages import (
     BlockMatcher, Cleanup, IRImage, OutputBorders, Projector, Registration, RowSmoothing, Stage, Validity,
 )  # fmt: skip
@@ -66,7 +70,7 @@ class FrontEnd:
 
     ir: IR image (counts, after ir effects); disparity: px (after disparity effects); raw_depth: m (after depth
     effects, 0 where the disparity is not positive); confidence: matcher's [0, 1]; matched: matcher's bool
-    validity; keep: keep-probability from the confidence and the lit mask; ctx: per-frame values effects read.
+    validity; keep: keep-probability from the confidence and the lit mask; ctx: what the effects read of the frame.
     """
 
     ir: torch.Tensor
@@ -75,7 +79,7 @@ class FrontEnd:
     confidence: torch.Tensor
     matched: torch.Tensor
     keep: torch.Tensor
-    ctx: dict
+    ctx: EffectContext
 
 
 def _log_param(value: float) -> nn.Parameter:
@@ -102,7 +106,9 @@ class DepthSensor(nn.Module):
     The stages (:data:`STAGES`: ``projector``, ``ir_image``, ``matcher``, ``row_smoothing``, ``validity``,
     ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting :attr:`preset` gives
     each its new settings. The sensor itself owns the camera (intrinsics, baseline, depth range), the effects
-    (``effects``, applied at their stage) and the optional post-processing CNN (``postprocess``).
+    (``effects``: their parameters, in the preset's order) and the optional post-processing CNN (``postprocess``).
+    The effects run as the stages ``ir_effects``, ``disparity_effects``, ``depth_effects`` and ``validity_effects``
+    (:func:`~ddsgen.sensor.effect_stages.effect_stages`), each holding the effects that act on its signal.
 
     ``unit`` (int, 0 by default) says which unit of the device model this is. Every unit has the same
     parameters; each has its own scene-fixed random patterns: the laser speckle a static scene shows and the
@@ -139,12 +145,15 @@ class DepthSensor(nn.Module):
         self.log_baseline = _log_param(preset.baseline_m)
         self.log_focal_scale = nn.Parameter(torch.tensor(0.0))
         self.effects = nn.ModuleList(build_effects(preset.effects))
+        stages_of_effects = effect_stages(self.effects)
+        self.ir_effects = stages_of_effects["ir"]
+        self.disparity_effects = stages_of_effects["disparity"]
+        self.depth_effects = stages_of_effects["depth"]
+        self.validity_effects = stages_of_effects["validity"]
         # Optional post-processing CNN (ddsgen.sensor.postprocess): called as
         # (depth, valid, valid_soft, geometry) -> (depth, valid, valid_soft).
         self.postprocess: nn.Module | None = None
         if preset.postprocess:
-            from ddsgen.sensor.postprocess import load_postprocess
-
             self.postprocess = load_postprocess(preset.resolve_path(preset.postprocess))
         # Reference padding: the largest disparity the matcher may search, plus the window.
         self.pad = int(math.ceil(preset.disparity_max_px * _PAD_MARGIN)) + preset.block_size_px
@@ -248,13 +257,6 @@ class DepthSensor(nn.Module):
         height, width = self.intr.height, self.intr.width + self.ir_margin_px
         return self.ir_image.draw_noise(seed, geometry, height, width, self.unit, self.device_)
 
-    def _effects(self, stage: str, x: torch.Tensor, ctx: dict) -> torch.Tensor:
-        """``x`` passed through the effects of ``stage`` ("ir", "disparity" or "depth") in the preset's order."""
-        for effect in self.effects:
-            if effect.stage == stage:
-                x = effect(x, ctx)
-        return x
-
     # ---- the pipeline ---------------------------------------------------------------------
     def forward(
         self, geometry: SensorGeometry, seed=0, noise: IRNoise | None = None, quantise: bool = True
@@ -300,11 +302,9 @@ class DepthSensor(nn.Module):
         ir, signal = self.ir_image(seen, lit_seen, self.pattern_field(), fx, fy, cx, intr.cy, baseline,
                                    self.emitted_intensity, self.ambient, self.speckle_scale, self.read_noise_mean,
                                    self.read_noise_std, noise, quantise)  # fmt: skip
-        ctx = {
-            "geometry": seen, "signal": signal, "fx": fx, "fy": fy, "cx": cx, "cy": intr.cy,
-            "baseline": baseline, "ir_max": self.ir_image.ir_max, "noise": noise,
-        }  # fmt: skip
-        ir = self._effects("ir", ir, ctx)
+        ctx = EffectContext(fx=fx, fy=fy, cx=cx, cy=intr.cy, baseline=baseline, geometry=seen, signal=signal,
+                            ir_max=self.ir_image.ir_max, noise=noise)  # fmt: skip
+        ir = self.ir_effects(ir, ctx)
         lit = lit_seen[:, :width]
 
         # Disparity search range from the current geometry (plain floats: the range is discrete).
@@ -319,15 +319,15 @@ class DepthSensor(nn.Module):
         if ir_width != width:  # back to the depth image's grid
             result = result.columns(width)
             ir, signal = ir[:, :width], signal[:, :width]
-            ctx.update(geometry=geometry, signal=signal, noise=noise.columns(width))
+            ctx.on_grid(geometry, signal, noise.columns(width))
         disparity = self.row_smoothing(result.disparity, result.valid, self.matcher.step_px if quantise else None)
-        disparity = self._effects("disparity", disparity, ctx)
+        disparity = self.disparity_effects(disparity, ctx)
 
         positive = disparity > 1e-3
         safe = torch.where(positive, disparity, torch.ones_like(disparity))
         raw_depth = torch.where(positive, fx * baseline / safe, torch.zeros_like(disparity))
-        ctx["raw_depth"] = raw_depth
-        raw_depth = self._effects("depth", raw_depth, ctx)
+        ctx.raw_depth = raw_depth
+        raw_depth = self.depth_effects(raw_depth, ctx)
 
         keep = self.validity.keep(self.matcher.keep_probability(result.confidence), lit, geometry)
         return FrontEnd(ir=ir, disparity=disparity, raw_depth=raw_depth, confidence=result.confidence,
@@ -340,10 +340,7 @@ class DepthSensor(nn.Module):
             self.stage_cache.count("validity_stage")
         p, intr = self.preset, self.intr
         ctx, raw_depth, disparity = front.ctx, front.raw_depth, front.disparity
-        keep = front.keep
-        for effect in self.effects:
-            if effect.stage == "validity":
-                keep = keep * effect(raw_depth, ctx)
+        keep = self.validity_effects(front.keep, raw_depth, ctx)
         valid, valid_soft = self.validity(front.matched, raw_depth, keep, p.z_min_m, p.z_max_m, geometry)
         raw_depth, disparity, valid, valid_soft = self.cleanup(raw_depth, disparity, valid, valid_soft)
         valid, valid_soft = self.output_borders(valid, valid_soft, intr, p.width_px, p.height_px, p.cx_px, p.cy_px)

@@ -26,6 +26,7 @@ import torch
 from ddsgen.sensor.effects import register
 from ddsgen.effect_params import AXIS_DOMAINS, COEFFICIENTS, EFFECTS, N_COEFFICIENTS
 from ddsgen.sensor.effects.base import Effect
+from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.effects.features import PIXEL_AXES, pixel_axis
 
 #: Physical effects that leave a smooth residual along each axis (what a user should look at).
@@ -114,7 +115,7 @@ class AxisDisparityTerm(_AxisTerm):
     description = "An unnamed smooth disparity bias that varies along one pixel axis."
     params = EFFECTS["axis_disparity_term"].params
 
-    def forward(self, disparity: torch.Tensor, ctx: dict) -> torch.Tensor:
+    def forward(self, disparity: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         """disparity (H, W) px -> disparity + s(axis) where a match exists (> 0)."""
         s = self.term(pixel_axis(self.axis, ctx, disparity, self.stage)).to(disparity.dtype)
         return torch.where(disparity > 0, disparity + s, disparity)
@@ -130,7 +131,7 @@ class AxisValidityTerm(_AxisTerm):
     description = "An unnamed smooth dropout whose probability varies along one pixel axis."
     params = EFFECTS["axis_validity_term"].params
 
-    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
+    def forward(self, depth: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         """depth (H, W) m -> keep-probability min(1, 2 sigmoid(s(axis))) (H, W)."""
         s = self.term(pixel_axis(self.axis, ctx, depth, self.stage)).to(depth.dtype)
         return keep_probability(s)

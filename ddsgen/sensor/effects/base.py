@@ -1,7 +1,8 @@
 """The Effect protocol: a small differentiable module with named physical parameters.
 
-An effect acts at one stage of the sensor pipeline (see
-:class:`~ddsgen.sensor.depth_sensor.DepthSensor`):
+An effect acts on one signal of the sensor (its ``stage``); the sensor runs it in that signal's
+:class:`~ddsgen.sensor.effect_stages.EffectStage`, with the frame's
+:class:`~ddsgen.sensor.effects.context.EffectContext`:
 
 * ``"ir"``        — (H, W) IR image in counts -> IR image (before matching)
 * ``"disparity"`` — (H, W) disparity in px -> disparity (after matching)
@@ -31,6 +32,7 @@ import torch
 from torch import nn
 
 from ddsgen.effect_params import EffectParam
+from ddsgen.sensor.effects.context import EffectContext
 
 
 class Effect(nn.Module):
@@ -100,5 +102,5 @@ class Effect(nn.Module):
         """The preset ``effects:`` entry for this effect."""
         return {"name": self.name, **self.choices, **{k: round(v, 9) for k, v in self.values().items()}}
 
-    def forward(self, x: torch.Tensor, ctx: dict) -> torch.Tensor:  # pragma: no cover - abstract
+    def forward(self, x: torch.Tensor, ctx: EffectContext) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError

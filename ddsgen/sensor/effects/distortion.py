@@ -38,6 +38,7 @@ from ddsgen.sensor.effects import register
 from ddsgen.sensor.effects.axis_terms import least_squares
 from ddsgen.effect_params import EFFECTS, GRID_COLS, GRID_KEYS, GRID_ROWS
 from ddsgen.sensor.effects.base import Effect
+from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.effects.features import normalised_coordinates
 
 #: Half-extent of the control grid in normalised image coordinates (a 57 x 43 deg Kinect image spans
@@ -83,17 +84,17 @@ class DisparityDistortion(Effect):
         """(GRID_ROWS, GRID_COLS) control values (px, differentiable)."""
         return torch.stack([self.value(k) for k in GRID_KEYS]).reshape(GRID_ROWS, GRID_COLS)
 
-    def pattern(self, height: int, width: int, ctx: dict) -> torch.Tensor:
+    def pattern(self, height: int, width: int, ctx: EffectContext) -> torch.Tensor:
         """D(u, v) (H, W) px: the distortion at zero disparity over the pixel grid."""
         grid = self.grid()
-        x, y = normalised_coordinates(height, width, ctx["fx"], ctx["fy"], ctx["cx"], ctx["cy"], grid.device)
+        x, y = normalised_coordinates(height, width, ctx.fx, ctx.fy, ctx.cx, ctx.cy, grid.device)
         return sample_field(grid, x, y)
 
     def decay(self, disparity: torch.Tensor) -> torch.Tensor:
         """exp(alpha0 - alpha1 d) (same shape as ``disparity``, px)."""
         return torch.exp(self.value("alpha0") - self.value("alpha1") * disparity)
 
-    def forward(self, disparity: torch.Tensor, ctx: dict) -> torch.Tensor:
+    def forward(self, disparity: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         """disparity (H, W) px -> d + D(u, v) exp(alpha0 - alpha1 d) where a match exists (d > 0)."""
         h, w = disparity.shape
         shift = self.pattern(h, w, ctx).to(disparity.dtype) * self.decay(disparity)

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ddsgen.sensor.box_filter import box_mean
+from ddsgen.sensor.effects.context import EffectContext
 
 # A depth step larger than this fraction of the local depth is a discontinuity (5 %: 10 cm at 2 m).
 EDGE_RELATIVE_STEP = 0.05
@@ -94,13 +95,6 @@ def local_signal(signal: torch.Tensor, window: int = SIGNAL_WINDOW_PX) -> torch.
     return box_mean(signal[None, None], window, padding="replicate")[0, 0]
 
 
-def cached(ctx: dict, key: str, compute):
-    """``ctx[key]``, computed once per sensor call (ctx is the per-frame dict of the sensor)."""
-    if key not in ctx:
-        ctx[key] = compute()
-    return ctx[key]
-
-
 #: Pixel axes an effect may follow (the residual axes of ``ddsgen diagnose``), with their units here.
 PIXEL_AXES: dict[str, str] = {
     "radius": "normalised image radius sqrt(x^2 + y^2), x = (u - cx) / fx, y = (v - cy) / fy",
@@ -113,12 +107,12 @@ PIXEL_AXES: dict[str, str] = {
 }
 
 
-def pixel_axis(axis: str, ctx: dict, x: torch.Tensor, stage: str) -> torch.Tensor:
+def pixel_axis(axis: str, ctx: EffectContext, x: torch.Tensor, stage: str) -> torch.Tensor:
     """The value of ``axis`` at every pixel (H, W), in the units of :data:`PIXEL_AXES`.
 
     Args:
         axis: a key of :data:`PIXEL_AXES`.
-        ctx: the sensor's per-frame context (geometry, signal, fx, fy, cx, cy, baseline).
+        ctx: the frame's context (:class:`~ddsgen.sensor.effects.context.EffectContext`).
         x: (H, W) the stage's input: disparity (px) at stage ``"disparity"``, depth (m) at
             ``"depth"`` and ``"validity"``; only the ``depth`` axis reads it.
         stage: the calling effect's stage.
@@ -129,19 +123,19 @@ def pixel_axis(axis: str, ctx: dict, x: torch.Tensor, stage: str) -> torch.Tenso
     """
     h, w = x.shape
     if axis in ("radius", "row", "column"):
-        xn, yn = normalised_coordinates(h, w, ctx["fx"], ctx["fy"], ctx["cx"], ctx["cy"], x.device)
+        xn, yn = normalised_coordinates(h, w, ctx.fx, ctx.fy, ctx.cx, ctx.cy, x.device)
         return {"radius": lambda: torch.sqrt(xn * xn + yn * yn), "row": lambda: yn, "column": lambda: xn}[axis]()
     if axis == "edge_distance":
-        return cached(ctx, "edge_distance", lambda: edge_distance(ctx["geometry"].clean_depth))
+        return ctx.feature("edge_distance", lambda: edge_distance(ctx.geometry.clean_depth))
     if axis == "incidence":
-        g = ctx["geometry"]
-        return cached(ctx, "incidence_deg", lambda: incidence_angle_deg(g.points, g.normals))
+        g = ctx.geometry
+        return ctx.feature("incidence_deg", lambda: incidence_angle_deg(g.points, g.normals))
     if axis == "signal":
-        return cached(ctx, "local_signal", lambda: local_signal(ctx["signal"]))
+        return ctx.feature("local_signal", lambda: local_signal(ctx.signal))
     if axis == "depth":
         if stage != "disparity":
             return x
         positive = x > 1e-3  # z = f b / d where there is a match, as the sensor converts it
         safe = torch.where(positive, x, torch.ones_like(x))
-        return torch.where(positive, ctx["fx"] * ctx["baseline"] / safe, torch.zeros_like(x))
+        return torch.where(positive, ctx.fx * ctx.baseline / safe, torch.zeros_like(x))
     raise KeyError(f"unknown pixel axis {axis!r} (known: {', '.join(PIXEL_AXES)})")

@@ -19,8 +19,8 @@ import torch
 from ddsgen.effect_params import EFFECTS
 from ddsgen.sensor.effects import REGISTRY, register
 from ddsgen.sensor.effects.base import Effect
+from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.effects.features import (
-    cached,
     edge_distance,
     incidence_angle_deg,
     local_signal,
@@ -65,14 +65,14 @@ class LensDistortion(Effect):
     axis = "radius"
     params = EFFECTS["lens_distortion"].params
 
-    def displacement(self, height: int, width: int, ctx: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    def displacement(self, height: int, width: int, ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:
         """(du, dv) (H, W) px: pixel (u, v) of the distorted image shows the ideal image at (u + du, v + dv)."""
-        x, y = normalised_coordinates(height, width, ctx["fx"], ctx["fy"], ctx["cx"], ctx["cy"], self.raw["k1"].device)
+        x, y = normalised_coordinates(height, width, ctx.fx, ctx.fy, ctx.cx, ctx.cy, self.raw["k1"].device)
         r2 = x * x + y * y
         radial = self.value("k1") * r2 + self.value("k2") * r2 * r2
-        return x * ctx["fx"] * radial, y * ctx["fy"] * radial
+        return x * ctx.fx * radial, y * ctx.fy * radial
 
-    def forward(self, ir: torch.Tensor, ctx: dict) -> torch.Tensor:
+    def forward(self, ir: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         """ir (H, W) counts -> the same image seen through the distorting lens."""
         h, w = ir.shape
         du, dv = self.displacement(h, w, ctx)
@@ -95,7 +95,7 @@ class DisparityOffset(Effect):
     axis = "depth"
     params = EFFECTS["disparity_offset"].params
 
-    def forward(self, disparity: torch.Tensor, ctx: dict) -> torch.Tensor:
+    def forward(self, disparity: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         return disparity + self.value("offset_px")
 
 
@@ -113,7 +113,7 @@ class DepthScale(Effect):
     axis = "depth"
     params = EFFECTS["depth_scale"].params
 
-    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
+    def forward(self, depth: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         return depth * (1.0 + self.value("scale_error"))
 
 
@@ -132,9 +132,9 @@ class GrazingDropout(Effect):
     RAMP_DEG = 3.0  # keep-probability falls from 1 to 0 between angle_deg and angle_deg + RAMP_DEG
     params = EFFECTS["grazing_dropout"].params
 
-    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
-        g = ctx["geometry"]
-        theta = cached(ctx, "incidence_deg", lambda: incidence_angle_deg(g.points, g.normals))
+    def forward(self, depth: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
+        g = ctx.geometry
+        theta = ctx.feature("incidence_deg", lambda: incidence_angle_deg(g.points, g.normals))
         return 1.0 - ((theta - self.value("angle_deg")) / self.RAMP_DEG).clamp(0.0, 1.0)
 
 
@@ -152,8 +152,8 @@ class EdgeDropout(Effect):
     axis = "edge_distance"
     params = EFFECTS["edge_dropout"].params
 
-    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
-        dist = cached(ctx, "edge_distance", lambda: edge_distance(ctx["geometry"].clean_depth))
+    def forward(self, depth: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
+        dist = ctx.feature("edge_distance", lambda: edge_distance(ctx.geometry.clean_depth))
         # Soft band: keep = 0 inside (dist < w - 1), 1 outside (dist > w), linear in between.
         return 1.0 - (self.value("width_px") - dist).clamp(0.0, 1.0)
 
@@ -173,8 +173,8 @@ class LowSignalDropout(Effect):
     SHARPNESS = 4.0  # keep = 1 / (1 + (threshold / signal)^SHARPNESS), computed as a sigmoid of the log ratio
     params = EFFECTS["low_signal_dropout"].params
 
-    def forward(self, depth: torch.Tensor, ctx: dict) -> torch.Tensor:
-        level = cached(ctx, "local_signal", lambda: local_signal(ctx["signal"]))
+    def forward(self, depth: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
+        level = ctx.feature("local_signal", lambda: local_signal(ctx.signal))
         log_ratio = torch.log(level.clamp_min(1e-12)) - torch.log(self.value("threshold_counts").clamp_min(1e-12))
         return torch.sigmoid(self.SHARPNESS * log_ratio)
 
