@@ -3,6 +3,7 @@
 The frames are split into fit and held-out frames (:func:`~ddsgen.fit.split.split_fit_held_out`); the sensor is fitted
 on the fit frames (:func:`~ddsgen.fit.fitting.fit_sensor`), each parameter group whose change does not lower the
 held-out gap is reverted (:func:`~ddsgen.fit.revert.revert_unhelpful`), and the report is built beside the preset. The
+disparity quantum is measured from the real depth's levels first (:mod:`ddsgen.fit.lattice`) and the fit runs on it. The
 fitted preset is written last, inside the report's atomic folder: an interrupted fit leaves neither.
 """
 
@@ -14,12 +15,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import click
+import torch
 
 from ddsgen.atomic import atomic_folder, atomic_write_text
 from ddsgen.fit.device_keys import device_key_values
 from ddsgen.fit.fit_report import fitted_line, parameter_rows, write_fit_report
 from ddsgen.fit.fitted_preset import assemble_preset, sensor_changes, write_preset
 from ddsgen.fit.fitting import fit_sensor, refine_frame_poses
+from ddsgen.fit.lattice import measure_quantum
 from ddsgen.fit.parameters import SENSOR_PARAMS, physical_values, resolve_params
 from ddsgen.fit.priors import Priors
 from ddsgen.fit.revert import output_holds_fit, param_group, revert_summary, revert_unhelpful, snapshot
@@ -80,8 +83,6 @@ def run_paired_fit(preset: str, real_dir: str | Path, out_path: Path, report: Pa
     def counted(frames):  # the pixels the fit works on
         return [dataclasses.replace(f, region=f.object_region) for f in frames] if s.region == "objects" else frames
 
-    resolved = resolve_params(sensor, s.params)
-    start = snapshot(resolved)
     sets = {"fit": fit_frames, "held-out": held}
 
     def gaps_now(keep_maps=False):
@@ -89,7 +90,16 @@ def run_paired_fit(preset: str, real_dir: str | Path, out_path: Path, report: Pa
                                 noise_floor=False, progress=progress)
                 for which, fs in sets.items() for r in ("all", "objects")}  # fmt: skip
 
-    before = gaps_now(keep_maps=True)
+    before = gaps_now(keep_maps=True)  # the input preset as it is
+    # The disparity quantum is measured from the real depth's levels, not fitted (ddsgen.fit.lattice); the fit runs
+    # on the measured lattice and the change is judged on the held-out gap with the rest, below.
+    with torch.no_grad():
+        quantum = measure_quantum(fit_frames, held, camera_preset.subpixel_level, float(sensor.baseline),
+                                  float(sensor.focal_scale)) if s.search else None  # fmt: skip
+    if quantum and quantum["changed"]:
+        sensor = DepthSensor(camera_preset.replace(subpixel_level=quantum["level"]))
+    resolved = resolve_params(sensor, s.params)
+    start = snapshot(resolved)
     pose_rounds = []
 
     def refine_all():  # poses as nuisance parameters, with the sensor as it is now; the same split again
@@ -138,10 +148,14 @@ def run_paired_fit(preset: str, real_dir: str | Path, out_path: Path, report: Pa
         revert_lines = revert_summary(outcome)
     kept = {n: True if outcome is None else output_holds_fit(outcome, param_group(n, SENSOR_PARAMS))
             for n in result.params}  # fmt: skip
+    if quantum and quantum["changed"] and outcome is not None:
+        sensor = _judge_quantum(sensor, quantum, lambda current: prepare_for(current)[1], s.region, s.seed + 1)
     after = gaps_now(keep_maps=True)
 
     # The fitted preset: the user's preset (its camera) with the fitted physical values.
     changes = {**sensor_changes(sensor, original), **device_key_values(sensor, SENSOR_PARAMS)}
+    if quantum and quantum["changed"]:
+        changes["subpixel_level"] = quantum["level"]
     weights_path = None
     if sensor.postprocess is not None and "cnn" in result.params and kept.get("cnn", True):
         weights_path = out_path.with_name(out_path.stem + ".postprocess.pt")
@@ -161,7 +175,7 @@ def run_paired_fit(preset: str, real_dir: str | Path, out_path: Path, report: Pa
         "held_out_gap_before": before[held_key].gap, "held_out_gap_after": after[held_key].gap,
         "gaps_mm": [{"frames": w, "region": r, "before": b, "after": a, "pixels": gap_pixels[(w, r)]}
                     for (w, r), (b, a) in gap_pairs.items()],
-        "parameters": rows, "revert": outcome, "revert_summary": revert_lines,
+        "parameters": rows, "revert": outcome, "revert_summary": revert_lines, "disparity_quantum": quantum,
         "fit": result.to_dict(),
     }  # fmt: skip
     if s.refine_poses:
@@ -170,6 +184,7 @@ def run_paired_fit(preset: str, real_dir: str | Path, out_path: Path, report: Pa
     comment = [f"fitted by ddsgen fit to {real_dir} from {preset}", f"params: {', '.join(s.params)}",
                f"split: {split_kind}; held-out gap ({s.region}) {before[held_key].gap:.2f} -> "
                f"{after[held_key].gap:.2f} mm", *revert_lines,
+               *([f"disparity quantum: {quantum['reason']}"] if quantum else []),
                "value +- uncertainty (1 s.d.) of each fitted parameter:"]  # fmt: skip
     comment += [f"  {r['key']}: {fitted_line(r)}" + ("" if r["kept"] else
                 f" (reverted: the preset keeps the input's {r['after']:.6g})") for r in rows]  # fmt: skip
@@ -198,6 +213,8 @@ def print_summary(summary: dict, report: Path) -> None:
                    f"({g['pixels']:,} px)")  # fmt: skip
     for line in summary["revert_summary"]:
         click.echo(f"  {line}")
+    if summary.get("disparity_quantum"):
+        click.echo(f"  disparity quantum: {summary['disparity_quantum']['reason']}")
     for r in summary["parameters"]:
         click.echo(f"  {r['key']:24s} {r['before']:.6g} -> fitted {fitted_line(r)}"
                    + ("" if r["kept"] else f" (reverted: keeps {r['after']:.6g})")
@@ -207,3 +224,31 @@ def print_summary(summary: dict, report: Path) -> None:
             continue
         click.echo(f"  {name}: {info['method']}" + ("" if info.get("accepted", True) else " (not identifiable: kept)"))
     click.echo(f"wrote {summary['fitted_preset']} and {report}/")
+
+
+#: The measured quantum is kept unless it raises the held-out gap by more than this factor (see _judge_quantum).
+QUANTUM_GAP_TOLERANCE = 1.05
+
+
+def _judge_quantum(sensor, quantum: dict, held_out_for, region: str, seed: int):
+    """The fitted ``sensor`` on the measured lattice, or the same sensor on the preset's own lattice when the
+    measured one raises the held-out gap by more than QUANTUM_GAP_TOLERANCE (the change is judged with the rest of
+    the fit). Updates ``quantum``'s ``changed`` and ``reason``; ``held_out_for(sensor)`` gives the held-out frames
+    prepared for a sensor.
+
+    The tolerance: the quantum moves a pixel's depth by at most half a step (1/16 px: 1.5 mm at 1 m), far less than
+    what a preset that lacks other device behaviours misses per pixel, so the held-out gap cannot resolve it (the
+    real cat from kinect_v1_paper, its objects: 4.02 mm on 1/4 px, 4.11 mm on the measured 1/8); the levels,
+    confirmed on held-out pixels, decide unless the gap says clearly otherwise."""
+    without = DepthSensor(sensor.to_preset().replace(subpixel_level=quantum["preset_level"]))
+    without.postprocess = sensor.postprocess
+    with_gap = gap(sensor, held_out_for(sensor), region=region, seed=seed, noise_floor=False, progress=False).gap
+    without_gap = gap(without, held_out_for(without), region=region, seed=seed, noise_floor=False,
+                      progress=False).gap  # fmt: skip
+    if with_gap > QUANTUM_GAP_TOLERANCE * without_gap:
+        quantum.update(changed=False, level=quantum["preset_level"],
+                       reason=f"{quantum['reason']}; not kept: held-out gap {with_gap:.2f} mm on it, more than "
+                              f"{QUANTUM_GAP_TOLERANCE:g} x the {without_gap:.2f} mm on the preset's")  # fmt: skip
+        return without
+    quantum["reason"] += f"; held-out gap {with_gap:.2f} mm on it, {without_gap:.2f} mm on the preset's"
+    return sensor
