@@ -15,7 +15,8 @@ from ddsgen.raycast import cast
 from ddsgen.scene import shapes
 from ddsgen.scene.sampling import FrameScene, PlacedObject
 from ddsgen.scene_gradients import RefinableScene, RefineSettings
-from ddsgen.scene_gradients.acceptance import accept_parts, heldout_blocks, pixel_cost
+from ddsgen.scene_gradients.acceptance import (accept_parts, block_cells, block_difference_noise, heldout_blocks,
+                                               pixel_cost)
 from ddsgen.scene_gradients.poses import axis_angle_to_matrix
 from ddsgen.scene_gradients.refine import _View
 from ddsgen.sensor.depth_sensor import DepthSensor
@@ -194,3 +195,59 @@ def test_the_visible_fraction_is_estimated_from_what_lies_in_front_of_the_model(
         assert 0.2 < seen < 0.8
     else:
         assert seen > 0.95
+
+
+def test_the_turn_noise_comes_from_neighbouring_blocks_and_a_smooth_change_does_not_raise_it():
+    """A turn makes one side of a part better and the other worse: a smooth ramp of per-pixel differences. The
+    noise of the summed difference comes from neighbouring held-out blocks, so the ramp leaves it at the noise
+    of the pixels, where the spread over all pixels (or blocks) counts the ramp as noise."""
+    height, width, sigma = 120, 320, 0.002
+    heldout = heldout_blocks(height, width, 6, seed=1, view=0)
+    cells = block_cells(height, width, 6, seed=1, view=0)[heldout]
+    xs = torch.arange(width, dtype=torch.float64).expand(height, width)[heldout]
+    ramp = (xs / width - 0.5) * 0.008  # -4 .. +4 mm across the part
+    noise = torch.from_numpy(np.random.default_rng(5).normal(0.0, sigma, size=int(heldout.sum())))
+    pixels = int(heldout.sum())
+    white = sigma * pixels**0.5  # the sum's standard deviation: independent pixels
+    assert block_difference_noise([noise], [cells]) == pytest.approx(white, rel=0.15)
+    assert block_difference_noise([ramp + noise], [cells]) == pytest.approx(white, rel=0.15)
+    assert float((ramp + noise).std()) * pixels**0.5 > 1.4 * white  # the pixel spread: inflated by the ramp
+    assert block_difference_noise([noise[:1]], [cells[:1]]) is None  # one block: no pair to compare
+
+
+def _turned_box_views(rotvec, translation, true_turn: bool):
+    """A box 0.7 m away seen at a corner, its correction set to (``rotvec`` rad, ``translation`` m). The real depth
+    is taken at the corrected pose (``true_turn``) or at the start moved by the translation alone (the turn is
+    not there). Returns (sensor, view)."""
+    intr = window()
+    box = shapes.make_shape("box", {"size": (0.07, 0.055, 0.045)})
+    scene = RefinableScene(one_object_scene(box, pose((-0.6, 0.7, 0.0), (0.0, 0.0, 0.7))), intr, 0.075, 0.005)
+    poses = scene.poses
+    with torch.no_grad():
+        poses.translation[0] = torch.tensor(translation, dtype=torch.float64)
+        if true_turn:
+            poses.rotation[0] = torch.tensor(rotvec, dtype=torch.float64)
+        truth_T = poses.matrices()[0]
+    sensor = DepthSensor(load_preset("kinect_v1_paper"), intrinsics=intr)
+    with torch.no_grad():
+        real = sensor(SensorGeometry.from_hits(cast(one_object_scene(box, truth_T), intr, 0.075, 0.005)), seed=3).depth
+    view = _View(0, scene, real, RefineSettings(edge_weight=0.0))
+    with torch.no_grad():
+        poses.rotation[0] = torch.tensor(rotvec, dtype=torch.float64)
+    return sensor, view
+
+
+@pytest.mark.parametrize("degrees, true_turn", [(3.6, True), (0.6, False)])
+def test_a_turn_is_taken_only_where_held_out_pixels_show_it_beyond_noise(degrees, true_turn):
+    """A 3.6 deg turn that is really there is taken with the translation; a 0.6 deg turn on a box that did not
+    turn (its refined translation right) is dropped: the translation is kept with the start rotation. (A rule
+    that dropped a turn only if it made the held-out cost clearly worse kept the 0.6 deg one.)"""
+    axis = np.array((0.012, -0.015, 0.008))
+    rotvec, translation = tuple(axis / np.linalg.norm(axis) * np.radians(degrees)), (0.003, -0.002, 0.0035)
+    sensor, view = _turned_box_views(rotvec, translation, true_turn)
+    (decision,) = accept_parts(sensor, [view], 0.015, 0.025)[0][:1]
+    assert decision.kept and decision.pixels > 50
+    assert decision.translation_only is (not true_turn)
+    rotation = view.scene.poses.rotation.detach()[0].numpy()
+    np.testing.assert_allclose(rotation, rotvec if true_turn else 0.0, atol=1e-12)
+    np.testing.assert_allclose(view.scene.poses.translation.detach()[0].numpy(), translation, atol=1e-12)

@@ -29,7 +29,7 @@ import torch
 
 from ddsgen.realscan.losses import resolved_depth_m
 from ddsgen.realscan.simulate import frame_camera
-from ddsgen.scene_gradients.acceptance import accept_parts, heldout_blocks, owner_image
+from ddsgen.scene_gradients.acceptance import accept_parts, block_cells, heldout_blocks, owner_image
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.identifiability import object_identifiability
@@ -261,6 +261,7 @@ class _View:
         height, width = real.shape
         self.heldout = (heldout_blocks(height, width, int(s.holdout_block_px), s.seed, index)
                         if s.holdout_block_px > 0 else torch.zeros(real.shape, dtype=torch.bool))  # fmt: skip
+        self.blocks = block_cells(height, width, max(int(s.holdout_block_px), 1), s.seed, index)
         self.meshes = [p.mesh for p in scene.parts]
         self.tensors, self.outline = None, None
         self.identifiability, self.visible_fraction = [], []
