@@ -256,6 +256,21 @@ def normalised_radius(height: int, width: int) -> np.ndarray:
     return np.hypot(du, dv) / np.hypot(width / 2.0, height / 2.0)
 
 
+#: Ring edges (fractions of the half-diagonal) of the radial validity profile: the rings of ../shared/data/README.md.
+RADIAL_RING_EDGES = (0.0, 0.3, 0.5, 0.7, 0.85, np.inf)
+
+
+def radial_valid_profile(valid: np.ndarray, ring_edges: tuple[float, ...] = RADIAL_RING_EDGES) -> list[float]:
+    """Share of valid pixels in each ring of :func:`normalised_radius` (len(ring_edges) - 1 values in 0..1).
+
+    Args:
+        valid: (H, W) bool (or depth, > 0 = valid).
+    """
+    valid = np.asarray(valid) > 0
+    radius = normalised_radius(*valid.shape)
+    return [float(valid[(radius >= low) & (radius < high)].mean()) for low, high in zip(ring_edges, ring_edges[1:])]
+
+
 def corner_valid_share(valid: np.ndarray, region: np.ndarray | None = None,
                        corner_radius: float = CORNER_RADIUS) -> tuple[float | None, float | None]:
     """(corner share, whole share) of valid pixels; None where the region has no such pixel."""
