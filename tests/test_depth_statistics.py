@@ -182,7 +182,7 @@ def test_narrow_registration_bands_count_the_rows_left_as_a_one_or_two_pixel_sli
 
 @pytest.mark.skipif(not (SHARED / "tum_rgbd_frame_open3d").is_dir(), reason="../shared/data is absent")
 def test_real_registered_frames_leave_some_narrow_bands_as_a_slit():
-    """Three devices (session 48): IC-BIN 277 of 1212 pooled (0.23; per frame 0-0.30), the LineMOD cat 17 of 116
+    """Three devices: IC-BIN 277 of 1212 pooled (0.23; per frame 0-0.30), the LineMOD cat 17 of 116
     (0.15), TUM 15 of 104 (0.14). Closing every band up to 4 px, the forward map's fill gives the default renders
     0.03 (43 of 1268, 16 frames); OpenNI's map without any fill 0.36 (docs/validation.md)."""
     import cv2

@@ -61,7 +61,7 @@ def test_edge_keeping_is_found_on_scans_of_a_device_that_keeps_its_edges(tmp_pat
         after = evaluate(found, frames, config.seed)
     print(f"gap beyond the floor {base.excess:.2f} -> {after.excess:.2f} mm at {values}")
     assert values["confirmed_match_zncc"] <= 0.4  # the device's 0.35 or its neighbour
-    # measured (session 35, forward registration): credited fall 46 % of the gap, its part beyond the noise floor
+    # measured (forward registration): credited fall 46 % of the gap, its part beyond the noise floor
     # 0.27 -> -0.03 mm (all of it)
     assert -score >= 0.4 and after.excess <= 0.2 * base.excess
 

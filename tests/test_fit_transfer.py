@@ -245,7 +245,7 @@ def test_hidden_device_fitted_on_one_scene_list_transfers_to_another(tmp_path, s
     fitted where *its* disparity errors put them (ddsgen.realscan.plane_depth; with planes fitted to the raw
     real depth the true device scored 21.4 mm and the stock one 18.6 -- the planes had absorbed the
     distortion) and the gap is averaged over two simulation noise seeds. Fit on 8 views of one layout of
-    list A, 80 steps (session 14, 1 thread): true device 10.55 mm, stock 18.55, fitted and kept 14.31 (0.77x);
+    list A, 80 steps (1 thread): true device 10.55 mm, stock 18.55, fitted and kept 14.31 (0.77x);
     eta_c 4.33e6 +- 0.26e6 vs true 4.96e6. With 3 views and 30 steps (before): 0.83x. The noise texture is
     judged on the objects (``plane_nuisance``): on all pixels eta_c came out 4.24e6 in every variant (the
     plane's disparity staircase depends on where the plane was placed). Spread over 3 layouts (3+3+2 views)

@@ -79,7 +79,7 @@ def test_a_patch_smaller_than_its_minimum_is_dropped():
 @pytest.mark.skipif(not (LINEMOD / "test" / "000006" / "scene_gt.json").is_file(), reason="real LineMOD data absent")
 def test_real_cat_the_gap_no_axis_explains_is_located_in_scene_patches(tmp_path, capsys):
     """The real LineMOD cat under kinect_v1, whole region (one frame, split): nothing is accepted and no axis has
-    structure beyond noise, yet the held-out gap is ~10 mm beyond a ~0.3 mm floor. Measured (session 41): 21
+    structure beyond noise, yet the held-out gap is ~10 mm beyond a ~0.3 mm floor. Measured: 21
     patches over 43 % of the compared pixels -- the fringes of the objects the scene lacks, the table around the
     board, the board's top -- carry 49 % of the gap beyond the floor (9.87 -> 5.06 mm without them, planes fitted again); the report
     says so and outlines them on the residual map."""
@@ -102,7 +102,7 @@ def test_real_cat_the_gap_no_axis_explains_is_located_in_scene_patches(tmp_path,
 
 @pytest.mark.skipif(not (LINEMOD / "test" / "000006" / "scene_gt.json").is_file(), reason="real LineMOD data absent")
 def test_compare_reports_the_patches_of_the_real_cats_scene_and_none_on_the_object(tmp_path, capsys):
-    """`compare` on the real cat under kinect_v1 (measured, session 41): the whole region's 9.43 mm excess is mostly
+    """`compare` on the real cat under kinect_v1 (measured): the whole region's 9.43 mm excess is mostly
     in 24 patches over 43 % of the pixels (2.95 mm without them, 69 % carried); the cat's own pixels (--region
     objects, excess 0.32 mm) have none."""
     from ddsgen.cli import main

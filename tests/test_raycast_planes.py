@@ -122,7 +122,7 @@ def test_segments_blocked_only_where_they_cross_inside_the_polygon():
 
 @pytest.mark.parametrize("make", ["box", "open_box_lid"])
 def test_a_small_closed_or_folded_mesh_is_not_taken_for_a_polygon(make):
-    """Background meshes of <= 64 faces are tried as polygons (distractor boxes are background since session 37):
+    """Background meshes of <= 64 faces are tried as polygons (distractor boxes are background):
     a closed box's face normals sum to zero and a folded sheet's fall short of twice its area; neither is a
     polygon, and neither warns (the zero normal was divided by its length)."""
     import warnings

@@ -313,7 +313,7 @@ def test_the_fill_across_rows_closes_short_runs_only_where_the_ir_camera_saw_a_v
 
 def test_a_forward_registered_device_keeps_the_band_between_a_near_box_and_the_wall():
     """The box at 0.8 m before the wall at 1.5 m: the RGB view's band right of the box is 9 px. Mapped back by the
-    ray-cast geometry (registration_forward_gap_px 0; kinect_v1 until session 35), the pixels the matcher carried past the box show box depth one band
+    ray-cast geometry (registration_forward_gap_px 0), the pixels the matcher carried past the box show box depth one band
     further on, beside the wall, so the band reads as a hole inside the box's depth (measured: 0 of 82 rows keep a
     hole between box and wall). Mapped forward (registration_forward_gap_px 4, kinect_v1) the carry lands beside the box and
     the band stays open between the two surfaces (92 of 92), as on real registered frames (0.98)."""

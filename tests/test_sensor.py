@@ -278,8 +278,7 @@ def test_without_the_shadow_mask_the_matcher_alone_decides_how_much_of_a_shadow_
     4-px shadow keeps most of its pixels, a 12-px one its outer columns on both sides -- as real PrimeSense frames do
     (no hole below ~7 px of shadow at 640 px, about half the width beyond: docs/validation.md). With the paper's mask
     every shadow pixel is invalid; elsewhere the two agree. (Both without the device's narrow fill, which closes the
-    4-px shadow whichever decides: checked with it too, at half the 9-px window, 4 px; kinect_v1 fills 3 since
-    session 35.)"""
+    4-px shadow whichever decides: checked with it too, at half the 9-px window, 4 px; kinect_v1 fills 3.)"""
     with_fill = small_kinect(320, 240, cleanup_fill_width_px=4)
     assert not with_fill.shadow_always_invalid
     device = with_fill.replace(cleanup_fill_width_px=0)
