@@ -70,6 +70,9 @@ from ddsgen.fit.unpaired.run import run_unpaired_fit
                    "give frames of varied views, or a camera that always sees nothing at one border gets a band. "
                    "Each value is reported with the range that fits as well against the scene content of the fit "
                    "scenes; where PRESET's value is in that range it is kept. "
+                   "The frames are held out by sequence (the first folder below REAL_DIR; one sequence: every other "
+                   "frame): the fit sees only its part, and the fitted preset is written only if it is closer than "
+                   "PRESET to the held-out frames, else PRESET's values are written unchanged (one frame: always). "
                    "For a preset registered to an RGB camera see --registration.")
 @click.option("--scenes", type=click.Path(dir_okay=False), default=None,
               help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")

@@ -1,7 +1,9 @@
-"""``ddsgen fit PRESET REAL_DIR --unpaired``: read, fit, report, write the fitted preset.
+"""``ddsgen fit PRESET REAL_DIR --unpaired``: read, split, fit, judge on held-out frames, report, write the preset.
 
-Inputs are checked before any rendering (bad input -> InputError, nothing written); the
-fitted preset is written last, after the report.
+Inputs are checked before any rendering (bad input -> InputError, nothing written). The real frames are split by
+sequence (:mod:`.holdout`); the fit sees only its part, and the fitted preset is written only if it is closer than the
+input to the held-out frames -- otherwise the input's values are written, and the summary says so. The preset is
+written last, after the report.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from ddsgen.errors import InputError
 from ddsgen.fit.fitted_preset import assemble_preset, write_preset
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.features import frame_features, pool
+from ddsgen.fit.unpaired.holdout import HOLDOUT_MEANING, judge, split_frames
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.search import (
@@ -65,11 +68,13 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # candidates differ in window and registration, not in f b).
     fb = stock_camera.focal_px * stock_camera.baseline_m
     real_features = [frame_features(f.depth, fb) for f in real]
-    model, candidates = choose_window_model(stock_camera, real, scene_list, sim_frames, seed, progress,
-                                            reading=registration, real_features=real_features)  # fmt: skip
+    fit_indices, held_indices, holdout_kind = split_frames([f.name for f in real], seed)
+    fit_real, fit_features = [real[i] for i in fit_indices], [real_features[i] for i in fit_indices]
+    model, candidates = choose_window_model(stock_camera, fit_real, scene_list, sim_frames, seed, progress,
+                                            reading=registration, real_features=fit_features)  # fmt: skip
     camera, geometries, window = model.camera, model.geometries, model.window.as_keys()
-    result = fit_unpaired(camera, real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
-                          real_features=real_features, progress=progress)  # fmt: skip
+    result = fit_unpaired(camera, fit_real, geometries, seed=seed, bootstrap=bootstrap, keys=keys,
+                          real_features=fit_features, progress=progress)  # fmt: skip
 
     resolution = max(f.resolution_m for f in real)
     depths = {"real": [f.depth for f in real]}
@@ -82,12 +87,17 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                                        ("fitted", camera.replace(**result.after), geometries)):  # fmt: skip
         rendered = render_depths(preset, scenes_cast, seed + 1)  # fresh noise: not the fit's
         depths[label] = [round_like(d, resolution) for d in rendered]
-    pooled = {"real": pool(real_features),
-              **{label: pool([frame_features(d, fb) for d in depths[label]]) for label in ("stock", "fitted")}}
+    rendered_features = {label: [frame_features(d, fb) for d in depths[label]] for label in ("stock", "fitted")}
+    pooled = {"real": pool(real_features), **{label: pool(f) for label, f in rendered_features.items()}}
+    # The judgement: the held-out real frames against fresh renders of the input and of the fitted preset.
+    verdict = judge([real_features[i] for i in held_indices], rendered_features["stock"], rendered_features["fitted"])
+    verdict.update(kind=holdout_kind, meaning=HOLDOUT_MEANING[holdout_kind],
+                   fit_frames=[real[i].name for i in fit_indices], held_out_frames=[real[i].name for i in held_indices])
     content = {
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
         "assumed_intrinsics": camera.intrinsics.as_dict(), "sim_frames": sim_frames, **result.to_dict(),
+        "held_out": verdict, "written": "fitted" if verdict["fitted_better"] else "input",
         "output_window": {"stock": {key: getattr(stock_camera, key) for key in (*window, *UNREGISTERED)},
                           "measured": {**window, **model.registration_keys},
                           "rule": "border columns (rows) valid in at most 1 % of the real frames' pixels (a "
@@ -101,17 +111,31 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
-    fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
-    write_preset(fitted, out, f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}\n"
-                              f"params: {', '.join(result.after)}")  # fmt: skip
+    if verdict["fitted_better"]:
+        fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
+        changed = [f"{key}: {content['before'][key]:.6g} -> {value:.6g}" for key, value in result.after.items()
+                   if value != content["before"][key]]  # fmt: skip
+        write_preset(fitted, out, "\n".join([
+            f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}",
+            f"held out: {verdict['meaning']}; feature distance on the held-out frames "
+            f"{verdict['stock']:.4f} (input) -> {verdict['fitted']:.4f} (this preset)",
+            f"depth registration: {model.name}; output window: {tuple(in_preset_px.as_keys().values())}",
+            "changed: " + ("; ".join(changed) if changed else "none of the searched keys"),
+            "every other key: the input's"]))  # fmt: skip
+    else:
+        write_preset(assemble_preset(original, {}, "unpaired"), out, "\n".join([
+            f"ddsgen fit --unpaired to {real_dir} from {preset_ref}: the input's values, kept",
+            f"held out: {verdict['meaning']}" + ("" if verdict["stock"] is None else
+            f"; the fit was not closer to the held-out frames (feature distance {verdict['stock']:.4f} input, "
+            f"{verdict['fitted']:.4f} fitted)")]))  # fmt: skip
     return content
 
 
 def print_summary(content: dict) -> None:
     """The command's closing lines: distance before/after, each value with its uncertainty."""
     before, after = content["distance_before"]["total"], content["distance_after"]["total"]
-    click.echo(f"feature distance: {before:.4f} (stock) -> {after:.4f} (fitted) over {len(content['real_frames'])} "
-               f"real frame(s), {content['evaluations']} value sets, "
+    click.echo(f"feature distance on the fit frames: {before:.4f} (stock) -> {after:.4f} (fitted) over "
+               f"{len(content['held_out']['fit_frames'])} real frame(s), {content['evaluations']} value sets, "
                f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
         bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
@@ -130,4 +154,12 @@ def print_summary(content: dict) -> None:
                + (f" (validity by radius, stock values: {distances})" if distances else ""))
     click.echo("  output window (measured; px without depth at the left, right, top, bottom): "
                f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
+    held = content["held_out"]
+    click.echo(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
+               f"{len(content['real_frames'])} frames)")  # fmt: skip
+    if held["stock"] is not None:
+        click.echo(f"  feature distance on the held-out frames: {held['stock']:.4f} (input) -> {held['fitted']:.4f} "
+                   f"(fitted)")  # fmt: skip
+    if content["written"] == "input":
+        click.echo("the fit is not closer to frames it did not see: the input preset's values are written, unchanged")
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")

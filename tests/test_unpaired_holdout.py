@@ -1,0 +1,89 @@
+"""fit --unpaired is judged on real frames it did not see: held out by sequence, and a fit that is not closer to them
+than the input is not written (ddsgen.fit.unpaired.holdout)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from ddsgen.fit.unpaired.holdout import judge, split_frames
+
+
+def test_several_sequences_are_held_out_whole_and_one_sequence_frame_by_frame():
+    names = [f"seq{s}/depth/{i:06d}.png" for s in (1, 2, 3) for i in range(3)]
+    fit, held, kind = split_frames(names, seed=0)
+    assert kind == "sequence" and len(held) == 3 and len(fit) == 6
+    held_sequences = {names[i].split("/")[0] for i in held}
+    assert len(held_sequences) == 1 and not held_sequences & {names[i].split("/")[0] for i in fit}
+    fit, held, kind = split_frames([f"{i}.png" for i in range(5)], seed=0)
+    assert kind == "frame" and fit == [0, 2, 4] and held == [1, 3]
+    assert split_frames(["only.png"], seed=0) == ([0], [], "none")
+
+
+def test_the_judgement_compares_the_held_out_frames_with_each_presets_renders():
+    from ddsgen.fit.unpaired.features import frame_features
+
+    rng = np.random.default_rng(0)
+    fb = 572.41 * 0.075
+
+    def plane_frames(sigma_px: float, n: int = 2) -> list:  # a tilted plane, disparity noise sigma_px, 1/8 px steps
+        v, u = np.mgrid[0:240, 0:320]
+        disparity = fb / (1.0 + 0.002 * u + 0.001 * v) + rng.normal(0.0, sigma_px, (240, 320))
+        return [frame_features((fb / (np.round(disparity * 8) / 8)).astype(np.float32), fb) for _ in range(n)]
+
+    real, near, far = plane_frames(0.08), plane_frames(0.08), plane_frames(0.3)
+    verdict = judge(real, stock_features=far, fitted_features=near)
+    assert verdict["fitted_better"] and verdict["fitted"] < verdict["stock"]
+    assert not judge(real, stock_features=near, fitted_features=far)["fitted_better"]
+    assert judge([], near, far) == {"stock": None, "fitted": None, "fitted_better": False}
+
+
+@pytest.fixture(scope="module")
+def small_real_folder(tmp_path_factory):
+    """Six 160x120 frames of kinect_v1's own renders in two sequences, and the preset."""
+    from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
+    from ddsgen.io.png import write_depth_png
+    from ddsgen.preset import load_preset, save_preset
+    from ddsgen.realscan.realfolder import round_like
+    from ddsgen.scene.scenelist import load_scene_list
+
+    folder = tmp_path_factory.mktemp("unpaired_holdout")
+    stock = camera_for(load_preset("kinect_v1"), 160, 120)
+    depths = render_depths(stock, cast_scenes(stock, load_scene_list(None), 6, seed=31), seed=31)
+    for i, depth in enumerate(depths):
+        write_depth_png(folder / "real" / f"seq{i % 2 + 1}" / f"{i:06d}.png", round_like(depth, 0.001))
+    save_preset(stock, folder / "stock.yaml")
+    return folder
+
+
+def test_a_fit_that_is_not_closer_to_the_held_out_frames_writes_the_input(small_real_folder, tmp_path, monkeypatch,
+                                                                          capsys):  # fmt: skip
+    """A fit that lands far off (a 1/2 px disparity quantum where the frames show kinect_v1's 1/8 px) renders
+    farther from the held-out sequence than the input: the written preset keeps every value of the input, and the
+    terminal and the preset's header say so."""
+    from ddsgen.cli import main
+    from ddsgen.fit.unpaired import run
+    from ddsgen.preset import load_preset
+
+    real_fit = run.fit_unpaired
+
+    def far_off(preset, *args, **kwargs):
+        result = real_fit(preset, *args, **kwargs)
+        return dataclasses.replace(result, after={"subpixel_level": 1})
+
+    monkeypatch.setattr(run, "fit_unpaired", far_off)
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit", str(small_real_folder / "stock.yaml"), str(small_real_folder / "real"), "--unpaired",
+                 "--params", "subpixel_level", "--out", str(out), "--quiet",
+                 "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+    report = json.loads((tmp_path / "report" / "unpaired_report.json").read_text())
+    held = report["held_out"]
+    assert held["kind"] == "sequence" and held["fitted"] > held["stock"] and report["written"] == "input"
+    stock, written = load_preset(str(small_real_folder / "stock.yaml")), load_preset(str(out))
+    assert {k: v for k, v in dataclasses.asdict(written).items() if k not in ("name", "source")} == \
+        {k: v for k, v in dataclasses.asdict(stock).items() if k not in ("name", "source")}  # fmt: skip
+    assert "the input's values, kept" in out.read_text()
+    assert "input preset's values are written, unchanged" in capsys.readouterr().out
