@@ -87,3 +87,25 @@ def test_a_fit_that_is_not_closer_to_the_held_out_frames_writes_the_input(small_
         {k: v for k, v in dataclasses.asdict(stock).items() if k not in ("name", "source")}  # fmt: skip
     assert "the input's values, kept" in out.read_text()
     assert "input preset's values are written, unchanged" in capsys.readouterr().out
+
+
+def test_the_camera_of_a_folder_is_given_and_kept(small_real_folder, tmp_path):
+    """--camera replaces the preset's camera (in px of the frames' size) and the written preset keeps it in its own
+    pixels, whichever preset is written; a bad camera or one without --unpaired is one line and exit 2."""
+    from ddsgen.cli import main
+    from ddsgen.preset import load_preset
+
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit", str(small_real_folder / "stock.yaml"), str(small_real_folder / "real"), "--unpaired",
+                 "--params", "subpixel_level", "--camera", "150,151,80,60", "--out", str(out), "--quiet",
+                 "--report", str(tmp_path / "report")]) == 0  # fmt: skip
+    written = load_preset(str(out))
+    assert (written.focal_px, written.focal_y_px, written.cx_px, written.cy_px) == pytest.approx((150, 151, 80, 60))
+    report = json.loads((tmp_path / "report" / "unpaired_report.json").read_text())
+    assert report["assumed_intrinsics"]["fx"] == pytest.approx(150)
+    for bad in (["--camera", "150,151,80"], ["--camera", "150,151,500,60"]):
+        assert main(["fit", str(small_real_folder / "stock.yaml"), str(small_real_folder / "real"), "--unpaired",
+                     *bad, "--out", str(tmp_path / "bad.yaml"), "--quiet"]) == 2  # fmt: skip
+    assert main(["fit", str(small_real_folder / "stock.yaml"), str(small_real_folder / "real"), "--camera",
+                 "150,151,80,60", "--out", str(tmp_path / "bad.yaml"), "--quiet"]) == 2  # fmt: skip
+    assert not (tmp_path / "bad.yaml").exists()

@@ -16,6 +16,7 @@ from ddsgen.fit.parameters import DEFAULT_PARAMS
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.run import print_summary as print_unpaired_summary
 from ddsgen.fit.unpaired.run import run_unpaired_fit
+from ddsgen.runner import parse_camera
 
 
 @click.command("fit")
@@ -85,10 +86,15 @@ from ddsgen.fit.unpaired.run import run_unpaired_fit
                    "registration), as unregistered (the bands measured as they are, registration switched off in "
                    "the fitted preset), or auto: render both at the stock values and take the one whose validity "
                    "by image radius is closer to the real frames'.")
+@click.option("--camera", default=None, metavar="FX,FY,CX,CY",
+              help="With --unpaired: the real frames' camera, focal lengths and principal point in px of the frames' "
+                   "own size, for a device whose optics differ from PRESET's (e.g. an Asus Xtion in cropped mode, "
+                   "f ~ 1066 px at 640x480); the fit renders with it and the written preset keeps it.")
 @threads_option(None, REPRODUCIBLE_THREADS_HELP)
 @common_options
 def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
-        pose_steps, static_scene, static_views, unpaired, scenes, depth_scale, registration, threads, no_plane, crop,
+        pose_steps, static_scene, static_views, unpaired, scenes, depth_scale, registration, camera, threads, no_plane,
+        crop,
         plausible_px, region, seed, quiet):  # fmt: skip
     """Fit the sensor PRESET to the real scans in REAL_DIR and write the fitted preset.
 
@@ -122,13 +128,16 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
         raise click.BadParameter("must be >= 1", param_hint="--static-views")
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
+    if camera is not None and not unpaired:
+        raise click.BadParameter("is for --unpaired (a paired fit reads the camera of the scans)", param_hint="--camera")
+    camera = parse_camera(camera)
     check_can_create_folder(out_path.parent, "the fitted preset")
     check_can_create_folder(report, "the report")
     use_threads(threads)
     if unpaired:
         content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
                                    report_dir=report_dir, seed=seed, keys=split_names(params) or None,
-                                   registration=registration, progress=not quiet)  # fmt: skip
+                                   registration=registration, camera=camera, progress=not quiet)  # fmt: skip
         print_unpaired_summary(content)
         return
     settings = PairedFitSettings(params=split_names(params) or list(DEFAULT_PARAMS), steps=steps, tile_px=tile_px,

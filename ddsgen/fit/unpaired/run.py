@@ -28,6 +28,7 @@ from ddsgen.fit.unpaired.search import (
     render_depths,
 )
 from ddsgen.preset import load_preset
+from ddsgen.runner import apply_camera
 from ddsgen.realscan.realfolder import read_depth_folder, round_like
 from ddsgen.scene.scenelist import load_scene_list
 
@@ -38,12 +39,14 @@ DEFAULT_SIM_FRAMES = 8
 def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Path | None = None,
                      depth_scale: float = 0.001, out: str | Path = "fitted.yaml", report_dir: str | Path | None = None,
                      seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200, keys=None,
-                     registration: str = "auto", progress: bool = True) -> dict:  # fmt: skip
+                     registration: str = "auto", camera=None, progress: bool = True) -> dict:  # fmt: skip
     """Fit the preset to the real depth frames below ``real_dir``; write OUT and the report.
 
     ``keys``: fit only these keys of the table (default: all; see :mod:`.parameters`); another name is an
     InputError, raised before anything is read or rendered.
     ``registration``: how to read the frames' depth (:data:`~.device_window.READINGS`; "auto" measures it).
+    ``camera``: (fx, fy, cx, cy) px of the real frames' size, replacing the preset's camera scaled to that size
+    (:func:`ddsgen.runner.apply_camera`); the written preset keeps it, in its own pixels.
     Returns the report's JSON content.
     """
     out = Path(out)
@@ -63,7 +66,9 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     height, width = real[0].depth.shape
     # The device's output window is measured, not searched: border columns/rows without depth in every real
     # frame; read through the preset's registration or without it, whichever renders closer (device_window.py).
-    stock_camera = camera_for(original, width, height)
+    stock_camera = apply_camera(camera_for(original, width, height), camera)
+    if camera is not None:  # the user's camera is the input from here on: kept whichever preset is written
+        original = original.replace(**_intrinsics(camera_for(stock_camera, original.width_px, original.height_px)))
     # The real frames' features once: the window choice, the fit and the report compare against them (the
     # candidates differ in window and registration, not in f b).
     fb = stock_camera.focal_px * stock_camera.baseline_m
@@ -163,3 +168,8 @@ def print_summary(content: dict) -> None:
     if content["written"] == "input":
         click.echo("the fit is not closer to frames it did not see: the input preset's values are written, unchanged")
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")
+
+
+def _intrinsics(preset) -> dict:
+    """The preset's camera as preset keys."""
+    return {"focal_px": preset.focal_px, "focal_y_px": preset.focal_y_px, "cx_px": preset.cx_px, "cy_px": preset.cy_px}
