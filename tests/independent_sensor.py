@@ -17,6 +17,9 @@ a small structured-light measurement model written in numpy from the literature,
     disparity reads as d + f (x_d - x_u);
   - ``disparity_offset``: a mis-registered reference pattern, d + delta;
   - ``grazing_dropout``: no depth where the incidence angle exceeds a limit (dots smeared beyond recognition);
+  - ``grazing_dropout_projector``: the same limit on the angle at the *projector* (between the surface normal and
+    the ray to the projector, b to the camera's right): the light that does not come back is the projector's, and
+    its angle is not the one ddsgen's library effect uses (the camera's);
   - ``edge_dropout``: no depth within w px of a depth discontinuity (|dz| > 5 % z between 4-neighbours);
   - ``row_bias`` (not in ddsgen's library): a vertical misalignment of projector and camera, a disparity bias
     growing with the square of the normalised row, d + a y^2 / y_max^2.
@@ -50,9 +53,11 @@ def depth_discontinuities(z: np.ndarray, relative: float = 0.05) -> np.ndarray:
 
 
 def measure(clean: np.ndarray, lit: np.ndarray, incidence_deg: np.ndarray, intr: dict, baseline_m: float,
-            effect: dict | None, rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+            effect: dict | None, rng: np.random.Generator,
+            projector_incidence_deg: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Measured depth (m, 0 = invalid) of one frame: clean depth (H, W) m, lit (H, W) bool (hit and not in the
-    projector's shadow), incidence (H, W) deg, intrinsics dict (fx, fy, cx, cy), the hidden ``effect``."""
+    projector's shadow), incidence (H, W) deg at the camera and (for ``grazing_dropout_projector``) at the projector,
+    intrinsics dict (fx, fy, cx, cy), the hidden ``effect``."""
     fx, fy, cx, cy = intr["fx"], intr["fy"], intr["cx"], intr["cy"]
     h, w = clean.shape
     fb = fx * baseline_m
@@ -75,6 +80,8 @@ def measure(clean: np.ndarray, lit: np.ndarray, incidence_deg: np.ndarray, intr:
     valid = disparity > 0
     if name == "grazing_dropout":
         valid &= incidence_deg <= effect["angle_deg"]
+    elif name == "grazing_dropout_projector":
+        valid &= projector_incidence_deg <= effect["angle_deg"]
     elif name == "edge_dropout":
         valid &= distance_transform_edt(~depth_discontinuities(clean)) > effect["width_px"]
     noisy = disparity + NOISE_PX * rng.standard_normal(disparity.shape)
@@ -93,7 +100,17 @@ def remeasure_folder(folder: Path, frames, baseline_m: float, effect: dict | Non
         g = frame.geometry
         lit = (g.hit & ~g.shadow).numpy()
         depth = measure(g.clean_depth.numpy().astype(np.float64), lit, frame.incidence_deg.numpy(),
-                        record["intrinsics"], baseline_m, effect, np.random.default_rng([seed, i]))  # fmt: skip
+                        record["intrinsics"], baseline_m, effect, np.random.default_rng([seed, i]),
+                        projector_incidence(g.points.numpy(), g.normals.numpy(), baseline_m))  # fmt: skip
         write_depth_png(folder / record["depth"], depth, record["depth_scale"])
         if record.get("depth_exr"):
             write_exr(folder / record["depth_exr"], depth)
+
+
+def projector_incidence(points: np.ndarray, normals: np.ndarray, baseline_m: float) -> np.ndarray:
+    """(H, W) angle (deg) between each surface normal and the ray from the point to the projector at (b, 0, 0) in
+    the camera's frame (m); 90 where there is no surface (zero normal)."""
+    to_projector = np.array([baseline_m, 0.0, 0.0]) - points
+    length = np.maximum(np.linalg.norm(to_projector, axis=-1), 1e-9)
+    cos = np.abs(np.sum(normals * to_projector, axis=-1)) / length
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
+import torch
 
 from ddsgen.diagnose import axis_candidates
 from ddsgen.diagnose.axis_candidates import DISPARITY_TERM, VALIDITY_TERM, FailedFit, fit_axis_candidate
@@ -51,3 +53,23 @@ def test_a_term_that_does_not_lower_the_fit_frames_gap_is_a_failed_fit(monkeypat
     stand_ins.update({round(m * 0.2, 6): 0.3 - abs(m - 0.75) for m in axis_candidates.SCALES})  # best at 0.75
     candidate, values, score = fit_axis_candidate(sensor, DISPARITY_TERM, "row", [], config, None, [])
     assert values["c0"] == pytest.approx(0.15) and score == pytest.approx(-0.3)
+
+
+def test_the_grazing_angle_is_read_off_where_the_real_frames_lose_the_models_valid_pixels():
+    """Real frames that lose every pixel seen beyond 62 deg (and 3 % at random elsewhere): the guess is 62 deg within
+    the 1-deg grid; frames that lose only random pixels give no guess (nothing along incidence to find), so the
+    search never starts where it would remove more valid pixels than the frames miss."""
+
+    from ddsgen.diagnose.candidates import grazing_angle_guess
+
+    rng = np.random.default_rng(4)
+    incidence = torch.tensor(rng.uniform(0.0, 85.0, (120, 160)), dtype=torch.float32)
+    everywhere = torch.ones(120, 160, dtype=torch.bool)
+    random_loss = torch.tensor(rng.random((120, 160)) < 0.03)
+
+    def frame(real_valid):
+        return SimpleNamespace(incidence_deg=incidence, region=everywhere, real_valid=real_valid)
+
+    sims = [SimpleNamespace(valid=everywhere)]
+    assert grazing_angle_guess([frame((incidence <= 62.0) & ~random_loss)], sims) == pytest.approx(62.0, abs=1.0)
+    assert grazing_angle_guess([frame(~random_loss)], sims) is None

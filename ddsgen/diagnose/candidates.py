@@ -92,9 +92,15 @@ def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
       value; the control grid of D by trimmed least squares (half the pixels kept: on a quantised
       lattice the residual has several peaks), with the same per-frame plane terms.
 
+    * ``grazing_dropout``: the incidence angle beyond which the model's valid pixels are missing in the real frames
+      (:func:`grazing_angle_guess`).
+
     Returns a few parameter sets around the estimate, or None for effects without a shape
-    (the validity effects: their grids are cheap, the matcher's result being reused).
+    (the other validity effects: their grids are cheap, the matcher's result being reused).
     """
+    if name == "grazing_dropout":
+        angle = grazing_angle_guess(frames, sims)
+        return None if angle is None else [{"angle_deg": a} for a in (angle - 3.0, angle, angle + 3.0) if a <= 89.0]
     fb = float(sensor.baseline.detach()) * float(sensor.focal_scale.detach())
     rows, targets, points = [], [], []
     for i, (f, sim) in enumerate(zip(frames, sims)):
@@ -158,6 +164,36 @@ def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
     frac = lattice_offset(sensor, frames)
     k = round((estimate - frac) / step)
     return [{"offset_px": float(np.clip(frac + j * step, -3.0, 3.0))} for j in (k - 1, k, k + 1)]
+
+
+def grazing_angle_guess(frames, sims, angles=np.arange(30.0, 90.0, 1.0)) -> float | None:
+    """The incidence angle (deg) a grazing-angle dropout would have, read off where validity differs.
+
+    Among the pixels the model measures (compared region, simulated valid), a dropout beyond angle a removes those
+    seen at more than a. The angle that best separates the real frames' missing pixels from their valid ones there
+    -- fewest real-valid pixels removed plus real-missing pixels kept -- is the estimate: a value that would remove
+    more valid pixels than the real frames are missing is never chosen. None when no angle separates better than
+    removing nothing (no dropout along incidence to find), or without incidence or pixels.
+    """
+    seen_valid, seen_missing = [], []
+    for f, sim in zip(frames, sims):
+        incidence = getattr(f, "incidence_deg", None)
+        if incidence is None:
+            return None
+        measured = f.region & sim.valid
+        seen_valid.append(incidence[measured & f.real_valid].double().numpy())
+        seen_missing.append(incidence[measured & ~f.real_valid].double().numpy())
+    valid, missing = np.sort(np.concatenate(seen_valid)), np.sort(np.concatenate(seen_missing))
+    if not valid.size or not missing.size:
+        return None
+    # Errors of "missing beyond a": real-valid pixels beyond a + real-missing pixels at or below a.
+    removed_valid = valid.size - np.searchsorted(valid, angles, side="right")
+    kept_missing = np.searchsorted(missing, angles, side="right")
+    errors = removed_valid + kept_missing
+    best = int(np.argmin(errors))
+    if errors[best] >= missing.size:  # no better than removing nothing (every missing pixel kept)
+        return None
+    return float(angles[best])
 
 
 def default_grid(name: str) -> list[dict]:
