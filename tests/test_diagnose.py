@@ -59,7 +59,7 @@ CASES = {
     "edge_dropout": {"name": "edge_dropout", "width_px": 4.0},
     "low_signal_dropout": {"name": "low_signal_dropout", "threshold_counts": 10.0},
 }
-#: Filled by the tests, printed at the end of the session (the table of the closing note).
+#: Filled by the tests, printed at the end of the test session.
 TABLE: list[str] = []
 
 
@@ -372,9 +372,9 @@ def test_validity_likelihood_prefers_holes_where_the_real_ones_are():
 BLIND_COVERS = ("lens_distortion",)
 
 
-#: Measured shortfalls (fall of the gap beyond the floor, rounded down; why). edge_dropout, after session 11's merge
-#: (fresh clone, 640 x 480): named first with width 4.0 px (true 4), gap beyond the floor 1.24 -> 0.67 mm (-46 %);
-#: since the matcher keeps windows across depth edges (confirmed_match_zncc) it passes (session 12), so it keeps
+#: Measured shortfalls (fall of the gap beyond the floor, rounded down; why). edge_dropout
+#: (640 x 480): named first with width 4.0 px (true 4), gap beyond the floor 1.24 -> 0.67 mm (-46 %);
+#: since the matcher keeps windows across depth edges (confirmed_match_zncc) it passes, so it keeps
 #: only a floor here against a return of the ring.
 RENDERED_SHORT = {"edge_dropout": (0.40, "named first with the true width; the sensor's own holes at depth "
                                          "edges stay in the gap")}
@@ -396,8 +396,8 @@ def test_diagnose_names_the_hidden_effect_first_and_halves_the_gap(scans, name):
 
 
 #: low_signal_dropout's threshold is not checked: it trades off with the base fit's emitted intensity (the dropout
-#: compares the dot signal with the threshold, and a fainter model also matches fewer dots). Measured in session 26
-#: (`/work/exp/s26/low_signal.py`, the test's scans): named first, gap beyond the floor 10.22 -> 0.50 mm (-95 %),
+#: compares the dot signal with the threshold, and a fainter model also matches fewer dots). Measured
+#: (on the test's scans): named first, gap beyond the floor 10.22 -> 0.50 mm (-95 %),
 #: threshold 4 counts (true 10) with eta_c fitted to 3.75e5 (true 1.725e6), i.e. 18 counts at the true intensity.
 #: Before the floor was measured against another unit the same run fell ~22 % and the case was left out of CI.
 STRENGTH_TRADES_OFF = ("low_signal_dropout",)
@@ -497,7 +497,7 @@ def test_screening_keeps_the_answer_and_skips_searches(tmp_path):
     assert skipped, text  # work was skipped ...
     assert all(c.gain < SCREEN_FRACTION * config.min_relative_gain for c in skipped), text  # ... only far below
     # A candidate whose one-frame screening clears SCREEN_FRACTION is searched in full too, which may cost a few more
-    # front ends than no screening (session 26: lens_distortion screened at +2.0 %, 460 against 450 front ends, 634
+    # front ends than no screening (measured: lens_distortion screened at +2.0 %, 460 against 450 front ends, 634
     # against 1128 validity stages); the saving is in the validity stages and must not cost front ends beyond that.
     assert fronts <= 1.05 * plain_fronts and sims < 0.8 * plain_sims, (fronts, plain_fronts, sims, plain_sims, text)
     print(f"screening: front ends {plain_fronts} -> {fronts}, validity stages {plain_sims} -> {sims}; "

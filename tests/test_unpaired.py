@@ -177,15 +177,15 @@ HIDDEN = {"subpixel_level": 3, "emitted_intensity": 5e6, "softargmax_beta": 30.0
 
 def _endless_ground(data: dict) -> dict:
     """A scene list's scenes on an endless ground, no table edge: the scenes these tests were measured on (the
-    built-in list has stood its objects on a table above a floor since session 24). Frames of an endless ground
+    built-in list has stood its objects on a table above a floor). Frames of an endless ground
     against fit scenes with table edges tip the window-model choice: scene content the tests do not study. (The
     table's stray depths in a registered device's bands no longer mislead the window reading: see
     test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_depths.)"""
     for scene in data["scenes"]:
         scene["ground"] = {"size": [5.0, 5.0], "albedo": [0.4, 0.7]}
         scene.pop("floor", None)
-        scene.pop("distractors", None)  # (since session 37; these tests were measured without them)
-        # ... with the clutter they had before session 34 moved the built-in list to tabletop range (more objects)
+        scene.pop("distractors", None)  # (these tests were measured without them)
+        # ... with the clutter of a room-range scene list (more objects)
         wall = scene["name"] == "against_wall"
         scene["clutter"] = {"count": [2, 5] if wall else [3, 7], "area": [0.6, 0.4] if wall else [0.6, 0.6],
                             "min_gap": 0.005}
@@ -328,7 +328,7 @@ def test_unpaired_fit_recovers_the_device_fall_off_and_hole_filling(set_torch_th
     # 160x120 over 8 real frames the radius term varies by 2e-4 over the whole range, so a resample of the frames
     # moves its minimum by several units: measured sigma 5.5, from the bootstrap over the whole range.) 24 real
     # frames, not 8: with 8, two of five (real, fit) seed pairs recovered it (11/3, 11/4; the stock's 4.0 in two,
-    # 8.5 in one; session 39), and a redraw of the speckle (seeded by a hash of the cast geometry) turned this test's
+    # 8.5 in one), and a redraw of the speckle (seeded by a hash of the cast geometry) turned this test's
     # pair from 10.6 to 4.0. With 24: four of five (10.8-13.2, sigma 1.6-2.9; 13/5 stays at 4.0).
     assert abs(falloff - 12.0) < 3.0 and abs(falloff - 12.0) <= 2 * sigma
     assert not result.bootstrap["projector_falloff_exponent"]["scene_content"]["kept_input_value"]
@@ -451,7 +451,7 @@ def test_a_registered_device_window_is_measured_on_table_scenes_despite_stray_de
     frame's bands (2-3.5 % of a band column against 88 % inside): they must not end the band (they read the
     right band 9 as 5 under the 1 % rule alone). Rendered with the registration mapped back by the ray-cast
     geometry, which shows the matcher's carry one band further on and so makes such pixels (the forward map, the
-    device's and kinect_v1's since session 35, makes few: 0.09 %); real frames may have them for other reasons."""
+    device's and kinect_v1's, makes few: 0.09 %); real frames may have them for other reasons."""
     from ddsgen.fit.unpaired.search import camera_for, cast_scenes, render_depths
     from ddsgen.preset import load_preset
     from ddsgen.scene.default_scenes import default_scene_list_dict
