@@ -109,7 +109,7 @@ from ddsgen.diagnose.residuals import analyse, pixel_residuals
 from ddsgen.diagnose.results import Candidate, Diagnosis, Step
 from ddsgen.diagnose.sentences import format_values, step_sentence, structure_summary
 from ddsgen.diagnose.split import split_note, split_single_frame
-from ddsgen.diagnose.window import with_measured_window
+from ddsgen.diagnose.window import with_measured_quantum, with_measured_window
 from ddsgen.fit.fitting import fit_sensor, split_frames
 from ddsgen.realscan.simulate import simulate, twin_draws
 from ddsgen.sensor.depth_sensor import DepthSensor
@@ -227,6 +227,10 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
         echo("      " + notes[-1])
     else:
         fit_frames, held = split_frames(frames, config.holdout, config.seed)
+    preset, quantum_note = with_measured_quantum(preset, fit_frames, held)
+    if quantum_note:
+        notes.append(quantum_note)
+        echo("      " + quantum_note)
     held_seed = config.seed + 1  # held-out gaps use other noise draws than the fit
     rng = np.random.default_rng([config.seed, 77])
 

@@ -10,6 +10,7 @@ model uses it from the start; the report says so.
 
 from __future__ import annotations
 
+from ddsgen.fit.lattice import measure_quantum
 from ddsgen.realscan.inputs import differing_output_window
 from ddsgen.sensor.output_window import OutputWindow
 
@@ -33,3 +34,16 @@ def with_measured_window(preset, frames, tolerance_px: int = 2):
             f"{measured.describe()}; the preset declares {OutputWindow.of(preset).describe()}. The model uses the "
             f"measured window from the base fit on (a window is the device's output format, not an effect).")
     return preset.replace(**measured.as_keys()), measured, note
+
+
+def with_measured_quantum(preset, fit_frames, held_frames):
+    """``(preset, note)``: the preset on the disparity quantum the real depth's levels show, measured on the fit
+    frames and confirmed on the held-out ones (:func:`ddsgen.fit.lattice.measure_quantum`), with one sentence for
+    the report; ``(preset, None)`` when it agrees with the preset's or is not confirmed. Like the window, the quantum
+    is the device's output format, read off the data, not an effect searched for."""
+    quantum = measure_quantum(fit_frames, held_frames, preset.subpixel_level, preset.baseline_m)
+    if not quantum["changed"]:
+        return preset, None
+    note = (f"Disparity quantum {quantum['reason']}. The model uses it from the base fit on (the device's output "
+            f"format, not an effect).")
+    return preset.replace(subpixel_level=quantum["level"]), note
