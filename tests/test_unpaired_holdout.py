@@ -38,7 +38,8 @@ def test_the_judgement_compares_the_held_out_frames_with_each_presets_renders():
     verdict = judge(real, stock_features=far, fitted_features=near)
     assert verdict["fitted_better"] and verdict["fitted"] < verdict["stock"]
     assert not judge(real, stock_features=near, fitted_features=far)["fitted_better"]
-    assert judge([], near, far) == {"stock": None, "fitted": None, "fitted_better": False}
+    assert judge([], near, far) == {"stock": None, "fitted": None, "fitted_better": False, "terms": {}}
+    assert verdict["terms"]["fitted"]["noise"] < verdict["terms"]["stock"]["noise"]  # the noise is what differs
 
 
 @pytest.fixture(scope="module")

@@ -55,11 +55,13 @@ def judge(held_features: list[dict], stock_features: list[dict], fitted_features
         held_features: :func:`~.features.frame_features` of the held-out real frames (empty: nothing held out).
         stock_features, fitted_features: of each preset's fresh renders.
 
-    Returns: {"stock": distance, "fitted": distance, "fitted_better": bool} (distances None without held-out frames).
+    Returns: {"stock": distance, "fitted": distance, "fitted_better": bool, "terms": {"stock": {group: distance},
+    "fitted": {...}}} (the groups of :func:`~.features.distance_terms`: noise, holes, radius, grain); distances None
+    and terms empty without held-out frames.
     """
     if not held_features:
-        return {"stock": None, "fitted": None, "fitted_better": False}
+        return {"stock": None, "fitted": None, "fitted_better": False, "terms": {}}
     real = pool(held_features)
-    stock = distance_terms(pool(stock_features), real)["total"]
-    fitted = distance_terms(pool(fitted_features), real)["total"]
-    return {"stock": stock, "fitted": fitted, "fitted_better": bool(fitted < stock)}
+    terms = {"stock": distance_terms(pool(stock_features), real), "fitted": distance_terms(pool(fitted_features), real)}
+    stock, fitted = terms["stock"]["total"], terms["fitted"]["total"]
+    return {"stock": stock, "fitted": fitted, "fitted_better": bool(fitted < stock), "terms": terms}

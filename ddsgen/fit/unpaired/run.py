@@ -165,6 +165,9 @@ def print_summary(content: dict) -> None:
     if held["stock"] is not None:
         click.echo(f"  feature distance on the held-out frames: {held['stock']:.4f} (input) -> {held['fitted']:.4f} "
                    f"(fitted)")  # fmt: skip
+        by_group = ", ".join(f"{group} {held['terms']['stock'][group]:.4f} -> {held['terms']['fitted'][group]:.4f}"
+                             for group in ("noise", "holes", "radius", "grain"))  # fmt: skip
+        click.echo(f"  by feature group (input -> fitted): {by_group}")
     if content["written"] == "input":
         click.echo("the fit is not closer to frames it did not see: the input preset's values are written, unchanged")
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")
