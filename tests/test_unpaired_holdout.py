@@ -87,6 +87,8 @@ def test_a_fit_that_is_not_closer_to_the_held_out_frames_writes_the_input(small_
     assert {k: v for k, v in dataclasses.asdict(written).items() if k not in ("name", "source")} == \
         {k: v for k, v in dataclasses.asdict(stock).items() if k not in ("name", "source")}  # fmt: skip
     assert "the input's values, kept" in out.read_text()
+    index = (tmp_path / "report" / "index.html").read_text()
+    assert "feature distance on the held-out frames" in index and "profiles.png" in index
     assert "input preset's values are written, unchanged" in capsys.readouterr().out
 
 

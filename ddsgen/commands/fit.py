@@ -129,7 +129,8 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out: {out}: the fitted preset must be a .yaml file")
     if camera is not None and not unpaired:
-        raise click.BadParameter("is for --unpaired (a paired fit reads the camera of the scans)", param_hint="--camera")
+        raise click.BadParameter("is for --unpaired (a paired fit reads the camera of the scans)",
+                                 param_hint="--camera")
     camera = parse_camera(camera)
     check_can_create_folder(out_path.parent, "the fitted preset")
     check_can_create_folder(report, "the report")

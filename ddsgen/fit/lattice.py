@@ -67,7 +67,8 @@ def measure_quantum(fit_frames: list[FrameData], held_out: list[FrameData], pres
         changed, reason = False, f"no disparity lattice in the real depth (coherence < {LATTICE_MIN_COHERENCE:g}): " \
                                  f"the preset's {step} kept"  # fmt: skip
     elif measured_fit == preset_level:
-        changed, reason = False, f"the real depth lies on the preset's {step} lattice (coherence {fit[measured_fit]:.2f})"
+        changed = False
+        reason = f"the real depth lies on the preset's {step} lattice (coherence {fit[measured_fit]:.2f})"
     elif not held:
         changed, reason = False, (f"the fit frames show a 1/{2 ** measured_fit} px lattice, but no held-out frame "
                                   f"confirms it: the preset's {step} kept")  # fmt: skip

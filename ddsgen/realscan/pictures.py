@@ -113,22 +113,24 @@ def side_by_side(path: str | Path, title: str, real_m: np.ndarray, sim_m: np.nda
 
 
 def write_index(folder: str | Path, title: str, summary_text: str, pictures: list[tuple[str, str]],
-                plots: list[str]) -> Path:  # fmt: skip
+                plots: list[str],
+                plots_heading: str = "Binned errors and valid rates; residual maps") -> Path:  # fmt: skip
     """``folder/index.html``: the summary table, the plots and every side-by-side picture.
 
     Args:
         summary_text: the plain-text table (shown preformatted).
-        pictures: (frame name, picture path relative to ``folder``) per frame.
-        plots: plot paths relative to ``folder``.
+        pictures: (frame name, picture path relative to ``folder``) per frame (none: no frames section).
+        plots: plot paths relative to ``folder``, under ``plots_heading``.
     """
     esc = html.escape
     parts = [f"<!doctype html>\n<html><head><meta charset='utf-8'><title>{esc(title)}</title>",
              "<style>body{font-family:sans-serif;margin:1em} img{max-width:none;display:block;margin:.3em 0 1.5em}"
              " pre{background:#f4f4f4;padding:.6em;overflow-x:auto}</style></head><body>",
              f"<h1>{esc(title)}</h1>", f"<pre>{esc(summary_text)}</pre>",
-             "<h2>Binned errors and valid rates; residual maps</h2>"]  # fmt: skip
+             f"<h2>{esc(plots_heading)}</h2>"]  # fmt: skip
     parts += [f"<img src='{esc(p)}' alt='{esc(p)}'>" for p in plots]
-    parts.append("<h2>Frames: real | simulated | difference (full resolution)</h2>")
+    if pictures:
+        parts.append("<h2>Frames: real | simulated | difference (full resolution)</h2>")
     for name, picture in pictures:
         parts.append(f"<h3>{esc(name)}</h3><img src='{esc(picture)}' alt='{esc(name)}'>")
     parts.append("</body></html>\n")

@@ -29,6 +29,7 @@ from ddsgen.fit.unpaired.search import (
 )
 from ddsgen.preset import load_preset
 from ddsgen.runner import apply_camera
+from ddsgen.realscan.pictures import write_index
 from ddsgen.realscan.realfolder import read_depth_folder, round_like
 from ddsgen.scene.scenelist import load_scene_list
 
@@ -113,6 +114,9 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     }  # fmt: skip
     with atomic_folder(report, "the report") as building:  # in place only when complete (an interrupt leaves none)
         content = write_report(building, content, pooled, depths, resolution, seed, fb)
+        write_index(building, f"ddsgen fit --unpaired: {preset_ref} on {real_dir}", "\n".join(summary_lines(content)),
+                    [], ["distributions.png", "profiles.png", "patches.png", "frames.png"],
+                    plots_heading="Feature distributions, search profiles, patches and frames: real | input | fitted")
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
@@ -136,12 +140,14 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     return content
 
 
-def print_summary(content: dict) -> None:
-    """The command's closing lines: distance before/after, each value with its uncertainty."""
+def summary_lines(content: dict) -> list[str]:
+    """What the fit did, in lines: distance before/after on the fit frames, each value with its uncertainty, the
+    registration and window, the held-out judgement and which preset is written (the terminal and index.html)."""
+    lines = []
     before, after = content["distance_before"]["total"], content["distance_after"]["total"]
-    click.echo(f"feature distance on the fit frames: {before:.4f} (stock) -> {after:.4f} (fitted) over "
-               f"{len(content['held_out']['fit_frames'])} real frame(s), {content['evaluations']} value sets, "
-               f"{content['frames_rendered']} frames rendered")  # fmt: skip
+    lines.append(f"feature distance on the fit frames: {before:.4f} (stock) -> {after:.4f} (fitted) over "
+                 f"{len(content['held_out']['fit_frames'])} real frame(s), {content['evaluations']} value sets, "
+                 f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
         bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
         scene = content["bootstrap"][key]["scene_content"]
@@ -151,25 +157,32 @@ def print_summary(content: dict) -> None:
             spread = f"x/ {bound}{math.exp(content['uncertainty_search'][key]):.2g}"
         else:
             spread = f"+- {bound}{content['uncertainty'][key]:.2g}"
-        click.echo(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} {spread}{note}")
+        lines.append(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} {spread}{note}")
     stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
     window = content["output_window"]
     distances = ", ".join(f"{name} {d:.4f}" for name, d in window["stock_radius_distance"].items() if d is not None)
-    click.echo(f"  depth registration: {window['model']}"
-               + (f" (validity by radius, stock values: {distances})" if distances else ""))
-    click.echo("  output window (measured; px without depth at the left, right, top, bottom): "
-               f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
+    lines.append(f"  depth registration: {window['model']}"
+                 + (f" (validity by radius, stock values: {distances})" if distances else ""))
+    lines.append("  output window (measured; px without depth at the left, right, top, bottom): "
+                 f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
     held = content["held_out"]
-    click.echo(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
-               f"{len(content['real_frames'])} frames)")  # fmt: skip
+    lines.append(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
+                 f"{len(content['real_frames'])} frames)")  # fmt: skip
     if held["stock"] is not None:
-        click.echo(f"  feature distance on the held-out frames: {held['stock']:.4f} (input) -> {held['fitted']:.4f} "
-                   f"(fitted)")  # fmt: skip
+        lines.append(f"  feature distance on the held-out frames: {held['stock']:.4f} (input) -> {held['fitted']:.4f} "
+                     f"(fitted)")  # fmt: skip
         by_group = ", ".join(f"{group} {held['terms']['stock'][group]:.4f} -> {held['terms']['fitted'][group]:.4f}"
                              for group in ("noise", "holes", "radius", "grain"))  # fmt: skip
-        click.echo(f"  by feature group (input -> fitted): {by_group}")
+        lines.append(f"  by feature group (input -> fitted): {by_group}")
     if content["written"] == "input":
-        click.echo("the fit is not closer to frames it did not see: the input preset's values are written, unchanged")
+        lines.append("the fit is not closer to frames it did not see: the input preset's values are written, unchanged")
+    return lines
+
+
+def print_summary(content: dict) -> None:
+    """The command's closing lines (:func:`summary_lines`) and what was written."""
+    for line in summary_lines(content):
+        click.echo(line)
     click.echo(f"wrote {content['fitted_preset']} and {content['report']}/")
 
 
