@@ -140,6 +140,12 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     return content
 
 
+#: What depth statistics cannot show, and what would show it (said in every summary).
+NOT_IDENTIFIABLE = ("a global disparity offset or scale and the focal length (they move every depth alike, which a "
+                    "scene of unknown geometry absorbs); a paired fit (ddsgen fit with poses) or a plane at a known "
+                    "distance determines them")
+
+
 def summary_lines(content: dict) -> list[str]:
     """What the fit did, in lines: distance before/after on the fit frames, each value with its uncertainty, the
     registration and window, the held-out judgement and which preset is written (the terminal and index.html)."""
@@ -149,15 +155,15 @@ def summary_lines(content: dict) -> list[str]:
                  f"{len(content['held_out']['fit_frames'])} real frame(s), {content['evaluations']} value sets, "
                  f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
-        bound = ">=" if content["bootstrap"][key]["lower_bound"] else ""
         scene = content["bootstrap"][key]["scene_content"]
-        note = f"  (weakly identified: {scene['low']:.3g}..{scene['high']:.3g} fit as well)" if bound else ""
-        note += "  (kept: the input's value fits as well)" if scene["kept_input_value"] else ""
-        if UNPAIRED_PARAMETERS[key].log:  # a log-scale key is known within a factor
-            spread = f"x/ {bound}{math.exp(content['uncertainty_search'][key]):.2g}"
+        if content["bootstrap"][key]["lower_bound"]:  # the resamples did not bound it: no spread to quote
+            spread = f"not determined by these frames ({scene['low']:.3g}..{scene['high']:.3g} fit as well)"
+        elif UNPAIRED_PARAMETERS[key].log:  # a log-scale key is known within a factor
+            spread = f"known within a factor {math.exp(content['uncertainty_search'][key]):.2g}"
         else:
-            spread = f"+- {bound}{content['uncertainty'][key]:.2g}"
-        lines.append(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g} {spread}{note}")
+            spread = f"+- {content['uncertainty'][key]:.2g}"
+        note = "; kept: the input's value fits as well" if scene["kept_input_value"] else ""
+        lines.append(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g}, {spread}{note}")
     stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
     window = content["output_window"]
     distances = ", ".join(f"{name} {d:.4f}" for name, d in window["stock_radius_distance"].items() if d is not None)
@@ -165,6 +171,7 @@ def summary_lines(content: dict) -> list[str]:
                  + (f" (validity by radius, stock values: {distances})" if distances else ""))
     lines.append("  output window (measured; px without depth at the left, right, top, bottom): "
                  f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
+    lines.append(f"  not identifiable from unpaired depth, left at the input's values: {NOT_IDENTIFIABLE}")
     held = content["held_out"]
     lines.append(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
                  f"{len(content['real_frames'])} frames)")  # fmt: skip
