@@ -124,12 +124,15 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
         fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
         changed = [f"{key}: {content['before'][key]:.6g} -> {value:.6g}" for key, value in result.after.items()
                    if value != content["before"][key]]  # fmt: skip
+        kept = [key for key, value in result.after.items() if value == content["before"][key]]
         write_preset(fitted, out, "\n".join([
             f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}",
             f"held out: {verdict['meaning']}; feature distance on the held-out frames "
             f"{verdict['stock']:.4f} (input) -> {verdict['fitted']:.4f} (this preset)",
             f"depth registration: {model.name}; output window: {tuple(in_preset_px.as_keys().values())}",
             "changed: " + ("; ".join(changed) if changed else "none of the searched keys"),
+            "kept (the input's value fits as well): " + (", ".join(kept) if kept else "none"),
+            f"not identifiable from unpaired depth: {NOT_IDENTIFIABLE}",
             "every other key: the input's"]))  # fmt: skip
     else:
         write_preset(assemble_preset(original, {}, "unpaired"), out, "\n".join([
