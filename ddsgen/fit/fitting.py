@@ -121,6 +121,19 @@ def lattice_coherence(frames: list[FrameData], fb_over_s: np.ndarray, fx_scale: 
     return out
 
 
+def baseline_grid(frames: list[FrameData], baseline_m: float, step_px: float,
+                  focal_scale: float = 1.0) -> tuple[np.ndarray, float]:  # fmt: skip
+    """(baselines over the fit bounds of ``baseline_m``, the lattice period in b): the period is the change of b
+    that moves the nearest real pixel's disparity by one ``step_px``; the grid resolves an eighth of it, so a
+    coherent lattice is not missed between grid points."""
+    zs = [f.real_depth[f.region & f.real_valid] for f in frames]
+    z_min = min((float(z.min()) for z in zs if z.numel()), default=1.0)
+    fx = max((f.full_intrinsics or f.intrinsics).fx for f in frames) * focal_scale
+    period = step_px * z_min / fx
+    _, low, high = SENSOR_PARAMS["baseline"].bound  # factors of the start value
+    return np.arange(low * baseline_m, high * baseline_m, period / 8.0), period
+
+
 def estimate_baseline(sensor, frames: list[FrameData]) -> dict:
     """Baseline from the disparity quantisation lattice of the real depth (see the module docstring).
 
@@ -130,12 +143,7 @@ def estimate_baseline(sensor, frames: list[FrameData]) -> dict:
     step = 2.0 ** -sensor.preset.subpixel_level
     b0 = float(sensor.baseline)
     scale = float(sensor.focal_scale)
-    zs = [f.real_depth[f.region & f.real_valid] for f in frames]
-    z_min = min((float(z.min()) for z in zs if z.numel()), default=1.0)
-    fx = max((f.full_intrinsics or f.intrinsics).fx for f in frames) * scale
-    period = step * z_min / fx  # change of b that moves the nearest pixel by one lattice step
-    _, lo, hi = SENSOR_PARAMS["baseline"].bound  # a factor of the start value
-    grid = np.arange(lo * b0, hi * b0, period / 8.0)
+    grid, period = baseline_grid(frames, b0, step, scale)
     coherence = lattice_coherence(frames, grid / step, scale)
     best = grid[int(np.argmax(coherence))]
     fine = np.linspace(best - period / 8.0, best + period / 8.0, 33)

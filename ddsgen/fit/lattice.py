@@ -15,10 +15,8 @@ held-out gap (:mod:`ddsgen.fit.paired`).
 
 from __future__ import annotations
 
-import numpy as np
 
-from ddsgen.fit.fitting import LATTICE_MIN_COHERENCE, lattice_coherence
-from ddsgen.fit.parameters import SENSOR_PARAMS
+from ddsgen.fit.fitting import LATTICE_MIN_COHERENCE, baseline_grid, lattice_coherence
 from ddsgen.realscan.simulate import FrameData
 
 #: Sub-pixel levels n (lattice step 2^-n px) the measurement considers: 1/2 to 1/32 px.
@@ -26,22 +24,14 @@ LEVELS = (1, 2, 3, 4, 5)
 
 
 def level_coherences(frames: list[FrameData], baseline_m: float, focal_scale: float = 1.0) -> dict[int, float]:
-    """{n: highest lattice coherence over the baseline's fit bounds} of the frames' real depth at step 2^-n px.
-
-    The search grid resolves an eighth of the change of b that moves the nearest pixel by one step of the finest
-    level, so a coherent lattice is not missed between grid points.
-    """
-    zs = [f.real_depth[f.region & f.real_valid] for f in frames]
-    if not any(z.numel() for z in zs):
+    """{n: highest lattice coherence over the baseline's fit bounds (:func:`~ddsgen.fit.fitting.baseline_grid`)} of
+    the frames' real depth at step 2^-n px."""
+    if not any(bool((f.region & f.real_valid).any()) for f in frames):
         return {n: 0.0 for n in LEVELS}
-    z_min = min(float(z.min()) for z in zs if z.numel())
-    fx = max((f.full_intrinsics or f.intrinsics).fx for f in frames) * focal_scale
-    _, low, high = SENSOR_PARAMS["baseline"].bound  # factors of the start value
     out = {}
     for n in LEVELS:
         step = 2.0**-n
-        period = step * z_min / fx
-        grid = np.arange(low * baseline_m, high * baseline_m, period / 8.0)
+        grid, _ = baseline_grid(frames, baseline_m, step, focal_scale)
         out[n] = float(lattice_coherence(frames, grid / step, focal_scale).max())
     return out
 
