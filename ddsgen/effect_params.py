@@ -31,7 +31,7 @@ class EffectParam:
 
 @dataclass(frozen=True)
 class EffectSpec:
-    """One effect of the library: name, stage (``"ir"``, ``"disparity"``, ``"depth"`` or ``"validity"``),
+    """One effect of the library: name, stage (``"ir"``, ``"disparity"``, ``"depth"``, ``"validity"`` or ``"image"``),
     parameters, options, groups; ``generic``: a smooth term along an axis rather than a named physical cause."""
 
     name: str
@@ -75,6 +75,10 @@ EFFECTS: dict[str, EffectSpec] = {spec.name: spec for spec in (
     EffectSpec("lens_distortion", "ir", {
         "k1": EffectParam(0.0, -0.1, 0.1, "1", "radial distortion coefficient of r^2", typical=-0.006),
         "k2": EffectParam(0.0, -0.1, 0.1, "1", "radial distortion coefficient of r^4", typical=0.0),
+    }),
+    EffectSpec("lens_warp", "image", {
+        "k1": EffectParam(0.0, -0.3, 0.3, "1", "radial distortion coefficient of r^2 of the pixel grid", typical=0.05),
+        "k2": EffectParam(0.0, -0.3, 0.3, "1", "radial distortion coefficient of r^4 of the pixel grid", typical=0.0),
     }),
     EffectSpec("disparity_offset", "disparity", {
         "offset_px": EffectParam(0.0, -3.0, 3.0, "px", "disparity added to every match", typical=0.3),

@@ -15,6 +15,11 @@ a small structured-light measurement model written in numpy from the literature,
     coordinates; a pixel sees the scene point of its undistorted position (nearest sample: no mixing across
     edges), and the dot pattern it matches is displaced by f (x_d - x_u) along the baseline, which the
     disparity reads as d + f (x_d - x_u);
+  - ``lens_warp``: the IR lens bends each pixel's ray while the depth along it stays right (the reference pattern
+    was captured through the same lens, so the dots' displacement cancels): Fitzgibbon's one-parameter division
+    model, a pixel at normalised x_d sees the scene point of x_u = x_d / (1 + lambda r_d^2) (nearest sample; beyond
+    the cast image, its border) and measures that point's disparity unchanged -- the geometry is warped, no
+    disparity is biased;
   - ``disparity_offset``: a mis-registered reference pattern, d + delta;
   - ``grazing_dropout``: no depth where the incidence angle exceeds a limit (dots smeared beyond recognition);
   - ``grazing_dropout_projector``: the same limit on the angle at the *projector* (between the surface normal and
@@ -73,6 +78,12 @@ def measure(clean: np.ndarray, lit: np.ndarray, incidence_deg: np.ndarray, intr:
         map_u, map_v = (xu * fx + cx).astype(np.float32), (yu * fy + cy).astype(np.float32)
         seen = cv2.remap(disparity.astype(np.float32), map_u, map_v, cv2.INTER_NEAREST, borderValue=0.0)
         disparity = np.where(seen > 0, seen + fx * (xd - xu), 0.0)
+    elif name == "lens_warp":
+        factor = 1.0 + effect["division_lambda"] * (xd * xd + yd * yd)
+        map_u, map_v = (xd / factor * fx + cx).astype(np.float32), (yd / factor * fy + cy).astype(np.float32)
+        # Beyond the cast image the scene goes on: the border pixel's value stands in for it.
+        disparity = cv2.remap(disparity.astype(np.float32), map_u, map_v, cv2.INTER_NEAREST,
+                              borderMode=cv2.BORDER_REPLICATE).astype(np.float64)  # fmt: skip
     elif name == "disparity_offset":
         disparity = np.where(disparity > 0, disparity + effect["offset_px"], 0.0)
     elif name == "row_bias":

@@ -564,6 +564,8 @@ BLIND_SIZE, BLIND_FRAMES = (320, 240), 9
 #: The hidden effect of each blind case, written in the independent model's own terms (see independent_sensor).
 BLIND_CASES = {
     "lens_distortion": {"name": "lens_distortion", "k1": -0.02},  # barrel: ~1.5 px at the corners
+    # barrel in another model (division, not Brown's), geometry only: ~10 px at the corners, no disparity bias
+    "lens_warp": {"name": "lens_warp", "division_lambda": -0.12},
     "disparity_offset": {"name": "disparity_offset", "offset_px": 0.25},
     "grazing_dropout": {"name": "grazing_dropout", "angle_deg": 65.0},
     # the angle at the projector, not the camera's angle the library's effect uses
@@ -694,6 +696,18 @@ def test_independent_measurement_model_writes_each_effect_by_its_formula():
     expected = intr.fx * x[right] * -0.02 * (x[right] ** 2 + y**2)
     shift = barrel[v, right] - base[v, right]
     assert np.mean(shift) == pytest.approx(np.mean(expected), abs=0.2) and np.mean(expected) < -0.3
+    # The warp: pixel x_d measures, unbiased, the disparity the ideal camera sees at x_u = x_d / (1 + lambda r_d^2).
+    warped = disparity({"name": "lens_warp", "division_lambda": 0.1})
+    assert abs(warped[v, u] - base[v, u]) <= 0.25, "no displacement at the principal point"
+    xs, ys = np.meshgrid((np.arange(320) - intr.cx) / intr.fx, (np.arange(240) - intr.cy) / intr.fy)
+    factor = 1.0 + 0.1 * (xs**2 + ys**2)
+    seen_u = np.round(xs / factor * intr.fx + intr.cx).astype(int)
+    seen_v = np.round(ys / factor * intr.fy + intr.cy).astype(int)
+    assert (239 - seen_v[-1]).min() >= 2, "the bottom row sees the plane farther in"
+    both = (warped > 0) & (base[seen_v, seen_u] > 0)
+    assert np.mean(warped[both] - base[seen_v, seen_u][both]) == pytest.approx(0.0, abs=0.02)
+    bottom = both[-12:] & (base[-12:] > 0)  # the plane tilts about the rows: its disparity changes down the image
+    assert abs(np.mean(warped[-12:][bottom] - base[-12:][bottom])) > 0.1, "the plane's disparity moved with the warp"
     grazing = disparity({"name": "grazing_dropout", "angle_deg": 45.0})
     assert not (grazing[~front] > 0).any() and (grazing[front & ok] > 0).mean() > 0.95
     edges = disparity({"name": "edge_dropout", "width_px": 3.0})

@@ -63,7 +63,7 @@ def test_library_has_the_required_effects_and_two_more_with_complete_metadata():
     axes = {"depth", "incidence", "radius", "row", "column", "edge_distance", "signal"}
     for name, cls in REGISTRY.items():
         assert cls.name == name
-        assert cls.stage in {"ir", "disparity", "depth", "validity"}
+        assert cls.stage in {"ir", "disparity", "depth", "validity", "image"}
         assert cls.description.strip().endswith(".") and cls.description.count(". ") == 0, name  # one sentence
         assert cls.signature and cls.axis in axes, name
         for key, spec in cls.params.items():
@@ -100,7 +100,7 @@ def test_each_neutral_effect_is_an_identity_on_its_stage():
     for cls in REGISTRY.values():
         effect = cls()  # all parameters neutral
         with torch.no_grad():
-            y = effect(x, fresh(ctx))
+            y = effect((x, x, x > 50, x, x), fresh(ctx))[0] if cls.stage == "image" else effect(x, fresh(ctx))
         if cls.stage == "validity":
             lit = geometry.hit & ~geometry.shadow
             # exact up to the reparameterisation: a boundary neutral sits 1e-6 of the range inside it
@@ -163,6 +163,32 @@ def test_lens_distortion_warp_moves_pixels_radially_by_the_brown_model():
     assert torch.allclose(du[inner, inner], (x * intr.fx * (k1 * r2 + k2 * r2 * r2))[inner, inner], atol=1e-3)
     assert torch.allclose(dv[inner, inner], (y * intr.fy * (k1 * r2 + k2 * r2 * r2))[inner, inner], atol=1e-3)
     assert float(du[h // 2, w // 2].abs()) < 1e-3
+
+
+def test_lens_warp_moves_an_off_centre_edge_by_the_brown_model_and_leaves_the_border_bands_in_place():
+    """Pixel u of the warped grid shows the ideal image at u + f x (k1 r^2) (row through the principal point, y = 0):
+    a depth edge at ideal column e appears at the u solving u + f x^3 k1 = e; the matcher's invalid band at the
+    left border stays as wide as it was, and pixels looking into it see the scene beside it."""
+    preset = small_preset(320, 240)
+    intr = preset.intrinsics
+    h, w = 240, 320
+    depth = torch.full((h, w), 1.5)
+    depth[:, 300:] = 1.0  # a nearer object right of column 300
+    valid = torch.ones(h, w, dtype=torch.bool)
+    valid[:, :8] = False  # the device grid's band
+    depth[:, :8] = 0.0
+    ctx = EffectContext(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy, baseline=preset.baseline_m)
+    k1 = 0.1  # barrel: pixels look farther out, the image shrinks towards the centre
+    disparity = torch.where(valid, intr.fx * preset.baseline_m / depth.clamp_min(1e-6), 0.0)
+    warped, _, warped_valid = REGISTRY["lens_warp"](k1=k1)((depth, disparity, valid), ctx)
+    row = int(round(intr.cy))
+    u = torch.arange(w, dtype=torch.float64)
+    x = (u - intr.cx) / intr.fx
+    predicted = int(torch.nonzero(u + intr.fx * x**3 * k1 >= 300 - 0.5)[0])
+    edge = int(torch.nonzero(warped[row] == 1.0)[0])
+    assert abs(edge - predicted) <= 1 and edge <= 297, (edge, predicted)  # 3.4 px nearer the centre
+    assert not warped_valid[:, :8].any() and warped_valid[:, 8:].all(), "the band neither moves nor grows"
+    assert torch.equal(warped[row, 150:170], depth[row, 150:170]), "the centre is not displaced"
 
 
 def test_lens_distortion_depth_error_grows_with_image_radius():
@@ -309,7 +335,10 @@ def test_gradients_through_the_full_sensor_are_finite_for_every_effect():
     loss.backward()
     for effect in sensor.effects:
         for key, raw in effect.raw.items():
-            assert raw.grad is not None and torch.isfinite(raw.grad), (effect.name, key)
+            if effect.differentiable:
+                assert raw.grad is not None and torch.isfinite(raw.grad), (effect.name, key)
+            else:  # a resampling: no gradient, and none leaks into the others
+                assert raw.grad is None or float(raw.grad) == 0.0, (effect.name, key)
     assert any(float(effect.raw[k].grad) != 0 for effect in sensor.effects for k in effect.raw)
 
 

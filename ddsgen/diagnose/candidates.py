@@ -26,6 +26,8 @@ from ddsgen.sensor.effects.features import normalised_coordinates
 #: Coarse search grids (first parameter) per library effect; a local search refines the best point.
 GRIDS: dict[str, list[dict]] = {
     "lens_distortion": [{"k1": v} for v in (-0.03, -0.015, -0.006, 0.006, 0.015, 0.03)],
+    # A warp shows only where depth changes across a pixel or more: at 0.01, 0.6 px in the corners of a Kinect image.
+    "lens_warp": [{"k1": v} for v in (-0.08, -0.04, -0.02, -0.01, 0.01, 0.02, 0.04, 0.08)],
     "disparity_offset": [{"offset_px": v} for v in (-1.0, -0.5, -0.25, -0.1, 0.1, 0.25, 0.5, 1.0)],
     "depth_scale": [{"scale_error": v} for v in (-0.04, -0.02, -0.01, -0.004, 0.004, 0.01, 0.02, 0.04)],
     "grazing_dropout": [{"angle_deg": v} for v in (45.0, 55.0, 62.0, 67.0, 71.0, 75.0, 79.0, 83.0, 87.0)],
@@ -93,7 +95,8 @@ def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
       lattice the residual has several peaks), with the same per-frame plane terms.
 
     * ``grazing_dropout``: the incidence angle beyond which the model's valid pixels are missing in the real frames
-      (:func:`grazing_angle_guess`).
+      (:func:`grazing_angle_guess`);
+    * ``lens_warp``: the k1 whose warp of the model's depth images best matches the real ones (:func:`warp_guess`).
 
     Returns a few parameter sets around the estimate, or None for effects without a shape
     (the other validity effects: their grids are cheap, the matcher's result being reused).
@@ -101,6 +104,9 @@ def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
     if name == "grazing_dropout":
         angle = grazing_angle_guess(frames, sims)
         return None if angle is None else [{"angle_deg": a} for a in (angle - 3.0, angle, angle + 3.0) if a <= 89.0]
+    if name == "lens_warp":
+        k1 = warp_guess(frames, sims)
+        return None if k1 is None else [{"k1": k1 + dk} for dk in (-WARP_STEP, 0.0, WARP_STEP)]
     fb = float(sensor.baseline.detach()) * float(sensor.focal_scale.detach())
     rows, targets, points = [], [], []
     for i, (f, sim) in enumerate(zip(frames, sims)):
@@ -166,6 +172,45 @@ def signature_guess(name: str, sensor, frames, sims) -> list[dict] | None:
     return [{"offset_px": float(np.clip(frac + j * step, -3.0, 3.0))} for j in (k - 1, k, k + 1)]
 
 
+#: The k1 values :func:`warp_guess` tries, and their spacing (the search's start brackets the guess by one step).
+WARP_STEP = 0.01
+WARP_K1 = np.round(np.arange(-0.3, 0.3 + WARP_STEP / 2, WARP_STEP), 6)
+#: Depth difference (m) at which a pixel counts as a mismatch in :func:`warp_guess` (and what a validity
+#: disagreement costs): a robust cost, so that the noise of a far surface does not outweigh a moved edge.
+WARP_CAP_M = 0.05
+
+
+def warp_guess(frames, sims) -> float | None:
+    """The k1 of a lens warp read off the model's own depth images: each image warped by every k1 of
+    :data:`WARP_K1` (:func:`~ddsgen.sensor.effects.library.warp_index`: no new simulation, the warp is a resampling)
+    and compared with the real frame on the objects' pixels in the compared region (an object's pixel in the
+    warped image or in the unwarped one) -- |z_real - z_warped| capped at :data:`WARP_CAP_M` where both are valid,
+    the cap where one is. The warp moves the objects' depth edges radially, which this cost sees and a mean depth
+    bias does not; the support plane is left out, since it was fitted to the real (warped) depth already. None when
+    no k1 beats no warp."""
+    from ddsgen.sensor.effects.context import EffectContext
+    from ddsgen.sensor.effects.library import scene_box, warp_index
+
+    costs = np.zeros(len(WARP_K1))
+    for f, sim in zip(frames, sims):
+        intr = f.intrinsics
+        ctx = EffectContext(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy, baseline=0.0)
+        h, w = f.shape
+        depth, valid, objects = sim.depth.detach().reshape(-1), sim.valid.reshape(-1), (f.instance > 0).reshape(-1)
+        real, real_valid = f.real_depth, f.real_valid
+        box = scene_box(sim.valid)
+        for i, k1 in enumerate(WARP_K1):
+            index = warp_index(torch.tensor(float(k1)), torch.tensor(0.0), h, w, ctx, box)
+            z, v = depth[index].reshape(h, w), valid[index].reshape(h, w)
+            region = f.region & (objects[index].reshape(h, w) | (f.instance > 0))
+            both = region & v & real_valid
+            one = region & (v != real_valid)
+            costs[i] += float((real[both] - z[both]).abs().clamp(max=WARP_CAP_M).sum()) + WARP_CAP_M * float(one.sum())
+    best = int(np.argmin(costs))
+    neutral = int(np.argmin(np.abs(WARP_K1)))
+    return None if costs[best] >= costs[neutral] else float(WARP_K1[best])
+
+
 def grazing_angle_guess(frames, sims, angles=np.arange(30.0, 90.0, 1.0)) -> float | None:
     """The incidence angle (deg) a grazing-angle dropout would have, read off where validity differs.
 
@@ -227,13 +272,16 @@ def with_candidate(sensor, name: str, values: dict):
     return with_behaviour(sensor, name, values) if is_device(name) else with_effect(sensor, name, values)
 
 
-def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None, screening: bool = False):
+def fit_any(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None, screening: bool = False,
+            guess_from=None):  # fmt: skip
     """:func:`fit_candidate` for a library effect, :func:`~ddsgen.diagnose.device_candidates.fit_behaviour` for
     a device behaviour; both return (sensor, values, -credited fall). ``screening``: a one-frame screening search
-    (:data:`SCREEN_SNR_FACTORS`)."""
+    (:data:`SCREEN_SNR_FACTORS`); ``guess_from``: (frames, sims) the signature guess reads instead of the search's
+    (every fit frame: a guess costs no simulation, and the frames a search can afford may not show the effect)."""
     if is_device(name):
         return fit_behaviour(sensor, name, frames, config, base, sims)
-    return fit_candidate(sensor, name, frames, config, base, sims, SCREEN_SNR_FACTORS if screening else SNR_FACTORS)
+    return fit_candidate(sensor, name, frames, config, base, sims, SCREEN_SNR_FACTORS if screening else SNR_FACTORS,
+                         guess_from)  # fmt: skip
 
 
 def copy_of(sensor):
@@ -249,7 +297,7 @@ def with_effect(sensor, name: str, values: dict):
 
 
 def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evaluation, sims=None,
-                  snr_factors: tuple = SNR_FACTORS) -> tuple[object, dict, float]:  # fmt: skip
+                  snr_factors: tuple = SNR_FACTORS, guess_from=None) -> tuple[object, dict, float]:  # fmt: skip
     """Add effect ``name`` to (a copy of) ``sensor`` and fit its parameters on ``frames``.
 
     ``frames`` are fit frames re-planed under ``sensor`` and ``base`` is ``sensor``'s evaluation on
@@ -275,7 +323,8 @@ def fit_candidate(sensor, name: str, frames, config: DiagnoseConfig, base: Evalu
         return tried[key]
 
     neutral = {k: spec.neutral for k, spec in cls.params.items()}
-    points = signature_guess(name, sensor, frames, sims) if sims is not None else None
+    guess_frames, guess_sims = guess_from or (frames, sims)
+    points = signature_guess(name, sensor, guess_frames, guess_sims) if guess_sims is not None else None
     guessed = bool(points)
     if not guessed:
         points = default_grid(name)

@@ -303,12 +303,13 @@ def diagnose(preset, frames, config: DiagnoseConfig | None = None, echo: Callabl
                 if n and len(search_frames) > n:  # screening (see SCREEN_FRACTION): one frame's search first
                     screen_base = Evaluation(search_base.frame_gaps[:n], search_base.frame_floors[:n])
                     fitted = fit_any(sensor, name, search_frames[:n], config, screen_base, search_sims[:n],
-                                     screening=True)
+                                     screening=True, guess_from=(all_fit, all_sims))  # fmt: skip
                     c = judge(name, fitted, f"screened: searched on {n} fit frame(s)")
                     if c.gain < SCREEN_FRACTION * config.min_relative_gain:
                         continue
                     results.remove(c)  # promising: searched on every search frame and judged again
-                judge(name, fit_any(sensor, name, search_frames, config, search_base, search_sims))
+                judge(name, fit_any(sensor, name, search_frames, config, search_base, search_sims,
+                                    guess_from=(all_fit, all_sims)))  # fmt: skip
             best = max(results, key=lambda c: c.gain) if results else None
             if config.axis_terms and not (best is not None and passes(best, config)):
                 # No named effect explains it: a generic smooth term along an axis with structure beyond noise.

@@ -63,15 +63,19 @@ VALIDITY_STAGE_KEYS = {key: PARAMETERS[key].default for key in stage_keys("clean
 PARAMETER_KEYS = tuple(rule.key for rule in fit_rules().values() if rule.attr is not None and not rule.tensor_is_ratio)
 
 
+#: Effect stages the sensor runs after its front end (in its validity stage).
+AFTER_FRONT_END = ("validity", "image")
+
+
 def front_end_state(sensor) -> tuple:
     """Everything a sensor's front end depends on besides geometry and noise: the preset (without its effects),
-    the camera, the values of every parameter and buffer except those of validity-stage effects and of the
+    the camera, the values of every parameter and buffer except those of validity- and image-stage effects and of the
     post-processing (both act after the front end), the other effects' entries and the unit (its dots)."""
-    later = {f"effects.{i}." for i, e in enumerate(sensor.effects) if e.stage == "validity"} | {"postprocess."}
+    later = {f"effects.{i}." for i, e in enumerate(sensor.effects) if e.stage in AFTER_FRONT_END} | {"postprocess."}
     tensors = tuple((name, tuple(t.detach().reshape(-1).tolist()))
                     for name, t in (*sensor.named_parameters(), *sensor.named_buffers())
                     if not any(name.startswith(prefix) for prefix in later))  # fmt: skip
-    effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage != "validity")
+    effects = tuple(repr(e.to_entry()) for e in sensor.effects if e.stage not in AFTER_FRONT_END)
     intr = sensor.intr
     # The clean-up's keys act in the validity stage too (a device-behaviour candidate changes only them). The keys
     # held as parameters take the parameters' values: the preset's only started them (a candidate's preset holds

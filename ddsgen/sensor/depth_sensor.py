@@ -5,7 +5,8 @@ the preset's optional physics (effects) plugged in as stages of their own (:mod:
 
     geometry (ray cast, constant) -> projector -> IR image -> ir effects -> block matcher
     -> row smoothing and quantum -> disparity effects -> depth z = f b / d -> depth effects
-    -> validity effects -> validity -> clean-up -> output borders (-> optional post-processing CNN) -> registration
+    -> validity effects -> validity -> image effects -> clean-up -> output borders (-> optional post-processing CNN)
+    -> registration
 
 Everything in :meth:`DepthSensor.forward` is a torch function of the sensor's
 parameters. Positive parameters are stored as logarithms (baseline, focal length,
@@ -107,7 +108,8 @@ class DepthSensor(nn.Module):
     ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting :attr:`preset` gives
     each its new settings. The sensor itself owns the camera (intrinsics, baseline, depth range), the effects
     (``effects``: their parameters, in the preset's order) and the optional post-processing CNN (``postprocess``).
-    The effects run as the stages ``ir_effects``, ``disparity_effects``, ``depth_effects`` and ``validity_effects``
+    The effects run as the stages ``ir_effects``, ``disparity_effects``, ``depth_effects``, ``validity_effects`` and
+    ``image_effects``
     (:func:`~ddsgen.sensor.effect_stages.effect_stages`), each holding the effects that act on its signal.
 
     ``unit`` (int, 0 by default) says which unit of the device model this is. Every unit has the same
@@ -150,6 +152,7 @@ class DepthSensor(nn.Module):
         self.disparity_effects = stages_of_effects["disparity"]
         self.depth_effects = stages_of_effects["depth"]
         self.validity_effects = stages_of_effects["validity"]
+        self.image_effects = stages_of_effects["image"]
         # Optional post-processing CNN (ddsgen.sensor.postprocess): called as
         # (depth, valid, valid_soft, geometry) -> (depth, valid, valid_soft).
         self.postprocess: nn.Module | None = None
@@ -342,13 +345,16 @@ class DepthSensor(nn.Module):
         ctx, raw_depth, disparity = front.ctx, front.raw_depth, front.disparity
         keep = self.validity_effects(front.keep, raw_depth, ctx)
         valid, valid_soft = self.validity(front.matched, raw_depth, keep, p.z_min_m, p.z_max_m, geometry)
+        confidence = front.confidence
+        if self.image_effects.effects:  # the device's pixels see another grid (its clean-up runs on that grid)
+            raw_depth, disparity, valid, valid_soft, confidence = self.image_effects(
+                (raw_depth, disparity, valid, valid_soft, confidence), ctx)
         raw_depth, disparity, valid, valid_soft = self.cleanup(raw_depth, disparity, valid, valid_soft)
         valid, valid_soft = self.output_borders(valid, valid_soft, intr, p.width_px, p.height_px, p.cx_px, p.cy_px)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
         if self.postprocess is not None:
             depth, valid, valid_soft = self.postprocess(depth, valid, valid_soft, geometry)
         disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
-        confidence = front.confidence
         if geometry.registration is not None:  # the IR camera's depth, written in the RGB camera's image
             depth, valid, valid_soft, disparity, confidence, raw_depth = self.registration(
                 (depth, valid, valid_soft, disparity, confidence, raw_depth), valid, depth, geometry.registration,

@@ -4,7 +4,7 @@ An effect (:mod:`ddsgen.sensor.effects`) declares which signal it acts on (its `
 signal one :class:`EffectStage` holding the effects that act on it, in the preset's order, and runs it at its place::
 
     IR image -> ir effects -> matcher -> row smoothing -> disparity effects -> z = f b / d -> depth effects
-    -> validity effects -> validity -> ...
+    -> validity effects -> validity -> image effects -> clean-up -> ...
 
 A stage with no effects passes its input through unchanged (the same tensor).
 """
@@ -19,8 +19,9 @@ from ddsgen.sensor.effects import Effect
 from ddsgen.sensor.effects.context import EffectContext
 
 #: The signals effects act on, in the order a frame passes them: the IR image (counts), the disparity (px), the
-#: depth (m), and the keep-probability (a factor in [0, 1] each validity effect computes from the depth).
-SIGNALS = ("ir", "disparity", "depth", "validity")
+#: depth (m), the keep-probability (a factor in [0, 1] each validity effect computes from the depth), and the image
+#: grid (every map of the frame at once, resampled where the device's pixels look).
+SIGNALS = ("ir", "disparity", "depth", "validity", "image")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,8 +52,29 @@ class ValidityEffects(EffectStage):
         return keep
 
 
+@dataclasses.dataclass(frozen=True)
+class ImageEffects(EffectStage):
+    """Image effects: each resamples all of a frame's maps on the pixel grid the device's pixels see, so depth,
+    disparity and validity move together (a warp of the camera's image)."""
+
+    signal: str = "image"
+
+    def __call__(self, maps: tuple[torch.Tensor, ...], ctx: EffectContext) -> tuple[torch.Tensor, ...]:  # type: ignore
+        """``maps`` (each (H, W), in this order: depth m, disparity px, valid bool, keep-probability, confidence)
+        through every effect."""
+        for effect in self.effects:
+            maps = effect(maps, ctx)
+        return maps
+
+
+#: The stage classes of the signals whose effects take more than the signal itself.
+_SPECIAL = {"validity": ValidityEffects, "image": ImageEffects}
+
+
 def effect_stages(effects) -> dict[str, EffectStage]:
     """{signal: its stage} for every signal of :data:`SIGNALS`, each holding those of ``effects`` that act on it."""
-    stages = {signal: EffectStage(signal, tuple(e for e in effects if e.stage == signal)) for signal in SIGNALS[:-1]}
-    stages["validity"] = ValidityEffects(effects=tuple(e for e in effects if e.stage == "validity"))
+    stages = {}
+    for signal in SIGNALS:
+        acting = tuple(e for e in effects if e.stage == signal)
+        stages[signal] = _SPECIAL[signal](effects=acting) if signal in _SPECIAL else EffectStage(signal, acting)
     return stages

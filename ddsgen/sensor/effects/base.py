@@ -8,6 +8,8 @@ An effect acts on one signal of the sensor (its ``stage``); the sensor runs it i
 * ``"disparity"`` — (H, W) disparity in px -> disparity (after matching)
 * ``"depth"``     — (H, W) depth in m -> depth
 * ``"validity"``  — returns an (H, W) keep-probability in [0, 1] that multiplies validity
+* ``"image"``     — a tuple of (H, W) maps (depth, disparity, validity, ...) -> the same maps resampled on another
+  pixel grid (after validity, before the device's clean-up)
 
 Each parameter has a neutral value (the effect then leaves the sensor unchanged) and a
 physical range; it is stored unconstrained and mapped into its range by a sigmoid (or
@@ -39,7 +41,7 @@ class Effect(nn.Module):
     """Base class. Subclasses set the class attributes and implement :meth:`forward`."""
 
     name: ClassVar[str]
-    stage: ClassVar[str]  # "ir" | "disparity" | "depth" | "validity"
+    stage: ClassVar[str]  # "ir" | "disparity" | "depth" | "validity" | "image"
     description: ClassVar[str]  # one sentence a sensor engineer understands
     signature: ClassVar[str]  # the residual pattern it produces
     axis: ClassVar[str]  # the residual axis where its signature shows (e.g. "depth", "radius")
@@ -47,6 +49,9 @@ class Effect(nn.Module):
     options: ClassVar[dict[str, tuple[str, ...]]] = {}  # name -> choices (first = default); not fitted
     groups: ClassVar[dict[str, tuple[str, ...]]] = {}  # list key of a preset entry -> the scalar parameters it fills
     generic: ClassVar[bool] = False  # a shape without a named physical cause (diagnose tries it after the library)
+    # False for an effect whose output is a step function of its parameters (a nearest-pixel resampling): searched on
+    # a grid by diagnose, never moved by a gradient step.
+    differentiable: ClassVar[bool] = True
 
     def __init__(self, **values):
         super().__init__()

@@ -1,8 +1,9 @@
 """The library of effects (each registers itself under its preset name).
 
-Every effect is a differentiable torch module (or a soft relaxation of a discrete rule)
-acting at one stage of :class:`~ddsgen.sensor.depth_sensor.DepthSensor`; with its
-parameters at their ``neutral`` values it leaves the sensor's output unchanged. The
+Every effect is a differentiable torch module (or a soft relaxation of a discrete rule) -- except the lens
+warp, a nearest-pixel resampling that diagnose searches on a grid (``differentiable = False``) -- acting at one
+stage of :class:`~ddsgen.sensor.depth_sensor.DepthSensor`; with its parameters at their ``neutral`` values it
+leaves the sensor's output unchanged. The
 ``axis`` of an effect names the residual axis of ``ddsgen diagnose`` along which its
 signature shows: ``depth``, ``incidence``, ``radius``, ``row``, ``column``,
 ``edge_distance`` or ``signal``.
@@ -48,6 +49,70 @@ def bilinear_sample(image: torch.Tensor, us: torch.Tensor, vs: torch.Tensor) -> 
     return top * (1 - fv) + bottom * fv
 
 
+def radial_displacement(k1: torch.Tensor, k2: torch.Tensor, height: int, width: int,
+                        ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """(du, dv) (H, W) px of Brown's radial model: pixel (u, v) of the distorted image shows the ideal image at
+    (u + du, v + dv) = the ideal point x (1 + k1 r^2 + k2 r^4), x = (u - cx) / fx normalised (likewise y)."""
+    x, y = normalised_coordinates(height, width, ctx.fx, ctx.fy, ctx.cx, ctx.cy, k1.device)
+    r2 = x * x + y * y
+    radial = k1 * r2 + k2 * r2 * r2
+    return x * ctx.fx * radial, y * ctx.fy * radial
+
+
+@register
+class LensWarp(Effect):
+    """Uncalibrated radial distortion of the pixel grid (Brown model, k1 and k2): the depth image is warped."""
+
+    name = "lens_warp"
+    stage = "image"
+    description = (
+        "The IR camera's lens bends each pixel's viewing ray radially (uncorrected k1, k2 distortion) while the "
+        "depth along the ray stays right, because the reference pattern was captured through the same lens: "
+        "the depth image is the ideal one warped, objects shifted towards or away from the image centre."
+    )
+    signature = (
+        "depth edges displaced radially by up to a few pixels towards the corners (positive and negative "
+        "residuals on opposite sides of every object), flat surfaces nearly unbiased"
+    )
+    axis = "radius"
+    params = EFFECTS["lens_warp"].params
+    differentiable = False
+
+    def forward(self, maps: tuple[torch.Tensor, ...], ctx: EffectContext) -> tuple[torch.Tensor, ...]:
+        """Each of ``maps`` (H, W; the third is the validity, bool) sampled at the ideal pixel nearest to where each
+        device pixel looks (nearest: depth is never mixed across an edge)."""
+        h, w = maps[0].shape
+        index = warp_index(self.value("k1").detach(), self.value("k2").detach(), h, w, ctx, scene_box(maps[2]))
+        return tuple(m.reshape(-1)[index].reshape(h, w) for m in maps)
+
+
+def scene_box(valid: torch.Tensor) -> tuple[int, int, int, int]:
+    """(u_lo, u_hi, v_lo, v_hi) px, inclusive: the image without its border bands, the whole columns and rows at its
+    edges with no valid pixel (the matcher's margin, a window the device cuts). Those bands belong to the device's
+    pixel grid, not to the scene: a warp leaves them where they are and does not spread them inward."""
+    cols = torch.nonzero(valid.any(0)).reshape(-1)
+    rows = torch.nonzero(valid.any(1)).reshape(-1)
+    if not cols.numel():
+        return 0, valid.shape[1] - 1, 0, valid.shape[0] - 1
+    return int(cols[0]), int(cols[-1]), int(rows[0]), int(rows[-1])
+
+
+def warp_index(k1: torch.Tensor, k2: torch.Tensor, height: int, width: int, ctx: EffectContext,
+               box: tuple[int, int, int, int] | None = None) -> torch.Tensor:  # fmt: skip
+    """(H W,) flat index of the ideal pixel nearest to where each pixel of a Brown-warped grid looks
+    (:func:`radial_displacement`). Within ``box`` (:func:`scene_box`; default the whole image) a pixel looking beyond
+    it takes the box's nearest border pixel: the ray cast covers the ideal image only, and beyond it the scene goes
+    on (an invalid band there would be an artefact); pixels outside the box keep their own value."""
+    u_lo, u_hi, v_lo, v_hi = box or (0, width - 1, 0, height - 1)
+    du, dv = radial_displacement(k1, k2, height, width, ctx)
+    u0 = torch.arange(width, device=du.device).reshape(1, width)
+    v0 = torch.arange(height, device=du.device).reshape(height, 1)
+    u = torch.round(u0 + du).long().clamp(u_lo, u_hi)
+    v = torch.round(v0 + dv).long().clamp(v_lo, v_hi)
+    inside = (u0 >= u_lo) & (u0 <= u_hi) & (v0 >= v_lo) & (v0 <= v_hi)
+    return torch.where(inside, v * width + u, v0 * width + u0).reshape(-1)
+
+
 @register
 class LensDistortion(Effect):
     """Uncalibrated radial distortion of the IR camera (Brown model, k1 and k2)."""
@@ -67,10 +132,7 @@ class LensDistortion(Effect):
 
     def displacement(self, height: int, width: int, ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:
         """(du, dv) (H, W) px: pixel (u, v) of the distorted image shows the ideal image at (u + du, v + dv)."""
-        x, y = normalised_coordinates(height, width, ctx.fx, ctx.fy, ctx.cx, ctx.cy, self.raw["k1"].device)
-        r2 = x * x + y * y
-        radial = self.value("k1") * r2 + self.value("k2") * r2 * r2
-        return x * ctx.fx * radial, y * ctx.fy * radial
+        return radial_displacement(self.value("k1"), self.value("k2"), height, width, ctx)
 
     def forward(self, ir: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
         """ir (H, W) counts -> the same image seen through the distorting lens."""
