@@ -16,7 +16,10 @@ the diagnosis' steps and then ``bench:`` lines:
   blind_library_right          library cases named right, of 5
   blind_library_median_shrink_pct  median shrink over the library cases (target >= 50 % each)
 
-Usage: python bench/bench_diagnose_blind.py [--cases NAME ...] [--threads N]
+``--size 640 480 --frames 8`` runs the issue's conditions (each case then takes a few minutes; the lens warp's
+strength is the same in pixels at half the lambda).
+
+Usage: python bench/bench_diagnose_blind.py [--cases NAME ...] [--threads N] [--size W H] [--frames N]
 """
 
 from __future__ import annotations
@@ -63,10 +66,10 @@ def bench(name: str, value: float, unit: str = "") -> None:
     print(f"bench: {name} {value:.4g} {unit}".rstrip(), flush=True)
 
 
-def stock():
+def stock(size: tuple[int, int] = SIZE):
     """The blind suite's stock sensor: not registered (the independent model measures in the IR camera's image),
     no narrow-gap fill (it leaves every projector-shadow pixel empty)."""
-    return small_preset(*SIZE, subpixel_level=3, registration_ir_offset_m=0.0, registration_shift_px=0.0,
+    return small_preset(*size, subpixel_level=3, registration_ir_offset_m=0.0, registration_shift_px=0.0,
                         cleanup_fill_width_px=0)  # fmt: skip
 
 
@@ -84,23 +87,30 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--size", type=int, nargs=2, default=SIZE, metavar=("W", "H"))
+    parser.add_argument("--frames", type=int, default=FRAMES)
     args = parser.parse_args()
+    size = tuple(args.size)
+    # The warp's displacement in pixels grows with the focal length: the same strength in pixels at any size.
+    warp_scale = SIZE[0] / size[0]
     shrinks, right = {}, {}
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         root = Path(tmp)
-        save_preset(stock(), root / "stock.yaml")
-        render_dataset(str(root / "stock.yaml"), str(SCENES), FRAMES, str(root / "scenes"), workers=1,
+        save_preset(stock(size), root / "stock.yaml")
+        render_dataset(str(root / "stock.yaml"), str(SCENES), args.frames, str(root / "scenes"), workers=1,
                        seed=SCENE_SEED, progress=False)  # fmt: skip
-        geometry = prepare_frames(stock(), read_scan_folder(root / "scenes"), progress=False)
+        geometry = prepare_frames(stock(size), read_scan_folder(root / "scenes"), progress=False)
         for case in args.cases:
             effect, expected = CASES[case]
+            if effect and "division_lambda" in effect:
+                effect = dict(effect, division_lambda=effect["division_lambda"] * warp_scale)
             folder = root / case
             shutil.copytree(root / "scenes", folder)
-            remeasure_folder(folder, geometry, stock().baseline_m, effect, seed=MEASURE_SEED)
+            remeasure_folder(folder, geometry, stock(size).baseline_m, effect, seed=MEASURE_SEED)
             (folder / "run.json").unlink()  # another device's scans: only the annotated objects are known
-            frames = prepare_frames(stock(), read_scan_folder(folder), progress=False)
+            frames = prepare_frames(stock(size), read_scan_folder(folder), progress=False)
             start = time.perf_counter()
-            result = diagnose(stock(), frames, DiagnoseConfig(), echo=lambda line: print(f"  {case}: {line}"))
+            result = diagnose(stock(size), frames, DiagnoseConfig(), echo=lambda line: print(f"  {case}: {line}"))
             seconds = time.perf_counter() - start
             shrink = 100.0 * (1.0 - result.final_gap / result.baseline_gap) if result.baseline_gap > 0 else 0.0
             right[case] = named_right(case, expected, result)

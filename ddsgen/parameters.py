@@ -284,12 +284,24 @@ PARAMETERS: dict[str, Parameter] = {p.name: p for p in (
         # the hole rates, but those are scene-dominated: measured, they swung by 0.6 between fall-off values 4 apart
         # while the radius term pointed at the hidden value).
         unpaired=UnpairedSearch(order=7, low=0.0, high=16.0, log=False, grid=5, terms=("radius",)),
+        diagnose=Behaviour(
+            "beam_falloff", order=4, off=0.0, grid=(2.0, 4.0, 6.0, 8.0), acts_on="disparity", axis="radius",
+            description=("The projector's beam is brightest on its axis and fades towards the image corners "
+                         "(cos^m off its axis), so the corners' dots are weaker and lose depth first."),
+            signature="valid depth in the simulation's corners where the real frame has holes, more on far surfaces",
+        ),
     ),
     Parameter("vignetting_exponent", float, "", "ir",
         "IR lens vignetting: signal x cos^n(angle off the camera's axis); 4 = the cos^4 law, 0 = none",
         low=0, high=32, default=0.0,
         fit=FitRule("vignetting", order=9, attr=None, log=False, bound=("range", 0.0, 8.0),
                     width=1.0, group="falloff", step=0.5),
+        diagnose=Behaviour(
+            "lens_vignetting", order=5, off=0.0, grid=(2.0, 4.0, 6.0, 8.0), acts_on="disparity", axis="radius",
+            description=("The IR camera's lens passes less light towards the image corners (cos^n off its axis), so "
+                         "the corners' dots are weaker and lose depth first."),
+            signature="valid depth in the simulation's corners where the real frame has holes, more on far surfaces",
+        ),
     ),
     Parameter("ir_bits", int, "bits", "ir",
         "IR sensor bit depth (clip and quantise to 2^bits - 1)",

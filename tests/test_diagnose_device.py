@@ -1,6 +1,7 @@
 """Device behaviours as diagnosis candidates (ddsgen.diagnose.device_candidates): what a PrimeSense-family device
-does to its own matches (keeps windows across depth edges, fills small holes and narrow gaps, removes specks),
-tried when the preset has it switched off, and named from real data."""
+does to its own matches (keeps windows across depth edges, fills small holes and narrow gaps, removes specks) and
+how its signal fades towards the corners (beam and lens fall-off), tried when the preset has it switched off, and
+named from real data."""
 
 from __future__ import annotations
 
@@ -64,6 +65,45 @@ def test_edge_keeping_is_found_on_scans_of_a_device_that_keeps_its_edges(tmp_pat
     # measured (forward registration): credited fall 46 % of the gap, its part beyond the noise floor
     # 0.27 -> -0.03 mm (all of it)
     assert -score >= 0.4 and after.excess <= 0.2 * base.excess
+
+
+def test_corner_falloff_is_found_on_scans_of_a_device_whose_corners_are_dark(tmp_path, set_torch_threads):
+    """Scans of a device whose beam and lens both fade towards the corners (cos^4 each) at a low signal, so that its
+    corners lose depth, judged from a model with neither: each fall-off candidate, searched on two frames, takes
+    a strong exponent (one key stands in for both) and on two other frames the gap beyond the floor is gone and the
+    holes are where the device's are. Measured: held-out 3.60 -> -2.49 mm (beam, 6), -2.71 (lens, 6)."""
+    from effects_geometry import small_preset
+
+    from ddsgen.realscan.simulate import prepare_frames
+    from ddsgen.io.scanfolder import read_scan_folder
+    from ddsgen.preset import save_preset
+    from ddsgen.runner import render_dataset
+    from ddsgen.sensor.depth_sensor import DepthSensor
+
+    set_torch_threads(1)
+    device = small_preset(320, 240)
+    device = device.replace(emitted_intensity=0.2 * device.emitted_intensity)  # a weak signal: corners go first
+    assert device.projector_falloff_exponent == 4.0 and device.vignetting_exponent == 4.0
+    save_preset(device, tmp_path / "device.yaml")
+    scenes = Path(__file__).with_name("diagnose_scenes.yaml")
+    render_dataset(str(tmp_path / "device.yaml"), str(scenes), 4, str(tmp_path / "scans"), workers=1, seed=4,
+                   progress=False)  # fmt: skip
+    model = device.replace(projector_falloff_exponent=0.0, vignetting_exponent=0.0)
+    assert {"beam_falloff", "lens_vignetting"} <= set(device_candidates(model))
+    frames = prepare_frames(model, read_scan_folder(tmp_path / "scans"), progress=False)
+    fit_frames, held = frames[:2], frames[2:]
+    sensor = DepthSensor(model)
+    config = DiagnoseConfig(seed=0)
+    with torch.no_grad():
+        base_fit, base_held = evaluate(sensor, fit_frames, config.seed), evaluate(sensor, held, config.seed)
+    assert base_held.excess > 0.5, "the model without fall-off keeps depth in the corners the device loses"
+    for name in ("beam_falloff", "lens_vignetting"):
+        found, values, score = fit_behaviour(sensor, name, fit_frames, config, base_fit)
+        with torch.no_grad():
+            after = evaluate(found, held, config.seed)
+        print(f"{name}: {values}, held-out gap beyond the floor {base_held.excess:.2f} -> {after.excess:.2f} mm")
+        assert next(iter(values.values())) >= 4.0
+        assert after.excess <= 0.2 * base_held.excess and after.validity_ll > base_held.validity_ll
 
 
 @pytest.mark.slow

@@ -114,6 +114,8 @@ EXPECTED_BEHAVIOURS = {
     "hole_fill": ("cleanup_hole_px", 0, (2, 4, 8, 16, 32), "px", "validity", "signal", False),
     "narrow_gap_fill": ("cleanup_fill_width_px", 0, (1, 2, 3, 4, 6), "px", "validity", "edge_distance", False),
     "speckle_removal": ("cleanup_speckle_px", 0, (25, 50, 100, 200, 400), "px", "validity", "signal", False),
+    "beam_falloff": ("projector_falloff_exponent", 0.0, (2.0, 4.0, 6.0, 8.0), "", "disparity", "radius", False),
+    "lens_vignetting": ("vignetting_exponent", 0.0, (2.0, 4.0, 6.0, 8.0), "", "disparity", "radius", False),
 }  # fmt: skip
 EXPECTED_VALIDITY_STAGE_KEYS = {"cleanup_speckle_px": 0, "cleanup_hole_px": 0, "cleanup_fill_width_px": 0,
                                 "cleanup_max_diff_px": 1.0}  # fmt: skip

@@ -35,7 +35,8 @@ from ddsgen.sensor.effects import REGISTRY
               help="Effects to try (comma-separated or repeated). Default: the named library effects except "
                    "disparity_distortion (opt-in: its 3x5 field can absorb an offset, a scale or a lens distortion), "
                    "plus the device behaviours the preset has switched off (edge_keeping_matches, hole_fill, "
-                   "narrow_gap_fill, speckle_removal: what a PrimeSense-family device does to its own matches).")
+                   "narrow_gap_fill, speckle_removal: what a PrimeSense-family device does to its own matches; "
+                   "beam_falloff, lens_vignetting: its signal fading towards the corners).")
 @click.option("--grid-frames", type=int, default=4, show_default=True,
               help="Fit frames on which each candidate effect's parameters are searched (0: all of them).")
 @click.option("--max-effects", type=int, default=4, show_default=True, help="Stop after adding this many effects.")

@@ -4,7 +4,9 @@ A library effect (:mod:`ddsgen.sensor.effects`) adds something physical to the m
 dropout. A real PrimeSense-family device also *post-processes* its matches, and a model without that
 post-processing loses depth that the real frames keep: windows that straddle a depth edge are kept when a
 unique match nearby agrees, small holes inside one surface are filled, gaps narrow enough for a mostly lit
-window are bridged, and small specks of valid depth are removed. These are keys of the device model
+window are bridged, and small specks of valid depth are removed. Its signal also fades towards the image corners
+(the projector's beam profile, the lens's vignetting), and a model without that keeps depth in the corners that
+the device loses. These are keys of the device model
 (``presets/kinect_v1.yaml``, each with its measurement), not effects. A preset that has one of them switched
 off -- ``kinect_v1_paper`` has all of them off -- gets it as a candidate: the key set to each value of a short
 grid (:data:`BEHAVIOURS`, from the ``diagnose`` records of :mod:`ddsgen.parameters`), judged by the same held-out
