@@ -221,8 +221,9 @@ def _alone_pixel_count(placed, cam_T_world: np.ndarray, intrinsics: Intrinsics) 
     return int(np.count_nonzero(geom >= 0))
 
 
-def object_labels(scene, hits: RayHits, intrinsics: Intrinsics) -> list[dict]:
-    """Manifest ``objects`` entries, one per placed object (ids ascending).
+def object_labels(scene, hits: RayHits, intrinsics: Intrinsics, instance: np.ndarray | None = None) -> list[dict]:
+    """Manifest ``objects`` entries, one per placed object (ids ascending); ``instance``: the (H, W) instance ids the
+    masks are written from, when not the cast's own (a warped pixel grid).
 
     Each: ``id``, ``mesh`` (mesh_ref), ``class``, ``cam_T_obj`` (4x4 nested list, metres, maps the mesh in
     metres = file units x ``mesh_scale``), ``mesh_scale``, ``bbox`` [x, y, w, h] of the visible mask pixels
@@ -230,7 +231,7 @@ def object_labels(scene, hits: RayHits, intrinsics: Intrinsics) -> list[dict]:
     object would cover alone (0 when it is out of view).
     """
     cam_T_world = np.linalg.inv(np.asarray(scene.world_T_cam, dtype=np.float64))
-    instance = np.asarray(hits.instance)
+    instance = np.asarray(hits.instance if instance is None else instance)
     width = instance.shape[1]
     # one pass over the object pixels: per id, the pixel count and the min / max row and column
     flat = np.flatnonzero(instance.reshape(-1))

@@ -189,8 +189,12 @@ def simulate_frame(job: RenderJob, frame: int) -> SimulatedFrame:
         output = state["sensor"](geometry, seed=[job.seed, frame, NOISE_STREAM])
     depth = output.depth.numpy().astype(np.float32)
     ir = output.ir.numpy()
+    clean, instance = np.asarray(hits.depth, dtype=np.float32), np.asarray(hits.instance)
+    for warp in state["sensor"].image_effects.effects:  # a warped pixel grid: the labels follow the depth
+        clean, instance = warp.warp_labels((clean, instance), intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                           intrinsics.cy)  # fmt: skip
 
-    objects = object_labels(scene, hits, intrinsics)
+    objects = object_labels(scene, hits, intrinsics, instance)
     for label in objects:  # the stable identity of the class table (classes.json), the same in every frame
         entry = state["scenes"].class_entry(label["mesh"], label["mesh_scale"], label["class"])
         label.update(obj_id=entry.obj_id, class_id=entry.class_id)
@@ -205,8 +209,7 @@ def simulate_frame(job: RenderJob, frame: int) -> SimulatedFrame:
         "valid_fraction": round(float((depth > 0).mean()), 6),
         **({"ir_camera": ir_camera} if ir_camera else {}),
     }
-    return SimulatedFrame(depth, np.asarray(hits.depth, dtype=np.float32), ir, np.asarray(hits.instance),
-                          2.0**preset.ir_bits - 1.0, record)  # fmt: skip
+    return SimulatedFrame(depth, clean, ir, instance, 2.0**preset.ir_bits - 1.0, record)
 
 
 def _render_batch(job: RenderJob, frames: list[int]) -> list[dict]:

@@ -388,3 +388,39 @@ def test_a_preset_and_its_effects_are_checked_without_the_sensor(tmp_path):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert "effects[0].width_px: must be in [0, 20] px, got 99" in result.stdout
+
+
+def test_a_render_with_a_lens_warp_writes_masks_and_clean_depth_on_its_warped_depth(tmp_path):
+    """The masks of a warped render follow its depth: on an object's mask pixels the depth is the clean depth
+    (within the sensor's noise) as often as in a render without the warp, and the masks differ from the ideal
+    camera's towards the corners."""
+    import json
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from ddsgen.io.exr import read_exr
+    from ddsgen.preset import save_preset
+    from ddsgen.runner import render_dataset
+
+    scenes = Path(__file__).with_name("diagnose_scenes.yaml")
+    shares, masks = {}, {}
+    for name, effects in (("ideal", []), ("warped", [{"name": "lens_warp", "k1": 0.15, "k2": 0.0}])):
+        save_preset(small_preset(320, 240).replace(effects=effects), tmp_path / f"{name}.yaml")
+        out = tmp_path / name
+        render_dataset(str(tmp_path / f"{name}.yaml"), str(scenes), 2, str(out), workers=1, seed=3, progress=False)
+        off = []
+        for line in (out / "manifest.jsonl").read_text().splitlines():
+            record = json.loads(line)
+            depth = cv2.imread(str(out / record["depth"]), cv2.IMREAD_UNCHANGED) / 1000.0
+            clean = read_exr(out / record["clean"])
+            mask = cv2.imread(str(out / record["mask"]), cv2.IMREAD_UNCHANGED)
+            on = (mask > 0) & (depth > 0)
+            off.append(np.abs(depth[on] - clean[on]) > 0.03)
+            masks.setdefault(name, []).append(mask)
+            assert all(o["bbox"][2] > 0 for o in record["objects"] if o["visible_fraction"] > 0)
+        shares[name] = float(np.concatenate(off).mean())
+    # measured: 0.0679 ideal, 0.0687 warped; 0.0796 when the masks were the ideal camera's
+    assert shares["warped"] <= shares["ideal"] + 0.005, shares
+    assert any((a != b).any() for a, b in zip(masks["ideal"], masks["warped"])), "the warp moved the masks"

@@ -345,10 +345,10 @@ class DepthSensor(nn.Module):
         ctx, raw_depth, disparity = front.ctx, front.raw_depth, front.disparity
         keep = self.validity_effects(front.keep, raw_depth, ctx)
         valid, valid_soft = self.validity(front.matched, raw_depth, keep, p.z_min_m, p.z_max_m, geometry)
-        confidence = front.confidence
+        confidence, ir = front.confidence, front.ir
         if self.image_effects.effects:  # the device's pixels see another grid (its clean-up runs on that grid)
-            raw_depth, disparity, valid, valid_soft, confidence = self.image_effects(
-                (raw_depth, disparity, valid, valid_soft, confidence), ctx)
+            raw_depth, disparity, valid, valid_soft, confidence, ir = self.image_effects(
+                (raw_depth, disparity, valid, valid_soft, confidence, ir), ctx)
         raw_depth, disparity, valid, valid_soft = self.cleanup(raw_depth, disparity, valid, valid_soft)
         valid, valid_soft = self.output_borders(valid, valid_soft, intr, p.width_px, p.height_px, p.cx_px, p.cy_px)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))
@@ -359,5 +359,5 @@ class DepthSensor(nn.Module):
             depth, valid, valid_soft, disparity, confidence, raw_depth = self.registration(
                 (depth, valid, valid_soft, disparity, confidence, raw_depth), valid, depth, geometry.registration,
                 intr.fx)  # fmt: skip
-        return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=front.ir, disparity=disparity,
+        return SensorOutput(depth=depth, valid=valid, valid_soft=valid_soft, ir=ir, disparity=disparity,
                             confidence=confidence, raw_depth=raw_depth)  # fmt: skip

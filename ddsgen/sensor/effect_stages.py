@@ -60,8 +60,8 @@ class ImageEffects(EffectStage):
     signal: str = "image"
 
     def __call__(self, maps: tuple[torch.Tensor, ...], ctx: EffectContext) -> tuple[torch.Tensor, ...]:  # type: ignore
-        """``maps`` (each (H, W), in this order: depth m, disparity px, valid bool, keep-probability, confidence)
-        through every effect."""
+        """``maps`` (each (H, W), in this order: depth m, disparity px, valid bool, keep-probability, confidence,
+        IR image counts) through every effect."""
         for effect in self.effects:
             maps = effect(maps, ctx)
         return maps

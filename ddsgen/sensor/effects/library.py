@@ -15,6 +15,7 @@ pixel once its keep-probability falls under 0.5 and is differentiable around tha
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from ddsgen.effect_params import EFFECTS
@@ -84,6 +85,14 @@ class LensWarp(Effect):
         h, w = maps[0].shape
         index = warp_index(self.value("k1").detach(), self.value("k2").detach(), h, w, ctx, scene_box(maps[2]))
         return tuple(m.reshape(-1)[index].reshape(h, w) for m in maps)
+
+    def warp_labels(self, labels: tuple[np.ndarray, ...], fx: float, fy: float, cx: float, cy: float):
+        """Each of ``labels`` ((H, W) numpy arrays of the ideal camera: instance ids, clean depth) resampled as the
+        depth is, so that a render's masks stay on its depth (no device bands: the whole image is the scene's)."""
+        h, w = labels[0].shape
+        ctx = EffectContext(fx=fx, fy=fy, cx=cx, cy=cy, baseline=0.0)
+        index = warp_index(self.value("k1").detach(), self.value("k2").detach(), h, w, ctx).numpy()
+        return tuple(np.asarray(a).reshape(-1)[index].reshape(h, w) for a in labels)
 
 
 def scene_box(valid: torch.Tensor) -> tuple[int, int, int, int]:
