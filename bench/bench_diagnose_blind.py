@@ -12,6 +12,9 @@ the diagnosis' steps and then ``bench:`` lines:
   blind_<case>_named_right     1 when the first named effect is the expected one (null: nothing named; row bias:
                                a disparity term along the row and no library effect claiming > 20 %)
   blind_<case>_shrink_pct      held-out gap beyond the floor removed by the accepted steps (%)
+  blind_<case>_shrink_beyond_null_pct  the same, of the part beyond the null case's gap (with null run): the
+                               independent model differs from ddsgen's stock sensor without any hidden effect too
+                               (no corner fall-off, its own left border), and no candidate may remove that part
   blind_<case>_s               wall time of the diagnosis
   blind_library_right          library cases named right, of 5
   blind_library_median_shrink_pct  median shrink over the library cases (target >= 50 % each)
@@ -93,7 +96,7 @@ def main() -> int:
     size = tuple(args.size)
     # The warp's displacement in pixels grows with the focal length: the same strength in pixels at any size.
     warp_scale = SIZE[0] / size[0]
-    shrinks, right = {}, {}
+    shrinks, right, gaps = {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         root = Path(tmp)
         save_preset(stock(size), root / "stock.yaml")
@@ -115,9 +118,15 @@ def main() -> int:
             shrink = 100.0 * (1.0 - result.final_gap / result.baseline_gap) if result.baseline_gap > 0 else 0.0
             right[case] = named_right(case, expected, result)
             shrinks[case] = shrink
+            gaps[case] = (result.baseline_gap, result.final_gap)
             bench(f"blind_{case}_named_right", float(right[case]))
             bench(f"blind_{case}_shrink_pct", shrink, "%")
             bench(f"blind_{case}_s", seconds, "s")
+    if "null" in gaps:
+        floor = gaps["null"][0]  # what remains beyond the floor when nothing is hidden
+        for case, (before, after) in gaps.items():
+            if case != "null" and before > floor:
+                bench(f"blind_{case}_shrink_beyond_null_pct", 100.0 * (before - after) / (before - floor), "%")
     library = [c for c in LIBRARY if c in shrinks]
     if library:
         bench("blind_library_right", sum(right[c] for c in library), f"of {len(library)}")
