@@ -50,6 +50,20 @@ def test_read_depth_folder_reads_png_and_exr_and_prefers_depth_subfolders(tmp_pa
     assert round_like(np.array([1.23449]), 0.001)[0] == pytest.approx(1.234)
 
 
+def test_a_frame_written_as_png_and_exr_is_read_once(tmp_path):
+    """A ddsgen render's depth/ holds every frame twice (16-bit PNG and EXR): one frame each, the EXR, so that no
+    frame is counted twice or lands on both sides of a held-out split."""
+    from ddsgen.io.exr import write_exr
+
+    for name in ("000000", "000001"):
+        cv2.imwrite(str(tmp_path / f"{name}.png"), np.full((H, W), 1234, np.uint16))
+        write_exr(tmp_path / f"{name}.exr", np.full((H, W), 1.2345, np.float32))
+    cv2.imwrite(str(tmp_path / "000002.png"), np.full((H, W), 1500, np.uint16))  # PNG alone: read
+    frames = read_depth_folder(tmp_path)
+    assert [f.name for f in frames] == ["000000.exr", "000001.exr", "000002.png"]
+    assert frames[0].resolution_m == 0.0 and frames[0].depth.mean() == pytest.approx(1.2345)
+
+
 def test_read_depth_folder_refuses_bad_input(tmp_path):
     with pytest.raises(InputError, match="no depth images"):
         read_depth_folder(tmp_path)

@@ -2,8 +2,9 @@
 
 No manifest, no poses: every ``*.png`` / ``*.exr`` below the folder (recursive, sorted) is a
 depth frame -- except that when sub-folders named ``depth`` exist (the BOP / IC-BIN layout,
-``seq/depth/*.png`` next to ``seq/rgb/*.png``), only the images inside them are. Any other PNG
-that is not single-channel 16-bit is refused with one line naming the file.
+``seq/depth/*.png`` next to ``seq/rgb/*.png``), only the images inside them are, and that a PNG and an EXR of the
+same name in one folder are one frame written twice (a ddsgen render's ``depth/``): the EXR (metres, not rounded) is
+read. Any other PNG that is not single-channel 16-bit is refused with one line naming the file.
 """
 
 from __future__ import annotations
@@ -32,11 +33,14 @@ class RealDepthFrame:
 
 
 def depth_files(folder: str | Path) -> list[Path]:
-    """Sorted depth image paths below ``folder`` (recursive)."""
+    """Sorted depth image paths below ``folder`` (recursive), one per frame (see the module docstring)."""
     folder = Path(folder)
     images = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in DEPTH_SUFFIXES)
     in_depth_folders = [p for p in images if "depth" in p.relative_to(folder).parts[:-1]]
-    return in_depth_folders or images
+    images = in_depth_folders or images
+    # The same frame as PNG and EXR: counted twice it would also sit on both sides of a held-out split.
+    exr_stems = {p.with_suffix("") for p in images if p.suffix.lower() == ".exr"}
+    return [p for p in images if p.suffix.lower() == ".exr" or p.with_suffix("") not in exr_stems]
 
 
 def read_depth_folder(folder: str | Path, depth_scale: float = 0.001) -> list[RealDepthFrame]:
