@@ -12,7 +12,7 @@ from ddsgen.atomic import check_can_create_folder
 from ddsgen.errors import InputError
 from ddsgen.fit import DEFAULT_TILE_PX
 from ddsgen.fit.paired import PairedFitSettings, print_summary, run_paired_fit
-from ddsgen.fit.parameters import DEFAULT_PARAMS
+from ddsgen.fit.parameters import COMMAND_DEFAULT_PARAMS
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.run import print_summary as print_unpaired_summary
 from ddsgen.fit.unpaired.run import run_unpaired_fit
@@ -26,7 +26,9 @@ from ddsgen.runner import parse_camera
               help="Fitted preset (loadable by render). With --params cnn the weights go next to it.")
 @click.option("--params", "params", multiple=True, metavar="NAMES",
               help="Parameters to fit (comma-separated or repeated). Default: the paper's four sensor parameters "
-                   "emitted_intensity (eta_c), read_noise_std, beta, baseline. Also: focal, speckle_scale, ambient, "
+                   "emitted_intensity (eta_c), read_noise_std, beta, baseline, and the device's edge rule and "
+                   "clean-up confirmed_match, cleanup_fill_width, cleanup_hole, cleanup_speckle (1-D searches, each "
+                   "group kept only if it lowers the held-out gap). Also: focal, speckle_scale, ambient, "
                    "read_noise_mean; the device keys projector_falloff, vignetting, speckle_grain, speckle_shape, "
                    "shot_noise_gain, cleanup_speckle, cleanup_hole, cleanup_max_diff, cleanup_fill_width, confirmed_match "
                    "(1-D searches); effects, "
@@ -141,7 +143,7 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
                                    registration=registration, camera=camera, progress=not quiet)  # fmt: skip
         print_unpaired_summary(content)
         return
-    settings = PairedFitSettings(params=split_names(params) or list(DEFAULT_PARAMS), steps=steps, tile_px=tile_px,
+    settings = PairedFitSettings(params=split_names(params) or list(COMMAND_DEFAULT_PARAMS), steps=steps, tile_px=tile_px,
                                  lr=lr, holdout=holdout, prior_mm=prior_mm, search=not no_search, keep_all=keep_all,
                                  refine_poses=refine_poses, pose_steps=pose_steps, static_scene=static_scene,
                                  static_views=static_views, support_plane=not no_plane, crop=crop,
