@@ -6,8 +6,9 @@ a small structured-light measurement model written in numpy from the literature,
 ``ddsgen.sensor`` but the ray-cast geometry (clean depth, surface normals, projector shadow):
 
 * disparity ``d = f b / z`` of the clean depth (pinhole stereo with baseline b);
-* Gaussian disparity noise (sigma in px) and quantisation to 1/8 px, as the Kinect V1 reports it
-  (Khoshelham & Oude Elberink 2012: depth resolution ~ z^2 / (8 f b));
+* Gaussian disparity noise (sigma in px, :data:`NOISE_PX` unless a device gives its own) and quantisation to 1/8 px
+  (or a device's own step), as the Kinect V1 reports it (Khoshelham & Oude Elberink 2012: depth resolution
+  ~ z^2 / (8 f b));
 * no depth where the projector cannot light the surface (shadow), where nothing was hit, or beyond the range;
 * the hidden effect, written from its textbook formula:
 
@@ -59,10 +60,11 @@ def depth_discontinuities(z: np.ndarray, relative: float = 0.05) -> np.ndarray:
 
 def measure(clean: np.ndarray, lit: np.ndarray, incidence_deg: np.ndarray, intr: dict, baseline_m: float,
             effect: dict | None, rng: np.random.Generator,
-            projector_incidence_deg: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+            projector_incidence_deg: np.ndarray | None = None, noise_px: float = NOISE_PX,
+            subpixel: int = SUBPIXEL) -> np.ndarray:  # fmt: skip
     """Measured depth (m, 0 = invalid) of one frame: clean depth (H, W) m, lit (H, W) bool (hit and not in the
     projector's shadow), incidence (H, W) deg at the camera and (for ``grazing_dropout_projector``) at the projector,
-    intrinsics dict (fx, fy, cx, cy), the hidden ``effect``."""
+    intrinsics dict (fx, fy, cx, cy), the hidden ``effect``; the device's disparity noise (px) and steps per pixel."""
     fx, fy, cx, cy = intr["fx"], intr["fy"], intr["cx"], intr["cy"]
     h, w = clean.shape
     fb = fx * baseline_m
@@ -95,13 +97,14 @@ def measure(clean: np.ndarray, lit: np.ndarray, incidence_deg: np.ndarray, intr:
         valid &= projector_incidence_deg <= effect["angle_deg"]
     elif name == "edge_dropout":
         valid &= distance_transform_edt(~depth_discontinuities(clean)) > effect["width_px"]
-    noisy = disparity + NOISE_PX * rng.standard_normal(disparity.shape)
-    quantised = np.round(noisy * SUBPIXEL) / SUBPIXEL
+    noisy = disparity + noise_px * rng.standard_normal(disparity.shape)
+    quantised = np.round(noisy * subpixel) / subpixel
     depth = np.where(valid & (quantised > 0), fb / np.maximum(quantised, 1e-6), 0.0)
     return np.where((depth >= RANGE_M[0]) & (depth <= RANGE_M[1]), depth, 0.0).astype(np.float32)
 
 
-def remeasure_folder(folder: Path, frames, baseline_m: float, effect: dict | None, seed: int) -> None:
+def remeasure_folder(folder: Path, frames, baseline_m: float, effect: dict | None, seed: int,
+                     noise_px: float = NOISE_PX, subpixel: int = SUBPIXEL) -> None:  # fmt: skip
     """Overwrite the depth files of a scan folder with :func:`measure` of its prepared ``frames`` (same order)."""
     from ddsgen.io.exr import write_exr
     from ddsgen.io.png import write_depth_png
@@ -112,7 +115,8 @@ def remeasure_folder(folder: Path, frames, baseline_m: float, effect: dict | Non
         lit = (g.hit & ~g.shadow).numpy()
         depth = measure(g.clean_depth.numpy().astype(np.float64), lit, frame.incidence_deg.numpy(),
                         record["intrinsics"], baseline_m, effect, np.random.default_rng([seed, i]),
-                        projector_incidence(g.points.numpy(), g.normals.numpy(), baseline_m))  # fmt: skip
+                        projector_incidence(g.points.numpy(), g.normals.numpy(), baseline_m), noise_px,
+                        subpixel)  # fmt: skip
         write_depth_png(folder / record["depth"], depth, record["depth_scale"])
         if record.get("depth_exr"):
             write_exr(folder / record["depth_exr"], depth)
