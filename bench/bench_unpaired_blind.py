@@ -16,7 +16,10 @@ offset that unpaired depth cannot see), ``..._stock_gap_mm``, ``..._fitted_gap_m
 fitted values were written, 0 when the held-out judgement kept the input's) and ``..._s``; then the median and worst
 ratio over the devices.
 
-Usage: python bench/bench_unpaired_blind.py [--devices NAME ...] [--size W H]
+``--draws N`` adds N devices drawn at random (seeded): noise 0.02-0.15 px, 2, 4 or 8 steps per px, and nothing, an
+edge dropout of 1-4 px or a disparity offset of -0.4..0.4 px.
+
+Usage: python bench/bench_unpaired_blind.py [--devices NAME ...] [--draws N] [--size W H]
 """
 
 from __future__ import annotations
@@ -53,6 +56,17 @@ DEVICES = {
 }
 
 
+def drawn_device(draw: int) -> tuple:
+    """A hidden device drawn at random (seeded by ``draw``), in the independent model's terms (see :data:`DEVICES`)."""
+    import numpy as np
+
+    rng = np.random.default_rng([2026, draw])
+    kind = rng.integers(3)
+    effect = (None, {"name": "edge_dropout", "width_px": float(rng.uniform(1.0, 4.0))},
+              {"name": "disparity_offset", "offset_px": float(rng.uniform(-0.4, 0.4))})[kind]  # fmt: skip
+    return float(rng.uniform(0.02, 0.15)), int(rng.choice([2, 4, 8])), effect
+
+
 def bench(name: str, value: float, unit: str = "") -> None:
     print(f"bench: {name} {value:.4g} {unit}".rstrip(), flush=True)
 
@@ -76,18 +90,22 @@ def paired_gap(preset_path: Path, folder: Path) -> float:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--devices", nargs="+", default=list(DEVICES), choices=list(DEVICES))
+    parser.add_argument("--devices", nargs="*", default=list(DEVICES), choices=list(DEVICES))
+    parser.add_argument("--draws", type=int, default=0)
     parser.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
     args = parser.parse_args()
+    devices = {name: DEVICES[name] for name in args.devices}
+    devices.update({f"draw{k}": drawn_device(k) for k in range(args.draws)})
     ratios = {}
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         stock_path = root / "stock.yaml"
         # Not registered: the independent model measures in the IR camera's own image.
         save_preset(small_preset(*args.size, registration_ir_offset_m=0.0, registration_shift_px=0.0), stock_path)
-        for i, name in enumerate(args.devices):
-            targets = device_folder(root, stock_path, name, TARGETS, 31 + 2 * i, DEVICES[name])
-            checks = device_folder(root, stock_path, name, CHECKS, 32 + 2 * i, DEVICES[name])
+        for i, (name, device) in enumerate(devices.items()):
+            print(f"# {name}: noise {device[0]:.3f} px, 1/{device[1]} px, effect {device[2]}", flush=True)
+            targets = device_folder(root, stock_path, name, TARGETS, 31 + 2 * i, device)
+            checks = device_folder(root, stock_path, name, CHECKS, 32 + 2 * i, device)
             depth_only = root / f"{name}_depth"
             shutil.copytree(targets / "depth", depth_only, ignore=shutil.ignore_patterns("*.exr"))
             start = time.perf_counter()
