@@ -196,13 +196,14 @@ def warp_guess(frames, sims) -> float | None:
         intr = f.intrinsics
         ctx = EffectContext(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy, baseline=0.0)
         h, w = f.shape
-        depth, valid, objects = sim.depth.detach().reshape(-1), sim.valid.reshape(-1), (f.instance > 0).reshape(-1)
+        depth, valid = sim.depth.detach().reshape(-1), sim.valid.reshape(-1)
+        objects = f.instance > 0
         real, real_valid = f.real_depth, f.real_valid
         box = scene_box(sim.valid)
         for i, k1 in enumerate(WARP_K1):
             index = warp_index(torch.tensor(float(k1)), torch.tensor(0.0), h, w, ctx, box)
             z, v = depth[index].reshape(h, w), valid[index].reshape(h, w)
-            region = f.region & (objects[index].reshape(h, w) | (f.instance > 0))
+            region = f.region & (objects.reshape(-1)[index].reshape(h, w) | objects)
             both = region & v & real_valid
             one = region & (v != real_valid)
             costs[i] += float((real[both] - z[both]).abs().clamp(max=WARP_CAP_M).sum()) + WARP_CAP_M * float(one.sum())

@@ -346,9 +346,9 @@ class DepthSensor(nn.Module):
         keep = self.validity_effects(front.keep, raw_depth, ctx)
         valid, valid_soft = self.validity(front.matched, raw_depth, keep, p.z_min_m, p.z_max_m, geometry)
         confidence, ir = front.confidence, front.ir
-        if self.image_effects.effects:  # the device's pixels see another grid (its clean-up runs on that grid)
-            raw_depth, disparity, valid, valid_soft, confidence, ir = self.image_effects(
-                (raw_depth, disparity, valid, valid_soft, confidence, ir), ctx)
+        # The device's pixels may see another grid (a lens warp); its clean-up runs on that grid.
+        raw_depth, disparity, valid, valid_soft, confidence, ir = self.image_effects(
+            (raw_depth, disparity, valid, valid_soft, confidence, ir), ctx)
         raw_depth, disparity, valid, valid_soft = self.cleanup(raw_depth, disparity, valid, valid_soft)
         valid, valid_soft = self.output_borders(valid, valid_soft, intr, p.width_px, p.height_px, p.cx_px, p.cy_px)
         depth = torch.where(valid, raw_depth, torch.zeros_like(raw_depth))

@@ -20,7 +20,8 @@ from ddsgen.sensor.effects.context import EffectContext
 
 #: The signals effects act on, in the order a frame passes them: the IR image (counts), the disparity (px), the
 #: depth (m), the keep-probability (a factor in [0, 1] each validity effect computes from the depth), and the image
-#: grid (every map of the frame at once, resampled where the device's pixels look).
+#: grid: every map of the frame at once, a tuple (depth m, disparity px, valid bool, keep-probability, confidence, IR
+#: counts), each (H, W), resampled together where the device's pixels look.
 SIGNALS = ("ir", "disparity", "depth", "validity", "image")
 
 
@@ -32,8 +33,9 @@ class EffectStage:
     signal: str
     effects: tuple[Effect, ...] = ()
 
-    def __call__(self, x: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
-        """``x`` (H, W) in the signal's units through each effect."""
+    def __call__(self, x, ctx: EffectContext):
+        """``x`` (H, W) in the signal's units (the image grid: its tuple of maps, see :data:`SIGNALS`) through each
+        effect."""
         for effect in self.effects:
             x = effect(x, ctx)
         return x
@@ -52,29 +54,8 @@ class ValidityEffects(EffectStage):
         return keep
 
 
-@dataclasses.dataclass(frozen=True)
-class ImageEffects(EffectStage):
-    """Image effects: each resamples all of a frame's maps on the pixel grid the device's pixels see, so depth,
-    disparity and validity move together (a warp of the camera's image)."""
-
-    signal: str = "image"
-
-    def __call__(self, maps: tuple[torch.Tensor, ...], ctx: EffectContext) -> tuple[torch.Tensor, ...]:  # type: ignore
-        """``maps`` (each (H, W), in this order: depth m, disparity px, valid bool, keep-probability, confidence,
-        IR image counts) through every effect."""
-        for effect in self.effects:
-            maps = effect(maps, ctx)
-        return maps
-
-
-#: The stage classes of the signals whose effects take more than the signal itself.
-_SPECIAL = {"validity": ValidityEffects, "image": ImageEffects}
-
-
 def effect_stages(effects) -> dict[str, EffectStage]:
     """{signal: its stage} for every signal of :data:`SIGNALS`, each holding those of ``effects`` that act on it."""
-    stages = {}
-    for signal in SIGNALS:
-        acting = tuple(e for e in effects if e.stage == signal)
-        stages[signal] = _SPECIAL[signal](effects=acting) if signal in _SPECIAL else EffectStage(signal, acting)
+    stages = {signal: EffectStage(signal, tuple(e for e in effects if e.stage == signal)) for signal in SIGNALS}
+    stages["validity"] = ValidityEffects(effects=stages["validity"].effects)
     return stages
