@@ -28,7 +28,7 @@ REQUIRED = object()
 
 #: The sensor's stages, in the order a frame passes them; every key belongs to one. "name", "effects" (optional
 #: physics, each effect with its own parameters) and "postprocess" (the CNN's weights) are keys of their own.
-STAGES = ("name", "camera", "pattern", "ir", "matcher", "row_smoothing", "validity", "cleanup", "output_window",
+STAGES = ("name", "camera", "pattern", "ir_lens", "ir", "matcher", "row_smoothing", "validity", "cleanup", "output_window",
           "registration", "effects", "postprocess")  # fmt: skip
 
 
@@ -474,6 +474,17 @@ PARAMETERS: dict[str, Parameter] = {p.name: p for p in (
         ("projected dots sit this far (uniform, +-half, projector px) off the pattern's pixel lattice; 0 = on the "
          "lattice"),
         low=0, high=2, default=0.0,
+    ),
+    Parameter("ir_lens_k1", float, "", "ir_lens",
+        ("radial distortion of the IR lens: a pixel at normalised distorted position x_d looks along the ray "
+         "x_d (1 + k1 r_d^2) (k1 > 0: barrel); dots the reference plane shows move off the matcher's rows on other "
+         "surfaces, most in the corners (ddsgen/sensor/ir_lens.py); 0 = a pinhole lens"),
+        low=-0.5, high=0.5, default=0.0,
+    ),
+    Parameter("reference_distance_m", float, "m", "ir_lens",
+        ("distance of the plane the device recorded its reference image on, through its own lens (m); with "
+         "ir_lens_k1 != 0 surfaces far from it lose depth in the image corners"),
+        low=0.2, high=20, default=1.0,
     ),
     Parameter("effects", list, "", "effects",
         "extra physical effects: list of {name: EFFECT, PARAM: value}",

@@ -111,6 +111,8 @@ class SensorPreset:
     pattern: str
     pattern_psf_px: float
     pattern_dot_jitter_px: float
+    ir_lens_k1: float
+    reference_distance_m: float
     effects: tuple
     postprocess: str | None
     source: str = ""  # file the preset came from (for messages and relative paths)

@@ -346,9 +346,10 @@ def test_step_tiles_are_seeded_windows_simulated_like_crops(steep_beam):
     chosen by (seed, step, frame); simulated, it sees the same surfaces at the same depths as the frame."""
     stock, frames = steep_beam
     frame = frames[0]
-    tiles = step_tiles(frames, 64, step=3, seed=0, block_px=stock.block_size_px)
-    again = step_tiles(frames, 64, step=3, seed=0, block_px=stock.block_size_px)
-    other = step_tiles(frames, 64, step=4, seed=0, block_px=stock.block_size_px)
+    sensor = DepthSensor(stock)
+    tiles = step_tiles(frames, 64, step=3, seed=0, sensor=sensor)
+    again = step_tiles(frames, 64, step=3, seed=0, sensor=sensor)
+    other = step_tiles(frames, 64, step=4, seed=0, sensor=sensor)
     tile = tiles[0]
     assert tile.shape == (64, 64) and again[0].crop == tile.crop and [t.crop for t in other] != [t.crop for t in tiles]
     x0, y0, _, _ = tile.crop
@@ -357,8 +358,7 @@ def test_step_tiles_are_seeded_windows_simulated_like_crops(steep_beam):
     border = stock.block_size_px // 2 + 1
     assert not bool(tile.region[:border].any()) and not bool(tile.region[:, -border:].any())
     assert bool(tile.region.any())
-    assert step_tiles(frames, None, 0, 0, 9) == frames and step_tiles(frames, 1000, 0, 0, 9)[0] is frame
-    sensor = DepthSensor(stock)
+    assert step_tiles(frames, None, 0, 0, sensor) == frames and step_tiles(frames, 1000, 0, 0, sensor)[0] is frame
     with torch.no_grad():
         sim_tile = simulate(sensor, tile)
         sim_full = simulate(sensor, frame)

@@ -71,6 +71,8 @@ EXPECTED_FIELDS = {
     "pattern": (str, None, None, False, "kinect_like_640.png"),
     "pattern_psf_px": (float, 0, 10, True, 0.5),
     "pattern_dot_jitter_px": (float, 0, 2, False, 0.0),
+    "ir_lens_k1": (float, -0.5, 0.5, False, 0.0),
+    "reference_distance_m": (float, 0.2, 20, False, 1.0),
     "effects": (list, None, None, False, ()),
     "postprocess": (str, None, None, False, None),
 }

@@ -303,7 +303,7 @@ def fit_sensor(sensor, frames: list[FrameData], params=DEFAULT_PARAMS, steps: in
         bar = tqdm(range(steps), desc="fit", unit="step", disable=not progress, dynamic_ncols=True)
         for step in bar:
             chosen = [frames[(step * batch + i) % len(frames)] for i in range(batch)]
-            chosen = step_tiles(chosen, tile_px, step, seed, sensor.preset.block_size_px)
+            chosen = step_tiles(chosen, tile_px, step, seed, sensor)
             optimiser.zero_grad(set_to_none=True)
             totals: dict[str, float] = {}
             for f in chosen:

@@ -13,7 +13,8 @@ parameter depends on.
 Tiles are centred on a random pixel of the frame's comparison region (so that they hold
 evidence) and chosen from ``rng([seed, step, frame.index])``: the same seed gives the same tiles.
 A border of ``block // 2 + 1`` px is left out of a tile's region (the matcher cannot match there,
-the real sensor could), as in cropped frames.
+the real sensor could), as in cropped frames; with an IR lens, the border its bent rays need
+(:meth:`ddsgen.sensor.ir_lens.IRLens.usable`).
 """
 
 from __future__ import annotations
@@ -44,33 +45,42 @@ def tile_box(frame: FrameData, size: int, rng: np.random.Generator) -> tuple[int
     return x0, y0, tw, th
 
 
-def crop_frame(frame: FrameData, box: tuple[int, int, int, int], border: int) -> FrameData:
-    """The sub-window ``box`` = (x0, y0, width, height) of a prepared frame, its region without ``border`` px."""
+def crop_frame(frame: FrameData, box: tuple[int, int, int, int], border: int, sensor=None) -> FrameData:
+    """The sub-window ``box`` = (x0, y0, width, height) of a prepared frame, its region without ``border`` px; with
+    ``sensor``, without the pixels the window's own IR image cannot match (:meth:`ddsgen.sensor.ir_lens.IRLens.usable`:
+    the border, bent by the sensor's IR lens)."""
     x0, y0, w, h = box
     if (w, h) == (frame.shape[1], frame.shape[0]):
         return frame
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
     geometry = frame.geometry.cropped(x0, y0, w, h)
-    inner = torch.zeros(h, w, dtype=torch.bool)
-    inner[border : h - border, border : w - border] = True
+    intrinsics = crop_intrinsics(frame.intrinsics, box)
+    if sensor is not None:
+        inner = sensor.ir_lens.usable(w, h, intrinsics.fx, intrinsics.fy,
+                                      intrinsics.cx - geometry.registration_shift_px, intrinsics.cy,
+                                      sensor.preset.block_size_px)  # fmt: skip
+    else:
+        inner = torch.zeros(h, w, dtype=torch.bool)
+        inner[border : h - border, border : w - border] = True
     region = frame.region[sl] & inner
     instance = frame.instance[sl]
     fx0, fy0 = frame.crop[0], frame.crop[1]
     return dataclasses.replace(
-        frame, intrinsics=crop_intrinsics(frame.intrinsics, box), crop=(fx0 + x0, fy0 + y0, w, h), geometry=geometry,
+        frame, intrinsics=intrinsics, crop=(fx0 + x0, fy0 + y0, w, h), geometry=geometry,
         instance=instance, real_depth=frame.real_depth[sl], real_valid=frame.real_valid[sl], region=region,
         object_region=region & (instance > 0), incidence_deg=frame.incidence_deg[sl], radius=frame.radius[sl],
         clean_depth=frame.clean_depth[sl], hit=frame.hit[sl],
     )  # fmt: skip
 
 
-def step_tiles(frames: list[FrameData], size: int | None, step: int, seed: int, block_px: int) -> list[FrameData]:
-    """The frames of one Adam step: each cut to a random ``size``-px tile (``None``/0: the whole frames)."""
+def step_tiles(frames: list[FrameData], size: int | None, step: int, seed: int, sensor) -> list[FrameData]:
+    """The frames of one Adam step: each cut to a random ``size``-px tile (``None``/0: the whole frames), its region
+    the pixels ``sensor`` can match from the tile alone (:func:`crop_frame`)."""
     if not size:
         return list(frames)
     out = []
     for frame in frames:
         rng = np.random.default_rng([int(seed), int(step), int(frame.index), TILE_STREAM])
-        tile = crop_frame(frame, tile_box(frame, size, rng), block_px // 2 + 1)
+        tile = crop_frame(frame, tile_box(frame, size, rng), sensor.preset.block_size_px // 2 + 1, sensor)
         out.append(tile if bool(tile.region.any()) else frame)
     return out

@@ -46,6 +46,7 @@ from ddsgen.realscan.support_plane import Plane, fit_support_plane, plane_pose
 from ddsgen.scene import shapes
 from ddsgen.scene.sampling import FrameScene, PlacedObject, sample_frame
 from ddsgen.scene.scenelist import load_mesh, load_scene_list
+from ddsgen.sensor.ir_lens import IRLens
 from ddsgen.sensor.output_window import OutputWindow
 from ddsgen.sensor.registration import output_projector_x_m
 from ddsgen.sensor.sensor_cast import sensor_geometry
@@ -248,11 +249,9 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     instance = instance[sl]
     region = np.ascontiguousarray(region[sl])
     cintr = crop_intrinsics(intr, box) if crop else intr
-    if crop:
-        border = preset.block_size_px // 2 + 1
-        inner = np.zeros_like(region)
-        inner[border:-border, border:-border] = True
-        region &= inner
+    if crop:  # the pixels the crop's own IR image can match (a border, bent by an IR lens)
+        region &= IRLens.from_preset(preset).usable(w, h, cintr.fx, cintr.fy, cintr.cx - geometry.registration_shift_px,
+                                                    cintr.cy, preset.block_size_px).numpy()  # fmt: skip
 
     p = hits.points
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -28,6 +28,7 @@ from ddsgen.sensor.effects import build_effects
 from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.geometry import SensorGeometry
 from ddsgen.sensor.ir import IRNoise
+from ddsgen.sensor.ir_lens import IRLens, recorded_reference
 from ddsgen.sensor.pattern import PatternField
 from ddsgen.sensor.postprocess import load_postprocess
 from ddsgen.sensor.stages import (
@@ -41,7 +42,7 @@ _PAD_MARGIN = 1.15
 #: The sensor's stages: attribute name -> the class built from the preset when none is handed in, in the order a
 #: frame passes them.
 STAGES: dict[str, type[Stage]] = {
-    "projector": Projector, "ir_image": IRImage, "matcher": BlockMatcher, "row_smoothing": RowSmoothing,
+    "projector": Projector, "ir_lens": IRLens, "ir_image": IRImage, "matcher": BlockMatcher, "row_smoothing": RowSmoothing,
     "validity": Validity, "cleanup": Cleanup, "output_borders": OutputBorders, "registration": Registration,
 }  # fmt: skip
 
@@ -235,13 +236,20 @@ class DepthSensor(nn.Module):
         intr = self.intr
         return self.projector.field(intr.width, intr.height, self.pad, self.margin, self.unit).to(self.device_)
 
-    def reference_phases(self, ir_width: int | None = None) -> torch.Tensor:
+    def reference_phases(self, ir_width: int | None = None, cx: float | None = None) -> torch.Tensor:
         """(S, H, ir_width + pad) reference images at infinity (default ``ir_width``: the image width W),
-        cached once per process and sensor."""
+        cached once per process and sensor; with an IR lens (:mod:`ddsgen.sensor.ir_lens`) the reference the device
+        recorded through it, for the IR camera's principal point ``cx`` (default: the intrinsics')."""
         intr = self.intr
         width = intr.width if ir_width is None else int(ir_width)
-        phases = self.projector.reference_phases(intr.width, intr.height, self.pad, self.margin, self.unit,
-                                                 self.matcher.subpixel_level, width)  # fmt: skip
+        if self.ir_lens.active:
+            cx = intr.cx if cx is None else float(cx)
+            phases = recorded_reference(self.ir_lens, self.pattern_field(), width, intr.height, self.pad,
+                                       self.matcher.subpixel_level, float(intr.fx), float(intr.fy), cx,
+                                       float(intr.cy), float(self.preset.baseline_m))  # fmt: skip
+        else:
+            phases = self.projector.reference_phases(intr.width, intr.height, self.pad, self.margin, self.unit,
+                                                     self.matcher.subpixel_level, width)  # fmt: skip
         return phases.to(self.device_)
 
     def draw_noise(self, seed, geometry: SensorGeometry | None = None) -> IRNoise:
@@ -301,25 +309,35 @@ class DepthSensor(nn.Module):
         seen = geometry.with_ir_margin()
         width, ir_width = geometry.shape[1], seen.shape[1]
         noise = noise.columns(ir_width)
-        lit_seen = (seen.hit & ~seen.shadow).float()
-        ir, signal = self.ir_image(seen, lit_seen, self.pattern_field(), fx, fy, cx, intr.cy, baseline,
-                                   self.emitted_intensity, self.ambient, self.speckle_scale, self.read_noise_mean,
-                                   self.read_noise_std, noise, quantise)  # fmt: skip
-        ctx = EffectContext(fx=fx, fy=fy, cx=cx, cy=intr.cy, baseline=baseline, geometry=seen, signal=signal,
+        lit = (geometry.hit & ~geometry.shadow).float()
+        # The IR camera's pixels look along its lens's bent rays (ddsgen.sensor.ir_lens; a pinhole lens: the cast).
+        lens = self.ir_lens
+        view = lens.distorted_view(seen, intr.fx, intr.fy, cx, intr.cy) if lens.active else seen
+        ir, signal = self.ir_image(view, (view.hit & ~view.shadow).float(), self.pattern_field(), fx, fy, cx, intr.cy,
+                                   baseline, self.emitted_intensity, self.ambient, self.speckle_scale,
+                                   self.read_noise_mean, self.read_noise_std, noise, quantise)  # fmt: skip
+        ctx = EffectContext(fx=fx, fy=fy, cx=cx, cy=intr.cy, baseline=baseline, geometry=view, signal=signal,
                             ir_max=self.ir_image.ir_max, noise=noise)  # fmt: skip
         ir = self.ir_effects(ir, ctx)
-        lit = lit_seen[:, :width]
 
         # Disparity search range from the current geometry (plain floats: the range is discrete).
         fb = float((fx * baseline).detach())
-        d_min = max(fb / p.z_max_m, 0.0)
+        # With an IR lens the search reaches a pixel below the range's end: a surface beyond it then matches where it
+        # is and the range check after the lens's calibration drops it, instead of matching at the search's edge.
+        d_min = max(fb / p.z_max_m - (1.0 if lens.active else 0.0), 0.0)
         d_max = min(fb / p.z_min_m, float(self.pad - self.matcher.block_size_px))
         # A device that smooths along its rows averages the matcher's sub-pixel estimates and quantises once after:
         # smoothing values already on the 2^-n px quantum and rounding again moves a pixel only when w times its
         # neighbours' offset reaches half a step (a step function of w, with ties at w = 1/4).
-        result = self.matcher(ir, self.reference_phases(ir_width), self.pad, d_min, d_max, self.beta,
-                              quantize=quantise and not self.row_smoothing.active, cache=self.stage_cache)
-        if ir_width != width:  # back to the depth image's grid
+        # The device's quantum comes last: after the row smoothing, and after its lens calibration.
+        quantum = self.matcher.step_px if quantise and not self.row_smoothing.active else None
+        result = self.matcher(ir, self.reference_phases(ir_width, cx), self.pad, d_min, d_max, self.beta,
+                              quantize=quantum is not None and not lens.active, cache=self.stage_cache)
+        if lens.active:  # the device's calibration: the undistorted rays' disparity, on the depth image's grid
+            result, (ir, signal) = lens.to_undistorted(result, (ir, signal), width, intr.fx, intr.fy, cx, intr.cy,
+                                                       p.baseline_m, quantum)  # fmt: skip
+            ctx.on_grid(geometry, signal, noise.columns(width))
+        elif ir_width != width:  # back to the depth image's grid
             result = result.columns(width)
             ir, signal = ir[:, :width], signal[:, :width]
             ctx.on_grid(geometry, signal, noise.columns(width))
