@@ -260,22 +260,32 @@ def normalised_radius(height: int, width: int) -> np.ndarray:
 RADIAL_RING_EDGES = (0.0, 0.3, 0.5, 0.7, 0.85, np.inf)
 
 
-def radial_valid_profile(valid: np.ndarray, ring_edges: tuple[float, ...] = RADIAL_RING_EDGES) -> list[float]:
+def radial_valid_profile(valid: np.ndarray, ring_edges: tuple[float, ...] = RADIAL_RING_EDGES,
+                         in_window: bool = False) -> list[float]:  # fmt: skip
     """Share of valid pixels in each ring of :func:`normalised_radius` (len(ring_edges) - 1 values in 0..1).
 
     Args:
         valid: (H, W) bool (or depth, > 0 = valid).
+        in_window: count only the device's output window, the image less its :func:`blind_border_bands`. The bands
+            are the output window of the device (border columns and rows it never fills, whatever the scene: 33-39
+            px right and 10-11 px top and bottom on the IC-BIN frames), which cut through the corners; the window is
+            measured apart from the radial validity (``ddsgen fit --unpaired``, :mod:`ddsgen.sensor.output_window`).
     """
     valid = np.asarray(valid) > 0
     radius = normalised_radius(*valid.shape)
-    return [float(valid[(radius >= low) & (radius < high)].mean()) for low, high in zip(ring_edges, ring_edges[1:])]
+    window = ~blind_border_bands(valid) if in_window else np.ones(valid.shape, bool)
+    return [float(valid[window & (radius >= low) & (radius < high)].mean())
+            for low, high in zip(ring_edges, ring_edges[1:])]  # fmt: skip
 
 
-def corner_valid_share(valid: np.ndarray, region: np.ndarray | None = None,
-                       corner_radius: float = CORNER_RADIUS) -> tuple[float | None, float | None]:
-    """(corner share, whole share) of valid pixels; None where the region has no such pixel."""
+def corner_valid_share(valid: np.ndarray, region: np.ndarray | None = None, corner_radius: float = CORNER_RADIUS,
+                       in_window: bool = False) -> tuple[float | None, float | None]:  # fmt: skip
+    """(corner share, whole share) of valid pixels; None where the region has no such pixel. ``in_window``: the
+    region less the device's :func:`blind_border_bands` (see :func:`radial_valid_profile`)."""
     valid = np.asarray(valid, bool)
     region = region_or_all(valid.shape, region)
+    if in_window:
+        region = region & ~blind_border_bands(valid)
     corner = region & (normalised_radius(*valid.shape) > corner_radius)
     share = lambda mask: float(valid[mask].mean()) if mask.any() else None  # noqa: E731
     return share(corner), share(region)

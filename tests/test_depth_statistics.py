@@ -8,7 +8,7 @@ import pytest
 from ddsgen.depth_jumps import holes_at_depth_jumps, narrow_band_slits, wide_band_holes
 from ddsgen.depth_statistics import (blind_border_bands, corner_valid_share, depth_edges, depth_step_at_1m,
                                      isolated_dropout_orientation, isolated_dropouts, isolated_dropouts_by_rim,
-                                     realism_statistics)
+                                     radial_valid_profile, realism_statistics)
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -60,6 +60,22 @@ def test_corner_valid_share_sees_only_the_corners():
     valid[:20, :20] = True
     valid[50:70, 70:90] = False  # same hole at the centre: corners untouched
     assert corner_valid_share(valid)[0] == 1.0
+
+
+def test_inside_the_output_window_a_devices_border_bands_are_not_corner_loss():
+    """A device that never fills its 10 rightmost columns and 3 top rows (IC-BIN's device leaves 33-39 and 10-11 at
+    640 x 480): over the whole image its corners look emptier, inside its window they are whole; a hole inside the
+    window still counts."""
+    valid = np.ones((120, 160), bool)
+    valid[:, -10:] = False
+    valid[:3] = False
+    corner, whole = corner_valid_share(valid)
+    assert corner < whole - 0.1
+    assert corner_valid_share(valid, in_window=True) == (1.0, 1.0)
+    assert radial_valid_profile(valid, in_window=True) == [1.0] * 5 and radial_valid_profile(valid)[-1] < 0.8
+    valid[3:20, :20] = False  # a hole in the top-left corner, inside the window
+    corner, whole = corner_valid_share(valid, in_window=True)
+    assert corner < whole - 0.05
 
 
 @pytest.mark.parametrize("n_sub, resolution", [(3, 0.0), (3, 0.001), (2, 0.001)])
