@@ -106,10 +106,11 @@ def test_bounds_and_prior_keep_parameters_physical():
 
 
 def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeypatch):
-    """The greedy pass keeps beta because, beside the fitted baseline, removing it hurts; then the baseline is
-    reverted and what is kept is worse than the input. The output must be the input (as the summary says), not a
-    preset that keeps beta. Seen on the real cat with `fit --steps 20`: held-out 9.48 mm in, beta 15 -> 14.2 kept,
-    and the line "the output keeps the input's values"."""
+    """The first pass keeps beta because, beside the fitted baseline, removing it hurts; then the baseline is
+    reverted and beta, judged again beside it, goes too (backward elimination). The output must be the input (as the
+    summary says), not a preset that keeps beta. Seen on the real cat with `fit --steps 20`: held-out 9.48 mm in,
+    beta 15 -> 14.2 kept, and the line "the output keeps the input's values". Then: a group kept in the first pass
+    that hurts beside what was reverted after it goes out, and the rest stays."""
     from types import SimpleNamespace
 
     from ddsgen.fit import revert
@@ -141,7 +142,8 @@ def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeyp
     lines = revert.revert_summary(outcome)
     assert lines[-1] == "nothing the fit changed lowers the held-out gap: the output keeps the input's values"
     assert not any(line.startswith("kept") for line in lines)
-    assert sum("helped only beside changes that were reverted" in line for line in lines) == 1  # beta
+    assert ("reverted matching (beta) to the input's values: the change did not lower the held-out gap (9.48 mm "
+            "without it)") in lines  # judged again once the baseline it compensated was reverted
 
     # When the kept group does beat the input, it stays.
     gaps[(0, 1, 0)] = 9.40
@@ -152,6 +154,18 @@ def test_revert_returns_the_input_when_the_groups_it_kept_do_not_beat_it(monkeyp
     assert outcome["better"] and outcome["gap_kept"] == 9.40
     assert [g for g, info in outcome["groups"].items() if info["kept"]] == [SENSOR_PARAMS["beta"].group]
     assert torch.equal(resolved["beta"][0], fitted["beta"][0])
+
+    # The signal-to-noise change helps beside the fitted baseline only: the first pass keeps it and reverts the
+    # baseline (9.30 mm); judged again it goes (9.20 mm), and beta, which helps beside either, stays.
+    gaps.update({(1, 1, 1): 9.40, (0, 1, 1): 9.45, (1, 0, 1): 9.50, (1, 1, 0): 9.30, (0, 1, 0): 9.20,
+                 (1, 0, 0): 9.60})  # fmt: skip
+    with torch.no_grad():
+        for name in names:
+            resolved[name][0].copy_(fitted[name][0])
+    outcome = revert_unhelpful(sensor, resolved, start, [], SENSOR_PARAMS)
+    assert outcome["better"] and outcome["gap_kept"] == 9.20
+    assert [g for g, info in outcome["groups"].items() if info["kept"]] == [SENSOR_PARAMS["beta"].group]
+    assert torch.equal(resolved["emitted_intensity"][0], start["emitted_intensity"][0])
 
 
 def test_report_says_when_the_frames_do_not_determine_a_parameter():

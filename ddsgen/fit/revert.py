@@ -4,8 +4,10 @@ A fit lowers the loss on its own frames by construction; whether a change *trans
 held-out frames. :func:`revert_unhelpful` measures the held-out gap of the fitted sensor and of
 the input sensor, then, group by group (eta_c / sigma, beta, baseline / focal, each effect, the
 CNN: the ``group`` of :data:`ddsgen.fit.parameters.SENSOR_PARAMS`), puts the group's input values
-back and keeps them so when the held-out gap is not higher without the group's change. When what
-remains does not beat the input as a whole, every group goes back to the input's values. What
+back and keeps them so when the held-out gap is not higher without the group's change; the groups
+still kept are judged again beside those reverted after them, until a pass reverts nothing
+(backward elimination). When what remains does not beat the input as a whole, every group goes
+back to the input's values. What
 remains is reported per group, and the output says plainly when the fit did not beat the input.
 
 The held-out frames choose what is kept, so the final held-out gap is no longer an unbiased
@@ -80,17 +82,25 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
     report = {}
     for group, names in groups.items():
         changed = any(not torch.equal(a, b) for n in names for a, b in zip(start[n], fitted[n]))
-        if not changed:
-            report[group] = {"params": names, "kept": False, "gap_without_change": current, "note": UNCHANGED}
-            continue
-        _assign(sensor, resolved, start, names)
-        without = held_gap()
-        if without <= current:  # the change did not help on the held-out frames: keep the input's values
-            current = without
-            report[group] = {"params": names, "kept": False, "gap_without_change": without}
-        else:
-            _assign(sensor, resolved, fitted, names)
-            report[group] = {"params": names, "kept": True, "gap_without_change": without}
+        report[group] = ({"params": names, "kept": True} if changed else
+                         {"params": names, "kept": False, "gap_without_change": current, "note": UNCHANGED})  # fmt: skip
+    # Backward elimination: each kept group is taken out in turn and stays out when the held-out gap is not higher
+    # without it; a group kept beside changes reverted after it is judged again, until a pass reverts nothing.
+    reverted_in_pass = True
+    while reverted_in_pass:
+        reverted_in_pass = False
+        for group, info in report.items():
+            if not info["kept"]:
+                continue
+            _assign(sensor, resolved, start, info["params"])
+            without = held_gap()
+            info["gap_without_change"] = without
+            if without <= current:  # the change did not help on the held-out frames: keep the input's values
+                current = without
+                info["kept"] = False
+                reverted_in_pass = True
+            else:
+                _assign(sensor, resolved, fitted, info["params"])
     better = current < gap_input
     if not better:
         # A group is kept when taking it out hurts *beside the groups still fitted at that point*; groups reverted
