@@ -22,6 +22,7 @@ from ddsgen.sensor.cleanup import device_cleanup, fill_narrow_gaps, fill_small_h
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.ir import render_ir
 from ddsgen.sensor.speckle import speckle_field
+from gradient_check import autograd_and_difference
 from sensor_scenes import plane_geometry, small_kinect
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -453,18 +454,8 @@ def test_device_preset_gradients_match_finite_differences(name):
     def loss():
         return getattr(sensor(geometry, noise=noise, quantise=False), output)[mask].double().mean()
 
-    parameter = getattr(sensor, name)
-    sensor.zero_grad()
-    loss().backward()
-    autograd = float(parameter.grad)
-    eps = 3e-3
-    with torch.no_grad():
-        parameter += eps
-        plus = float(loss())
-        parameter -= 2 * eps
-        minus = float(loss())
-        parameter += eps
-    assert autograd == pytest.approx((plus - minus) / (2 * eps), rel=0.03, abs=1e-8)
+    autograd, difference = autograd_and_difference(loss, getattr(sensor, name), eps=3e-3)
+    assert autograd == pytest.approx(difference, rel=0.03, abs=1e-8)
 
 
 def test_device_frame_is_the_same_bytes_whatever_the_thread_count():

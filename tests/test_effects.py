@@ -20,6 +20,7 @@ from ddsgen.sensor.effects.context import EffectContext
 from ddsgen.sensor.effects.features import edge_distance, image_radius, incidence_angle_deg, local_signal
 from ddsgen.sensor.effects.library import LensDistortion
 from effects_geometry import plane_geometry, small_preset, tilted_normal
+from gradient_check import autograd_and_difference
 from tiny_inputs import tiny_preset_yaml
 
 REQUIRED = {"lens_distortion", "disparity_offset", "grazing_dropout", "edge_dropout"}
@@ -278,18 +279,7 @@ def test_depth_scale_error_is_proportional_to_depth():
 
 def _fd_check(effect: torch.nn.Module, key: str, loss_fn, eps: float = 1e-4, rel: float = 1e-3):
     """Compare the autograd derivative of loss_fn() w.r.t. the raw parameter with central differences."""
-    raw = effect.raw[key]
-    effect.zero_grad()
-    loss = loss_fn()
-    loss.backward()
-    analytic = float(raw.grad)
-    with torch.no_grad():
-        raw += eps
-        up = float(loss_fn())
-        raw -= 2 * eps
-        down = float(loss_fn())
-        raw += eps
-    numeric = (up - down) / (2 * eps)
+    analytic, numeric = autograd_and_difference(loss_fn, effect.raw[key], eps)
     assert math.isfinite(analytic)
     assert abs(numeric) > 1e-8, "the loss must depend on the parameter"
     assert analytic == pytest.approx(numeric, rel=rel, abs=1e-9)

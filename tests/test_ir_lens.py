@@ -13,6 +13,7 @@ from ddsgen.depth_statistics import normalised_radius
 from ddsgen.preset import load_preset
 from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.ir_lens import IRLens, distorted_px, undistorted_px
+from gradient_check import autograd_and_difference
 from sensor_scenes import plane_geometry
 
 F, CX, CY = 572.41, 319.5, 239.5
@@ -100,15 +101,5 @@ def test_depth_through_the_lens_has_the_gradient_of_its_finite_differences(name,
     def loss():
         return getattr(sensor(geometry, noise=noise, quantise=False), output)[mask].double().mean()
 
-    parameter = getattr(sensor, name)
-    sensor.zero_grad()
-    loss().backward()
-    autograd = float(parameter.grad)
-    eps = 1e-3
-    with torch.no_grad():
-        parameter += eps
-        plus = float(loss())
-        parameter -= 2 * eps
-        minus = float(loss())
-        parameter += eps
-    assert autograd == pytest.approx((plus - minus) / (2 * eps), rel=0.03, abs=1e-8)
+    autograd, difference = autograd_and_difference(loss, getattr(sensor, name), eps=1e-3)
+    assert autograd == pytest.approx(difference, rel=0.03, abs=1e-8)

@@ -13,6 +13,7 @@ from ddsgen.sensor.depth_sensor import DepthSensor
 from ddsgen.sensor.geometry import SensorGeometry
 from ddsgen.sensor.matcher import match
 from ddsgen.sensor.stages import BlockMatcher
+from gradient_check import autograd_and_difference
 from sensor_scenes import plane_geometry, small_kinect
 
 
@@ -152,19 +153,9 @@ def test_depth_gradient_matches_central_finite_difference(gradient_setup, name):
     def loss():
         return sensor(geometry, noise=noise, quantise=False).raw_depth[mask].double().mean()
 
-    parameter = getattr(sensor, name)
-    sensor.zero_grad()
-    loss().backward()
-    autograd = float(parameter.grad)
+    autograd, finite_difference = autograd_and_difference(loss, getattr(sensor, name),
+                                                          eps=1e-2 if name == "log_beta" else 3e-3)  # fmt: skip
     assert math.isfinite(autograd)
-    eps = 1e-2 if name == "log_beta" else 3e-3
-    with torch.no_grad():
-        parameter += eps
-        plus = float(loss())
-        parameter -= 2 * eps
-        minus = float(loss())
-        parameter += eps
-    finite_difference = (plus - minus) / (2 * eps)
     assert autograd == pytest.approx(finite_difference, rel=0.03, abs=1e-8), (autograd, finite_difference)
 
 
