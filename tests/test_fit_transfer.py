@@ -442,6 +442,29 @@ def test_tile_losses_on_crops_equal_the_whole_frame_masked(steep_beam):
         assert np.allclose(cropped, whole, rtol=1e-3, atol=1e-6)
 
 
+def test_a_small_region_gets_smaller_uncertainty_tiles_instead_of_none():
+    """A frame's objects alone (``--region objects``: on the real cat 1,148 px) hold no 90-px tile at a quarter full,
+    so every sigma used to read "+- inf (not identified)". Such a region is tiled with fewer loss windows per tile
+    until it has MIN_TILES; a whole-frame region keeps the 90-px tiles; weights sum to 1 either way."""
+    from types import SimpleNamespace
+
+    from ddsgen.fit.uncertainty import MIN_TILES, TILE_WINDOWS, tile_masks
+    from ddsgen.realscan.losses import local_window
+
+    intrinsics = SimpleNamespace(fx=572.41)
+    window = local_window(intrinsics.fx)
+    blob = torch.zeros(480, 640, dtype=torch.bool)
+    blob[200:245, 300:350] = True  # 2,250 px, about the cat
+    whole = torch.ones(480, 640, dtype=torch.bool)
+    for region, size in ((whole, TILE_WINDOWS * window), (blob, None)):
+        tiles = tile_masks(SimpleNamespace(region=region, intrinsics=intrinsics))
+        assert len(tiles) >= MIN_TILES and sum(w for _, w in tiles) == pytest.approx(1.0)
+        if size is not None:  # the whole frame: the evidence's own scale
+            assert max(int(mask.sum()) for mask, _ in tiles) == size * size
+        else:
+            assert max(int(mask.sum()) for mask, _ in tiles) < (TILE_WINDOWS * window) ** 2 * 0.25
+
+
 def test_edge_keeping_is_found_from_a_model_without_it(tmp_path, set_torch_threads):
     """Scans of the device model (windows across depth edges kept at ZNCC 0.35), fitted from a model with it off
     (the paper's sensor): the 1-D search switches it on near the device's value (measured: 0.3; fit loss 0.66 mm at

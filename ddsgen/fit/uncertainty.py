@@ -41,6 +41,9 @@ from ddsgen.realscan.simulate import simulate
 
 #: Tile side in loss windows (15 px at 640 x 480 -> 90 px tiles).
 TILE_WINDOWS = 6
+#: Fewest tiles a sigma is estimated from before the tiles get smaller (TILE_WINDOW_STEPS: their widths in windows).
+MIN_TILES = 8
+TILE_WINDOW_STEPS = (TILE_WINDOWS, 3, 2, 1)
 #: A tile counts when at least this share of it is in the region.
 MIN_TILE_SHARE = 0.25
 #: Step of unbounded effect raw values.
@@ -48,11 +51,20 @@ EFFECT_STEP = 0.1
 
 
 def tile_masks(frame) -> list[tuple[torch.Tensor, float]]:
-    """(mask, weight) of the tiles of ``frame``'s region; the weights sum to 1 over the frame."""
-    size = TILE_WINDOWS * local_window(frame.intrinsics.fx)
-    region = frame.region
+    """(mask, weight) of the tiles of ``frame``'s region; the weights sum to 1 over the frame's tiles. Tiles are
+    :data:`TILE_WINDOWS` loss windows wide; a region too small for :data:`MIN_TILES` of them (the objects of one
+    frame: ``--region objects`` on the cat gives none) gets tiles of fewer windows, down to one (smaller tiles share
+    more of their noise, so the sigma they give is a lower estimate)."""
+    window = local_window(frame.intrinsics.fx)
+    for windows in TILE_WINDOW_STEPS:
+        tiles = _tiles(frame.region, windows * window)
+        if len(tiles) >= MIN_TILES:
+            break
+    return tiles
+
+
+def _tiles(region: torch.Tensor, size: int) -> list[tuple[torch.Tensor, float]]:
     height, width = region.shape
-    total = max(int(region.sum()), 1)
     out = []
     for y in range(0, height, size):
         for x in range(0, width, size):
@@ -61,8 +73,9 @@ def tile_masks(frame) -> list[tuple[torch.Tensor, float]]:
             mask &= region
             n = int(mask.sum())
             if n >= MIN_TILE_SHARE * size * size:
-                out.append((mask, n / total))
-    return out
+                out.append((mask, n))
+    total = max(sum(n for _, n in out), 1)
+    return [(mask, n / total) for mask, n in out]
 
 
 #: Margin (px) around a tile when its loss is computed on a crop: the loss's filters reach 1 px (Sobel) and
