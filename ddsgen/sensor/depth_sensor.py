@@ -42,8 +42,9 @@ _PAD_MARGIN = 1.15
 #: The sensor's stages: attribute name -> the class built from the preset when none is handed in, in the order a
 #: frame passes them.
 STAGES: dict[str, type[Stage]] = {
-    "projector": Projector, "ir_lens": IRLens, "ir_image": IRImage, "matcher": BlockMatcher, "row_smoothing": RowSmoothing,
-    "validity": Validity, "cleanup": Cleanup, "output_borders": OutputBorders, "registration": Registration,
+    "projector": Projector, "ir_lens": IRLens, "ir_image": IRImage, "matcher": BlockMatcher,
+    "row_smoothing": RowSmoothing, "validity": Validity, "cleanup": Cleanup, "output_borders": OutputBorders,
+    "registration": Registration,
 }  # fmt: skip
 
 
@@ -105,8 +106,8 @@ class DepthSensor(nn.Module):
     ``read_noise_mean``, ``log_ambient``, ``log_beta``, ``log_baseline``,
     ``log_focal_scale`` (f / f_preset, scales fx and fy together), and the effects'.
 
-    The stages (:data:`STAGES`: ``projector``, ``ir_image``, ``matcher``, ``row_smoothing``, ``validity``,
-    ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting :attr:`preset` gives
+    The stages (:data:`STAGES`: ``projector``, ``ir_lens``, ``ir_image``, ``matcher``, ``row_smoothing``,
+    ``validity``, ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting :attr:`preset` gives
     each its new settings. The sensor itself owns the camera (intrinsics, baseline, depth range), the effects
     (``effects``: their parameters, in the preset's order) and the optional post-processing CNN (``postprocess``).
     The effects run as the stages ``ir_effects``, ``disparity_effects``, ``depth_effects``, ``validity_effects`` and

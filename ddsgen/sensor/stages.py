@@ -2,7 +2,8 @@
 
 :class:`~ddsgen.sensor.depth_sensor.DepthSensor` composes them, in the order a frame passes them::
 
-    Projector -> IRImage -> BlockMatcher -> RowSmoothing -> Validity -> Cleanup -> OutputBorders -> Registration
+    Projector -> IRLens (ddsgen.sensor.ir_lens) -> IRImage -> BlockMatcher -> RowSmoothing -> Validity -> Cleanup
+        -> OutputBorders -> Registration
 
 Each stage class names its registry stage (``stage``, :data:`ddsgen.parameters.STAGES`) and the keys it owns
 (``keys``: that stage's keys in :mod:`ddsgen.parameters`; ``tests/test_sensor_stages.py`` checks both and that a stage
