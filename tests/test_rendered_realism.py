@@ -212,4 +212,5 @@ def test_rendered_frames_lose_validity_towards_the_corners_like_real_ones(defaul
     profiles = np.array([radial_valid_profile(depth > 0, in_window=True) for depth in default_frames])
     real_profiles = np.array([r["window_radial_profile"] for r in real.values()])
     mean = profiles.mean(axis=0)
-    assert np.all(real_profiles.min(axis=0) <= mean) and np.all(mean <= real_profiles.max(axis=0)), (mean, real_profiles)
+    low, high = real_profiles.min(axis=0), real_profiles.max(axis=0)
+    assert np.all(low <= mean) and np.all(mean <= high), (mean, real_profiles)

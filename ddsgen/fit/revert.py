@@ -82,8 +82,9 @@ def revert_unhelpful(sensor, resolved: dict, start: dict, held: list, table: dic
     report = {}
     for group, names in groups.items():
         changed = any(not torch.equal(a, b) for n in names for a, b in zip(start[n], fitted[n]))
-        report[group] = ({"params": names, "kept": True} if changed else
-                         {"params": names, "kept": False, "gap_without_change": current, "note": UNCHANGED})  # fmt: skip
+        report[group] = {"params": names, "kept": changed}
+        if not changed:
+            report[group].update(gap_without_change=current, note=UNCHANGED)
     # Backward elimination: each kept group is taken out in turn and stays out when the held-out gap is not higher
     # without it; a group kept beside changes reverted after it is judged again, until a pass reverts nothing.
     reverted_in_pass = True

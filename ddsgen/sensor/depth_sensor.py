@@ -107,12 +107,12 @@ class DepthSensor(nn.Module):
     ``log_focal_scale`` (f / f_preset, scales fx and fy together), and the effects'.
 
     The stages (:data:`STAGES`: ``projector``, ``ir_lens``, ``ir_image``, ``matcher``, ``row_smoothing``,
-    ``validity``, ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting :attr:`preset` gives
-    each its new settings. The sensor itself owns the camera (intrinsics, baseline, depth range), the effects
-    (``effects``: their parameters, in the preset's order) and the optional post-processing CNN (``postprocess``).
-    The effects run as the stages ``ir_effects``, ``disparity_effects``, ``depth_effects``, ``validity_effects`` and
-    ``image_effects``
-    (:func:`~ddsgen.sensor.effect_stages.effect_stages`), each holding the effects that act on its signal.
+    ``validity``, ``cleanup``, ``output_borders``, ``registration``) hold the preset's settings; setting
+    :attr:`preset` gives each its new settings. The sensor itself owns the camera (intrinsics, baseline, depth
+    range), the effects (``effects``: their parameters, in the preset's order) and the optional post-processing CNN
+    (``postprocess``). The effects run as the stages ``ir_effects``, ``disparity_effects``, ``depth_effects``,
+    ``validity_effects`` and ``image_effects`` (:func:`~ddsgen.sensor.effect_stages.effect_stages`), each holding
+    the effects that act on its signal.
 
     ``unit`` (int, 0 by default) says which unit of the device model this is. Every unit has the same
     parameters; each has its own scene-fixed random patterns: the laser speckle a static scene shows and the
