@@ -45,24 +45,19 @@ def tile_box(frame: FrameData, size: int, rng: np.random.Generator) -> tuple[int
     return x0, y0, tw, th
 
 
-def crop_frame(frame: FrameData, box: tuple[int, int, int, int], border: int, sensor=None) -> FrameData:
-    """The sub-window ``box`` = (x0, y0, width, height) of a prepared frame, its region without ``border`` px; with
-    ``sensor``, without the pixels the window's own IR image cannot match (:meth:`ddsgen.sensor.ir_lens.IRLens.usable`:
-    the border, bent by the sensor's IR lens)."""
+def crop_frame(frame: FrameData, box: tuple[int, int, int, int], sensor=None) -> FrameData:
+    """The sub-window ``box`` = (x0, y0, width, height) of a prepared frame; with ``sensor``, its region without the
+    pixels the window's own IR image cannot match (:meth:`ddsgen.sensor.ir_lens.IRLens.usable`: a border of
+    ``block // 2 + 1`` px, bent by the sensor's IR lens)."""
     x0, y0, w, h = box
     if (w, h) == (frame.shape[1], frame.shape[0]):
         return frame
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
     geometry = frame.geometry.cropped(x0, y0, w, h)
     intrinsics = crop_intrinsics(frame.intrinsics, box)
+    region = frame.region[sl]
     if sensor is not None:
-        inner = sensor.ir_lens.usable(w, h, intrinsics.fx, intrinsics.fy,
-                                      intrinsics.cx - geometry.registration_shift_px, intrinsics.cy,
-                                      sensor.preset.block_size_px)  # fmt: skip
-    else:
-        inner = torch.zeros(h, w, dtype=torch.bool)
-        inner[border : h - border, border : w - border] = True
-    region = frame.region[sl] & inner
+        region = region & sensor.ir_lens.usable(intrinsics, geometry.registration_shift_px, sensor.preset.block_size_px)
     instance = frame.instance[sl]
     fx0, fy0 = frame.crop[0], frame.crop[1]
     return dataclasses.replace(
@@ -81,6 +76,6 @@ def step_tiles(frames: list[FrameData], size: int | None, step: int, seed: int, 
     out = []
     for frame in frames:
         rng = np.random.default_rng([int(seed), int(step), int(frame.index), TILE_STREAM])
-        tile = crop_frame(frame, tile_box(frame, size, rng), sensor.preset.block_size_px // 2 + 1, sensor)
+        tile = crop_frame(frame, tile_box(frame, size, rng), sensor)
         out.append(tile if bool(tile.region.any()) else frame)
     return out

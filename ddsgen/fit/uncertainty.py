@@ -96,7 +96,7 @@ def _tile_losses(sensor, frames, tiles, seed, weights, crop: bool = True) -> lis
                     rows, cols = torch.nonzero(mask, as_tuple=True)
                     y0, x0 = max(int(rows.min()) - TILE_CROP_MARGIN, 0), max(int(cols.min()) - TILE_CROP_MARGIN, 0)
                     y1, x1 = int(rows.max()) + 1 + TILE_CROP_MARGIN, int(cols.max()) + 1 + TILE_CROP_MARGIN
-                    piece = crop_frame(frame, (x0, y0, min(x1, frame.shape[1]) - x0, min(y1, frame.shape[0]) - y0), 0)
+                    piece = crop_frame(frame, (x0, y0, min(x1, frame.shape[1]) - x0, min(y1, frame.shape[0]) - y0))
                     sl = (slice(y0, y0 + piece.shape[0]), slice(x0, x0 + piece.shape[1]))
                     piece = dataclasses.replace(piece, region=mask[sl])
                     piece_sim = dataclasses.replace(sim, **{k: getattr(sim, k)[sl] for k in ("depth", "valid", "valid_soft")})

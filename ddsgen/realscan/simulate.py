@@ -250,8 +250,7 @@ def prepare_frame(preset: SensorPreset, frame, index: int, *, support_plane: boo
     region = np.ascontiguousarray(region[sl])
     cintr = crop_intrinsics(intr, box) if crop else intr
     if crop:  # the pixels the crop's own IR image can match (a border, bent by an IR lens)
-        region &= IRLens.from_preset(preset).usable(w, h, cintr.fx, cintr.fy, cintr.cx - geometry.registration_shift_px,
-                                                    cintr.cy, preset.block_size_px).numpy()  # fmt: skip
+        region &= IRLens.from_preset(preset).usable(cintr, geometry.registration_shift_px, preset.block_size_px).numpy()
 
     p = hits.points
     with np.errstate(divide="ignore", invalid="ignore"):

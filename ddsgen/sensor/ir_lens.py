@@ -30,8 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import torch
 
@@ -65,19 +64,30 @@ def distorted_px(u: torch.Tensor, v: torch.Tensor, k1: float, fx: float, fy: flo
     return cx + fx * x, cy + fy * y
 
 
-@functools.lru_cache(maxsize=16)
-def _lens_maps(height: int, width: int, out_width: int, k1: float, fx: float, fy: float, cx: float, cy: float):
-    """Index maps between the distorted (H, ``width``) IR grid and the undistorted grid, cached per camera.
+class LensMaps(NamedTuple):
+    """Index maps between a distorted (H, W) IR grid and the undistorted (H, W_out) grid (:func:`_lens_maps`)."""
 
-    Returns ``(source_u, source_v, back)``: (H, width) float64 pinhole px each distorted pixel looks at, and
-    (H, out_width) int64 flat index into the distorted grid of the pixel nearest to each undistorted pixel's ray."""
+    source_u: torch.Tensor  # (H, W) float64: the pinhole px each distorted pixel looks at
+    source_v: torch.Tensor
+    back: torch.Tensor  # (H, W_out) int64: flat index of the distorted pixel nearest to each undistorted pixel's ray
+    back_u: torch.Tensor  # (H, W_out) float64: that distorted pixel's column
+    back_v: torch.Tensor  # its row
+    back_ray_u: torch.Tensor  # the pinhole column of its ray
+
+
+@functools.lru_cache(maxsize=16)
+def _lens_maps(height: int, width: int, out_width: int, k1: float, fx: float, fy: float, cx: float,
+               cy: float) -> LensMaps:  # fmt: skip
+    """The :class:`LensMaps` of a camera, built once per process and camera."""
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
                           indexing="ij")  # fmt: skip
     source_u, source_v = undistorted_px(u, v, k1, fx, fy, cx, cy)
     du, dv = distorted_px(u[:, :out_width], v[:, :out_width], k1, fx, fy, cx, cy)
     col = du.round().long().clamp_(0, width - 1)
     row = dv.round().long().clamp_(0, height - 1)
-    return source_u, source_v, row * width + col
+    back_u, back_v = col.double(), row.double()
+    return LensMaps(source_u, source_v, row * width + col, back_u, back_v,
+                    undistorted_px(back_u, back_v, k1, fx, fy, cx, cy)[0])  # fmt: skip
 
 
 def _resample_geometry(seen: SensorGeometry, source_u: torch.Tensor, source_v: torch.Tensor) -> SensorGeometry:
@@ -138,21 +148,15 @@ class IRLens(Stage):
     def active(self) -> bool:
         return self.k1 != 0.0
 
-    def largest_shift_px(self, width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> int:
-        """The farthest (px, rounded up) any pixel of a (height, width) image looks from its pinhole position: the
-        border a window of the image needs beyond the matcher's for its IR pixels to exist."""
-        if not self.active:
-            return 0
-        u = torch.tensor([0.0, width - 1.0, 0.0, width - 1.0], dtype=torch.float64)
-        v = torch.tensor([0.0, 0.0, height - 1.0, height - 1.0], dtype=torch.float64)
-        su, sv = undistorted_px(u, v, self.k1, fx, fy, cx, cy)
-        return int(math.ceil(float(torch.maximum((su - u).abs(), (sv - v).abs()).max())))
-
-    def usable(self, width: int, height: int, fx: float, fy: float, cx: float, cy: float, block: int) -> torch.Tensor:
-        """(height, width) bool: the pixels of a window (a crop, a fit's tile) the window's own IR image can match.
-        A pixel's depth comes from the distorted pixel nearest to its ray; that pixel's matching window (``block``
-        px, plus one) must lie inside the window, and so must the rays its corners look along (the cast holds
-        nothing beyond). Without distortion: the window less a border of ``block // 2 + 1`` px."""
+    def usable(self, intrinsics, ir_shift_px: float, block: int) -> torch.Tensor:
+        """(H, W) bool: the pixels of a window (a crop, a fit's tile; ``intrinsics`` its camera) the window's own IR
+        image can match. A pixel's depth comes from the distorted pixel nearest to its ray; that pixel's matching
+        window (``block`` px, plus one) must lie inside the window, and so must the rays its corners look along (the
+        cast holds nothing beyond). ``ir_shift_px``: a registered device's IR principal point lies this far left of
+        the output's. Without distortion: the window less a border of ``block // 2 + 1`` px."""
+        width, height = int(intrinsics.width), int(intrinsics.height)
+        fx, fy, cy = float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cy)
+        cx = float(intrinsics.cx) - float(ir_shift_px)
         reach = block // 2 + 1
         v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
                               indexing="ij")  # fmt: skip
@@ -172,8 +176,8 @@ class IRLens(Stage):
         """The IR camera's view on its distorted grid: ``seen`` (the pinhole cast of the IR image, (H, W + m),
         principal point (cx, cy) px) resampled where each distorted pixel's ray lands."""
         height, width = seen.shape
-        source_u, source_v, _ = _lens_maps(height, width, width, self.k1, float(fx), float(fy), float(cx), float(cy))
-        return _resample_geometry(seen, source_u, source_v)
+        maps = _lens_maps(height, width, width, self.k1, float(fx), float(fy), float(cx), float(cy))
+        return _resample_geometry(seen, maps.source_u, maps.source_v)
 
     def reference_phases(self, field: PatternField, width: int, height: int, pad: int, n_sub: int, fx: float,
                          fy: float, cx: float, cy: float, baseline_m: float) -> torch.Tensor:  # fmt: skip
@@ -203,19 +207,18 @@ class IRLens(Stage):
         f (x_u(u, v) - x_u(u - d + f b / Z0, v)) + f b / Z0, then put on the device's ``quantum_px`` lattice
         (straight-through; None: left for a later stage). ``images``: other (H, W + m) maps to carry along."""
         height, width = result.disparity.shape
-        _, _, back = _lens_maps(height, width, out_width, self.k1, float(fx), float(fy), float(cx), float(cy))
+        maps = _lens_maps(height, width, out_width, self.k1, float(fx), float(fy), float(cx), float(cy))
 
         def gather(tensor):
-            return None if tensor is None else tensor.reshape(-1)[back]
+            return None if tensor is None else tensor.reshape(-1)[maps.back]
 
         fields = {f.name: gather(getattr(result, f.name)) for f in dataclasses.fields(result)}
         shift = fx * baseline_m / self.reference_distance_m
-        u = (back % width).to(result.disparity.dtype)
-        v = (back // width).to(result.disparity.dtype)
         d = fields["disparity"]
-        seen_u, _ = undistorted_px(u, v, self.k1, fx, fy, cx, cy)
-        reference_u, _ = undistorted_px(u - d + shift, v, self.k1, fx, fy, cx, cy)
-        disparity = torch.where(d > 0, seen_u - reference_u + shift, d)
+        dtype = d.dtype
+        reference_u, _ = undistorted_px(maps.back_u.to(dtype) - d + shift, maps.back_v.to(dtype), self.k1, fx, fy, cx,
+                                        cy)  # fmt: skip
+        disparity = torch.where(d > 0, maps.back_ray_u.to(dtype) - reference_u + shift, d)
         if quantum_px is not None:
             disparity = straight_through_round(disparity / quantum_px) * quantum_px
         fields["disparity"] = disparity
