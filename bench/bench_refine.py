@@ -28,6 +28,9 @@ Prints `bench: NAME VALUE UNIT` lines:
                                                             the independent sensor; 3 deg / 8 mm starts): median
                                                             errors and the share of objects ending worse than
                                                             their start (settings are chosen on TUNING_SEEDS)
+  refine_validation_packed_*                                the same on the packed layout (PACKED_REPORT_SEEDS: 64
+                                                            objects resting on the table, touching and hiding each
+                                                            other, beside an unannotated object and a large box)
 """
 
 from __future__ import annotations
@@ -249,22 +252,25 @@ def linemod_cat(perturbations: int = 20, gradient: str = "sensor") -> dict | Non
             "astray": int((deg > 3.0).sum())}  # fmt: skip
 
 
-def refine_validation() -> dict | None:
-    """Median errors and share of objects worse than their start on the report scenes, or None without data."""
+def refine_validation(layout: str = "grid") -> dict | None:
+    """Median errors and share of objects worse than their start on the report scenes of a layout ("grid" or
+    "packed"), or None without data."""
     import refine_validation as validation
 
     if not LINEMOD.is_dir():
         return None
-    return validation.summary(validation.run(validation.REPORT_SEEDS, RefineSettings()))
+    seeds = validation.PACKED_REPORT_SEEDS if layout == "packed" else validation.REPORT_SEEDS
+    return validation.summary(validation.run(seeds, RefineSettings(), verbose=False, layout=layout))
 
 
 def main() -> None:
     torch.set_num_threads(2)
-    found = refine_validation()
-    if found is not None:
-        print(f"bench: refine_validation_rotation_error_deg {found['deg']:.3f} deg ({found['objects']} objects)\n"
-              f"bench: refine_validation_translation_error_mm {found['mm']:.3f} mm\n"
-              f"bench: refine_validation_share_worse {100 * found['worse']:.1f} %", flush=True)  # fmt: skip
+    for layout, name in (("grid", "refine_validation"), ("packed", "refine_validation_packed")):
+        found = refine_validation(layout)
+        if found is not None:
+            print(f"bench: {name}_rotation_error_deg {found['deg']:.3f} deg ({found['objects']} objects)\n"
+                  f"bench: {name}_translation_error_mm {found['mm']:.3f} mm\n"
+                  f"bench: {name}_share_worse {100 * found['worse']:.1f} %", flush=True)  # fmt: skip
     for gradient in ("sensor", "geometry"):
         wall, cpu = step_time(gradient)
         print(f"bench: refine_step_640_{gradient}_ms {wall:.0f} ms (CPU time {cpu:.0f} ms)", flush=True)

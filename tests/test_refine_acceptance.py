@@ -251,3 +251,34 @@ def test_a_turn_is_taken_only_where_held_out_pixels_show_it_beyond_noise(degrees
     rotation = view.scene.poses.rotation.detach()[0].numpy()
     np.testing.assert_allclose(rotation, rotvec if true_turn else 0.0, atol=1e-12)
     np.testing.assert_allclose(view.scene.poses.translation.detach()[0].numpy(), translation, atol=1e-12)
+
+
+def test_the_outline_behind_clutter_the_scene_lacks_does_not_pull():
+    """A bar the scene lacks, 10 cm in front of the box's right half: the real edges there are the bar's, so the
+    box's outline points under the bar are left out (its left half keeps them); without the bar all are kept."""
+    from ddsgen.realscan.simulate import frame_camera
+
+    intr = window()
+    box = shapes.make_shape("box", {"size": (0.07, 0.055, 0.045)})
+    truth_T = pose((-0.6, 0.7, 0.0), (0.0, 0.0, 0.7))
+    occluder = PlacedObject(9, "bar", "shape:box", shapes.make_shape("box", {"size": (0.05, 0.2, 0.01)}),
+                            pose((0.0, 0.0, 0.0), (0.03, 0.0, 0.6)), 0.6)  # fmt: skip
+    sensor = DepthSensor(load_preset("kinect_v1_paper"), intrinsics=intr)
+    counts = {}
+    for bar in (False, True):
+        measured = one_object_scene(box, truth_T)
+        if bar:
+            measured = dataclasses.replace(measured, objects=measured.objects + [occluder])
+        with torch.no_grad():
+            real = sensor(SensorGeometry.from_hits(cast(measured, intr, 0.075, 0.005)), seed=3).depth
+        view = _View(0, RefinableScene(one_object_scene(box, truth_T), intr, 0.075, 0.005), real, RefineSettings())
+        with frame_camera(sensor, intr):
+            view.recast()
+        X = view.outline.points.numpy() @ truth_T[:3, :3].T + truth_T[:3, 3]
+        u = intr.fx * X[:, 0] / X[:, 2] + intr.cx
+        counts[bar] = (int((u < intr.cx).sum()), int((u > intr.cx + intr.fx * 0.012 / 0.6).sum()))
+        if bar:  # none where the bar stands in front of the box (its image columns, with a pixel of slack)
+            left, right = (intr.fx * np.array([0.005, 0.055]) / 0.6 + intr.cx)
+            assert not np.any((u > left + 1) & (u < right - 1) & (X[:, 2] > 0.62))
+    assert counts[False][1] > 20 and counts[True][1] < counts[False][1] / 2
+    assert counts[True][0] >= 0.8 * counts[False][0]  # the left half's outline is seen and kept

@@ -7,7 +7,10 @@ is drawn from the seed and the view's index: the optimiser compares depth only o
 part alone takes its refined pose, and when it takes only the refined translation (its start rotation),
 all on one pixel set (the part's held-out pixels at the start or at either candidate). The turn is taken only
 if it lowers the cost below the translation's alone by more than ``TURN_SIGMAS`` (0.5) noise units of that
-difference; the part keeps the start unless the chosen candidate's cost is strictly lower.
+difference; the part keeps the start unless the chosen candidate lowers the cost below the start's by more than
+``KEEP_SIGMAS`` (3) noise units of that difference: a part seen through gaps in clutter can lower its held-out cost a
+little by sliding onto what lies around it, and a gain within the noise is no evidence that it moved towards the
+truth.
 
 The noise of a difference of summed costs (:func:`block_difference_noise`) comes from held-out blocks that touch
 at a corner: blocks are the independent units, and two neighbours see nearly the same systematic change, so the
@@ -42,6 +45,9 @@ HOLDOUT_STREAM = 16065
 #: A refined turn is taken only if it lowers the held-out cost below the refined translation's alone by more than this
 #: many noise units (:func:`block_difference_noise`).
 TURN_SIGMAS = 0.5
+#: A part takes its refined pose (or translation) only if that lowers its held-out cost below the start's by more than
+#: this many noise units of the difference: a gain within the noise is no evidence.
+KEEP_SIGMAS = 3.0
 
 
 @dataclasses.dataclass
@@ -55,12 +61,17 @@ class PartDecision:
     pixels: int
     translation_only: bool = False  # kept the refined translation with the start rotation
     candidates_mm: tuple = ()  # held-out gap (mm) of the whole refined pose, of its translation alone
+    gain_sigmas: float = float("nan")  # the chosen candidate's held-out gain over the start, in noise units
 
     def reason(self) -> str:
         """One phrase for the terminal and the report."""
         if self.pixels == 0:
             return "start kept: no held-out pixel shows it"
-        if not self.kept:
+        if not self.kept and self.heldout_refined_mm < self.heldout_start_mm:
+            verdict = ("start kept: the refined pose lowers it within the noise "
+                       + (f"({self.gain_sigmas:.1f} noise units)" if self.gain_sigmas == self.gain_sigmas
+                          else "(too few held-out blocks to tell)"))
+        elif not self.kept:
             verdict = "start kept: the refined pose does not lower"
         elif self.translation_only:
             verdict = "refined translation kept, start rotation (the turn does not lower beyond noise)"
@@ -195,13 +206,19 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
         noise = block_difference_noise([(maps[0][j][0][m] - maps[1][j][0][m]).double() for j, m in enumerate(judged)],
                                        [views[i].blocks[m] for i, m in zip(u.views, judged)])  # fmt: skip
         best = 0 if noise is not None and after[1] - after[0] > TURN_SIGMAS * noise else 1
-        keep = pixels > 0 and after[best] < before
+        # The chosen candidate moves the part only if its gain over the start is beyond KEEP_SIGMAS noise units.
+        gain_noise = block_difference_noise([(start[i][0][m] - maps[best][j][0][m]).double()
+                                             for j, (i, m) in enumerate(zip(u.views, judged))],
+                                            [views[i].blocks[m] for i, m in zip(u.views, judged)])  # fmt: skip
+        gain = (before - after[best]) / gain_noise if gain_noise else float("nan")
+        keep = pixels > 0 and after[best] < before and gain > KEEP_SIGMAS
         if keep:
             chosen.append(candidates[best])
         n = max(pixels, 1)
-        decision = PartDecision(u.part, keep, before / n * 1000.0, (after[best] if keep else after[0]) / n * 1000.0,
+        decision = PartDecision(u.part, keep, before / n * 1000.0, after[best] / n * 1000.0,
                                 pixels, translation_only=keep and best == 1,
-                                candidates_mm=tuple(a / n * 1000.0 for a in after))  # fmt: skip
+                                candidates_mm=tuple(a / n * 1000.0 for a in after),
+                                gain_sigmas=gain)  # fmt: skip
         for i in u.views:
             decisions[i][u.part] = decision
     for rows in chosen:

@@ -85,7 +85,8 @@ class OutlinePoints:
         return int(self.owner.shape[0])
 
 
-def outline_points(tensors, meshes, clean_depth: np.ndarray, n_objects: int, jump_m: float = 0.015) -> OutlinePoints:
+def outline_points(tensors, meshes, clean_depth: np.ndarray, n_objects: int, jump_m: float = 0.015,
+                   seen: np.ndarray | None = None) -> OutlinePoints:  # fmt: skip
     """The occluding-outline pixels of the objects (not the background) as material points.
 
     Args:
@@ -94,12 +95,17 @@ def outline_points(tensors, meshes, clean_depth: np.ndarray, n_objects: int, jum
         clean_depth: (H, W) the cast's depth (m, 0 = no hit).
         n_objects: parts ``0 .. n_objects - 1`` are objects (the rest background: no outline).
         jump_m: an outline pixel has a neighbour deeper by more than this, or empty.
+        seen: (H, W) bool or None: only outline pixels here count (the refinement passes the pixels where no real
+            surface lies in front of the modelled one: an object's outline behind clutter the scene lacks would be
+            pulled onto the clutter's edges).
     """
     height, width = tensors.shape
     owner = np.full(height * width, -1, dtype=np.int64)
     owner[tensors.index.numpy()] = tensors.owner.numpy()
     owner = owner.reshape(height, width)
     outline = _step_down(np.asarray(clean_depth, dtype=np.float32), jump_m) & (owner >= 0) & (owner < n_objects)
+    if seen is not None:
+        outline &= np.asarray(seen, dtype=bool)
     ys, xs = np.nonzero(outline)
     who = owner[ys, xs]
     face = tensors.triangle.numpy()[ys, xs].astype(np.int64)

@@ -309,7 +309,11 @@ class _View:
         # Every outline point pulls, held-out block or not: the outline's pull on in-plane slides and turns is what
         # pins the rotation (the cat: 1.4 deg from 3 deg / 8 mm with all points, 3.0 deg with half), and the
         # acceptance judges depth residuals, not outlines.
-        self.outline = outline_points(self.tensors, self.meshes, clean, self.scene.n_objects, self.s.edge_jump_m)
+        # An outline pixel where the real surface lies in front of the modelled one is behind something the scene
+        # lacks: the real edge there is the occluder's, and would pull a hidden object onto it.
+        real = self.real.numpy()
+        seen = ~((real > 0) & (real < clean - self.s.occluder_m))
+        self.outline = outline_points(self.tensors, self.meshes, clean, self.scene.n_objects, self.s.edge_jump_m, seen)
 
     def render(self, sensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(simulated depth (H, W) m, its validity, clean depth (H, W) m) at the current poses and the last cast,
