@@ -226,6 +226,45 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
     return decisions
 
 
+def frame_heldout_gaps(sensor, views, occluder_m: float, absence_cap_m: float) -> list[tuple[float, float]]:
+    """Per view, (held-out gap at the start, at the current poses) in mm: the mean :func:`pixel_cost` over the view's
+    held-out pixels that an object owns at either pose (one pixel set for both, so the two compare fairly; a mean
+    over each pose's own in-band pixels would favour the pose that leaves its worst pixels out of the band).
+
+    The views' corrections are set to zero for the start and restored afterwards."""
+    tensors = _distinct_corrections(views)
+    current = [t.detach().clone() for t in tensors]
+    with torch.no_grad():
+        for t in tensors:
+            t.zero_()
+    start = [_view_cost(sensor, v, occluder_m, absence_cap_m) for v in views]
+    with torch.no_grad():
+        for t, values in zip(tensors, current):
+            t.copy_(values)
+    gaps = []
+    for v, (cost_start, owner_start) in zip(views, start):
+        cost_now, owner_now = _view_cost(sensor, v, occluder_m, absence_cap_m)
+        n_objects = v.scene.n_objects
+        judged = v.heldout & (((owner_start >= 0) & (owner_start < n_objects)) | ((owner_now >= 0) & (owner_now < n_objects)))
+        if not bool(judged.any()):
+            gaps.append((float("nan"), float("nan")))
+            continue
+        gaps.append((float(cost_start[judged].double().mean()) * 1000.0, float(cost_now[judged].double().mean()) * 1000.0))
+    return gaps
+
+
+def _distinct_corrections(views) -> list:
+    """Every correction tensor (rotations, translations; shared ones once) of the views' poses."""
+    out = []
+    for v in views:
+        poses = v.scene.poses
+        candidates = [poses.rotation, poses.translation]
+        if poses.shared is not None:
+            candidates += [poses.shared.rotation, poses.shared.translation]
+        out += [t for t in candidates if all(t is not o for o in out)]
+    return out
+
+
 def _set(rows, refined) -> None:
     """Set the rows to their refined values (``refined``: {id(tensor): values}) or to 0 (None: the start)."""
     with torch.no_grad():

@@ -15,8 +15,9 @@ sensor resolves (:func:`ddsgen.realscan.losses.resolved_depth_m`: one disparity 
 mm, 4.14 m for the Kinect V1) do not count, as in ``fit``: there the residual is 0 or a whole step, whatever the pose.
 
 Nothing worse is written (:mod:`.acceptance`): the optimiser sees one colour of a checkerboard of pixel blocks;
-each part keeps its refined pose only if that lowers its cost on the other colour, and a view whose gap at the
-kept poses is not lower than at the start keeps its start poses.
+each part keeps its refined pose only if that lowers its cost on the other colour beyond the noise, and a view whose
+held-out gap at the kept poses (over the pixels its objects own at either pose) is not lower than at the start keeps
+its start poses.
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ import torch
 
 from ddsgen.realscan.losses import resolved_depth_m
 from ddsgen.realscan.simulate import frame_camera
-from ddsgen.scene_gradients.acceptance import accept_parts, block_cells, heldout_blocks, owner_image
+from ddsgen.scene_gradients.acceptance import (accept_parts, block_cells, frame_heldout_gaps, heldout_blocks,
+                                               owner_image)
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.identifiability import object_identifiability
@@ -105,6 +107,9 @@ class RefineResult:
     decisions: per part, the :class:`~ddsgen.scene_gradients.acceptance.PartDecision` (None: the part does not
         move, or no acceptance); ``refined`` holds the start pose of a part whose refined pose was not kept.
     kept_start: True if the view's gap at the kept poses was not lower than at the start: ``refined`` = ``initial``.
+        With the hold-out on, the gap that decides is the held-out one (``heldout_gap_*``), else ``gap_*``.
+    heldout_gap_before_mm, heldout_gap_after_mm: the mean per-pixel cost (:func:`.acceptance.pixel_cost`, mm) over the
+        held-out pixels an object owns at the start or at the kept poses, at each (nan without the hold-out).
     gap_optimised_mm: the gap at the optimiser's poses, before any was reverted.
     identifiability: per object, its :class:`~ddsgen.scene_gradients.identifiability.Identifiability` (empty: not
         assessed); its undetermined directions stayed at the start.
@@ -125,6 +130,8 @@ class RefineResult:
     gap_optimised_mm: float = float("nan")
     identifiability: list = dataclasses.field(default_factory=list)
     visible_fraction: list = dataclasses.field(default_factory=list)
+    heldout_gap_before_mm: float = float("nan")
+    heldout_gap_after_mm: float = float("nan")
 
 
 def compared_pixels(valid, clean_depth, real_depth, band_m: float, max_depth_m: float = math.inf,
@@ -406,14 +413,19 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
         with frame_camera(sensor, v.scene.intrinsics):
             optimised.append(v.evaluate(sensor)[1])
     decisions = [[] for _ in views]
+    heldout = [(float("nan"), float("nan"))] * len(views)
     if s.holdout_block_px > 0:
         decisions = accept_parts(sensor, views, s.occluder_m, s.band_m)
+        heldout = frame_heldout_gaps(sensor, views, s.occluder_m, s.band_m)
     after = []
     for v in views:
         v.recast()
         with frame_camera(sensor, v.scene.intrinsics):
             after.append(v.evaluate(sensor))
-    kept_start = _keep_start_where_not_better(views, [b[1] for b in before], [a[1] for a in after])
+    if s.holdout_block_px > 0:  # judged where the optimiser did not look, on one pixel set for both poses
+        kept_start = _keep_start_where_not_better(views, [h[0] for h in heldout], [h[1] for h in heldout])
+    else:
+        kept_start = _keep_start_where_not_better(views, [b[1] for b in before], [a[1] for a in after])
     results = []
     for k, (v, history, init) in enumerate(zip(views, histories, initial)):
         (depth_before, gap_before), (depth_after, gap_after) = before[k], after[k]
@@ -424,7 +436,9 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
                                     history=history, gap_before_mm=gap_before, gap_after_mm=gap_after,
                                     depth_before=depth_before, depth_after=depth_after, decisions=decisions[k],
                                     kept_start=kept_start, gap_optimised_mm=optimised[k],
-                                    identifiability=v.identifiability, visible_fraction=v.visible_fraction))  # fmt: skip
+                                    identifiability=v.identifiability, visible_fraction=v.visible_fraction,
+                                    heldout_gap_before_mm=heldout[k][0],
+                                    heldout_gap_after_mm=heldout[k][0] if kept_start else heldout[k][1]))  # fmt: skip
     return results
 
 

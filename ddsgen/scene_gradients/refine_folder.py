@@ -71,8 +71,10 @@ def run_refine(preset: str, real_dir: str | Path, out_dir: str | Path, settings:
                        f"{change['translation_mm']:.2f} mm; {change['decision']}"
                        + (f"; not determined by the data, kept at the start: {', '.join(change['undetermined'])}"
                           if change.get("undetermined") else ""))  # fmt: skip
-        verdict = (f" (optimised {r.result.gap_optimised_mm:.2f} mm, not lower: start poses kept)"
-                   if r.result.kept_start else "")  # fmt: skip
-        click.echo(f"{r.name}: gap {r.result.gap_before_mm:.2f} mm -> {r.result.gap_after_mm:.2f} mm{verdict}")
+        result = r.result
+        heldout = (f"; held-out gap {result.heldout_gap_before_mm:.2f} mm -> {result.heldout_gap_after_mm:.2f} mm"
+                   if result.heldout_gap_before_mm == result.heldout_gap_before_mm else "")  # fmt: skip
+        verdict = " (not lower: start poses kept)" if result.kept_start else ""
+        click.echo(f"{r.name}: gap {result.gap_before_mm:.2f} mm -> {result.gap_after_mm:.2f} mm{heldout}{verdict}")
     click.echo(f"wrote {', '.join(str(p) for p in written)} and {out / 'report'}/")
     return written

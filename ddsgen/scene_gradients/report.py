@@ -17,6 +17,7 @@ def frame_summary(refinement) -> dict:
         "frame": refinement.name, "crop": list(refinement.crop),
         "gap_before_mm": r.gap_before_mm, "gap_after_mm": r.gap_after_mm, "gap_optimised_mm": r.gap_optimised_mm,
         "kept_start": bool(r.kept_start),
+        "heldout_gap_before_mm": _number(r.heldout_gap_before_mm), "heldout_gap_after_mm": _number(r.heldout_gap_after_mm),
         "objects": refinement.object_changes(),
         "loss_mm": [round(h["loss_mm"], 4) for h in r.history],
     }  # fmt: skip
@@ -27,6 +28,11 @@ def frame_summary(refinement) -> dict:
         summary["support_plane"] = {"tilt_deg": round(float(np.degrees(np.arccos(np.clip(n0 @ n1, -1, 1)))), 4),
                                     "offset_mm": round(shift, 4)}  # fmt: skip
     return summary
+
+
+def _number(value: float) -> float | None:
+    """A measured value for JSON: None where it was not measured (nan)."""
+    return None if value != value else round(float(value), 4)
 
 
 def save_side_by_side(refinement, path: Path) -> None:

@@ -52,10 +52,14 @@ class FrameRefinement:
                 change["kept"], change["decision"] = decision.kept, decision.reason()
                 change["heldout_start_mm"] = round(decision.heldout_start_mm, 4)
                 change["heldout_refined_mm"] = round(decision.heldout_refined_mm, 4)
-            if self.result.kept_start:
-                why = (f" (held-out gap {decision.heldout_start_mm:.2f} mm -> {decision.heldout_refined_mm:.2f} mm)"
-                       if decision is not None and decision.pixels else "")  # fmt: skip
-                change["kept"], change["decision"] = False, f"start kept: the frame's gap is not lower{why}"
+            r = self.result
+            if r.kept_start and (decision is None or decision.kept):  # (an object's own rejection says more)
+                frame = r.heldout_gap_before_mm, r.heldout_gap_after_mm
+                if frame[0] == frame[0]:
+                    why = f"held-out gap {frame[0]:.2f} mm at the start"
+                else:
+                    why = f"gap {r.gap_before_mm:.2f} mm at the start, {r.gap_optimised_mm:.2f} mm refined"
+                change["kept"], change["decision"] = False, f"start kept: the frame's gap is not lower ({why})"
             elif decision is None:
                 change["kept"], change["decision"] = True, "refined pose kept (no acceptance test)"
             estimated = self.result.visible_fraction
