@@ -15,11 +15,10 @@ truth.
 The noise of a difference of summed costs (:func:`block_difference_noise`) comes from held-out blocks that touch
 at a corner: blocks are the independent units, and two neighbours see nearly the same systematic change, so the
 difference of their means is noise. (A real turn makes one side of a part better and the other worse; the spread
-over all pixels or all blocks counts that change as noise.) ``TURN_SIGMAS`` was chosen on the tuning seeds
-1000-1007 of tests/refine_validation.py (1 of 32 objects ends worse than its start); on the report seeds 0-7 and
-8-15 none does, medians 0.36 deg / 0.68 mm and 0.43 deg / 0.59 mm (docs/validation.md). A turn the held-out pixels do
-not show is not taken: the start rotation is the annotation's, the turn only the optimiser's. Half a unit, not more:
-the real cat's needed turn from a 3 deg start is shown by under one unit.
+over all pixels or all blocks counts that change as noise.) ``TURN_SIGMAS`` and ``KEEP_SIGMAS`` were chosen on the
+tuning seeds of tests/refine_validation.py; the report seeds' numbers are in docs/validation.md. A turn the held-out
+pixels do not show is not taken: the start rotation is the annotation's, the turn only the optimiser's. Half a unit,
+not more: the real cat's needed turn from a 3 deg start is shown by under one unit.
 
 The per-pixel cost (:func:`pixel_cost`, m) is the same for every pose, so sums over one fixed pixel
 set compare fairly (the part's held-out pixels at the start pose and at the refined one):
