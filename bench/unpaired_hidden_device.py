@@ -132,6 +132,14 @@ def main(seed: int = 1, width: int = 320, draws: int = MAX_DRAWS, window: int = 
     print(f"bench: unpaired_gap_fitted_mm {fitted_gap:.3f}")
     print(f"bench: unpaired_gap_ratio {fitted_gap / stock_gap:.3f}")
     print(f"bench: unpaired_excess_ratio {(fitted_gap - floor_gap) / (stock_gap - floor_gap):.3f}")
+    written = load_preset(str(work / "fitted.yaml"))
+    changed = {k: (getattr(stock, k), getattr(written, k)) for k in vars(stock)
+               if k != "name" and getattr(stock, k) != getattr(written, k)}  # fmt: skip
+    print(f"bench: unpaired_written_changes {changed}")
+    held = content["held_out"]
+    if held["stock"] is not None:
+        terms = {name: {g: round(float(v), 4) for g, v in t.items()} for name, t in held["terms"].items()}
+        print(f"bench: unpaired_heldout {terms} judged readings {content['output_window'].get('judged', {})}")
     for key, value in hidden.items():
         if key not in content["after"]:  # the output window: measured, no uncertainty
             measured = content["output_window"]["measured"][key]

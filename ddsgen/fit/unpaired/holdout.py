@@ -9,7 +9,8 @@ test, reported as such); a single frame cannot be split -- ``"none"``.
 :func:`judge` compares the input preset and the fitted one on the held-out frames alone: the feature distance
 (:func:`~.features.distance_terms`) between those frames and fresh renders of each (a noise seed the fit did not
 use). The fitted preset is written only if its distance is lower; otherwise the input's values are kept and the
-summary says so. The fit's structural choices (registration, output window) are part of the fitted preset judged.
+summary says so. The fit's structural choices (registration, output window) are judged the same way: each reading
+the fit considered, with the fitted values, against the input's own reading with the same values (``run.py``).
 """
 
 from __future__ import annotations

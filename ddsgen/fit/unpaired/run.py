@@ -94,9 +94,31 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
         rendered = render_depths(preset, scenes_cast, seed + 1)  # fresh noise: not the fit's
         depths[label] = [round_like(d, resolution) for d in rendered]
     rendered_features = {label: [frame_features(d, fb) for d in depths[label]] for label in ("stock", "fitted")}
-    pooled = {"real": pool(real_features), **{label: pool(f) for label, f in rendered_features.items()}}
     # The judgement: the held-out real frames against fresh renders of the input and of the fitted preset.
-    verdict = judge([real_features[i] for i in held_indices], rendered_features["stock"], rendered_features["fitted"])
+    held_features = [real_features[i] for i in held_indices]
+    verdict = judge(held_features, rendered_features["stock"], rendered_features["fitted"])
+    # The registration reading is a change like any other. The fit frames choose one (device_window.py); a reading
+    # other than the input's is written only if the held-out frames confirm it: the fitted values read that way are
+    # closer to them than the same values read the input's way (each reading with the output window measured under
+    # it). Unpaired features tell the readings apart weakly -- on hidden devices of ddsgen's own family each set of
+    # frames alone chose wrongly once in three -- so one set's word is not enough. (An explicit --registration is
+    # the user's: one reading, not judged.)
+    structure = {"chosen": model.name}
+    stock_reading = next((m for m in candidates if m.registration_keys == stock_keys), None)
+    if stock_reading is not None and stock_reading is not model and held_features:
+        rendered = [round_like(d, resolution)
+                    for d in render_depths(stock_reading.camera.replace(**result.after), stock_reading.geometries,
+                                           seed + 1)]  # fmt: skip
+        features = [frame_features(d, fb) for d in rendered]
+        as_input = judge(held_features, rendered_features["stock"], features)
+        structure.update(fit_choice=model.name, heldout={model.name: verdict["fitted"],
+                                                         stock_reading.name: as_input["fitted"]})  # fmt: skip
+        if not verdict["fitted"] < as_input["fitted"]:  # not confirmed: the input's reading
+            depths["fitted"], rendered_features["fitted"], verdict = rendered, features, as_input
+            model = stock_reading
+            camera, geometries, window = model.camera, model.geometries, model.window.as_keys()
+            structure["chosen"] = model.name
+    pooled = {"real": pool(real_features), **{label: pool(f) for label, f in rendered_features.items()}}
     verdict.update(kind=holdout_kind, meaning=HOLDOUT_MEANING[holdout_kind],
                    fit_frames=[real[i].name for i in fit_indices], held_out_frames=[real[i].name for i in held_indices])
     content = {
@@ -110,7 +132,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                                   "registered device's: mapped back into its IR frame; its left band: the most "
                                   "common first IR column of a row)",
                           "model": model.name,
-                          "stock_radius_distance": {m.name: m.distance for m in candidates}},
+                          "stock_radius_distance": {m.name: m.distance for m in candidates},
+                          "judged": structure},
     }  # fmt: skip
     with atomic_folder(report, "the report") as building:  # in place only when complete (an interrupt leaves none)
         content = write_report(building, content, pooled, depths, resolution, seed, fb)
@@ -120,6 +143,9 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
+    reading = f"depth registration: {model.name}; output window: {tuple(in_preset_px.as_keys().values())}"
+    if structure.get("fit_choice", model.name) != model.name:
+        reading += f" (the input's: the held-out frames did not confirm the fit frames' {structure['fit_choice']})"
     if verdict["fitted_better"]:
         fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
         changed = [f"{key}: {content['before'][key]:.6g} -> {value:.6g}" for key, value in result.after.items()
@@ -129,7 +155,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
             f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}",
             f"held out: {verdict['meaning']}; feature distance on the held-out frames "
             f"{verdict['stock']:.4f} (input) -> {verdict['fitted']:.4f} (this preset)",
-            f"depth registration: {model.name}; output window: {tuple(in_preset_px.as_keys().values())}",
+            reading,
             "changed: " + ("; ".join(changed) if changed else "none of the searched keys"),
             "kept (the input's value fits as well): " + (", ".join(kept) if kept else "none"),
             f"not identifiable from unpaired depth: {NOT_IDENTIFIABLE}",
@@ -170,10 +196,18 @@ def summary_lines(content: dict) -> list[str]:
     stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
     window = content["output_window"]
     distances = ", ".join(f"{name} {d:.4f}" for name, d in window["stock_radius_distance"].items() if d is not None)
+    judged = window.get("judged", {})
+    switched = judged.get("fit_choice", window["model"]) != window["model"]
     lines.append(f"  depth registration: {window['model']}"
+                 + (f" (the fit frames chose {judged.get('fit_choice')}; the held-out frames did not confirm it)"
+                    if switched else "")
                  + (f" (validity by radius, stock values: {distances})" if distances else ""))
     lines.append("  output window (measured; px without depth at the left, right, top, bottom): "
                  f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
+    heldout = window.get("judged", {}).get("heldout", {})
+    if heldout:
+        lines.append("    held out, the fitted values read each way: "
+                     + ", ".join(f"{name} {value:.4f}" for name, value in heldout.items()))
     lines.append(f"  not identifiable from unpaired depth, left at the input's values: {NOT_IDENTIFIABLE}")
     held = content["held_out"]
     lines.append(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
