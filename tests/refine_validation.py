@@ -33,7 +33,6 @@ import numpy as np
 import torch
 
 
-
 def _shared_linemod() -> Path:
     """The shared LineMOD data: ``shared/data/linemod_bop`` beside the nearest ancestor that has it (a checkout at
     /work/main or a worktree at /work/wt/NAME both find /work/shared)."""
@@ -93,17 +92,13 @@ class ValidationScene:
     start: list
     obj_ids: list
     real: np.ndarray
-    visible: list = dataclasses.field(default_factory=list)  # per annotated object: its visible share (packed scenes)
+    visible: list = dataclasses.field(default_factory=list)  # per annotated object: its visible share
 
 
 def make_scene(seed: int, meshes: list, intrinsics) -> ValidationScene:
     """The validation scene of ``seed`` (see the module docstring), measured by the independent sensor."""
-    from ddsgen.raycast import cast
     from ddsgen.scene import shapes
     from ddsgen.scene.sampling import FrameScene, PlacedObject
-    from ddsgen.scene_gradients.poses import perturb_pose
-
-    from independent_sensor import measure
 
     rng = np.random.default_rng([seed, 65])
     depth = rng.uniform(0.75, 0.95)
@@ -131,15 +126,7 @@ def make_scene(seed: int, meshes: list, intrinsics) -> ValidationScene:
     clutter.append(PlacedObject(20, "occluder", "shape:box", bar, _pose((0, 0, rng.uniform(-0.3, 0.3)), T[:3, 3] + offset), 0.6))
     table = PlacedObject(0, "table", "plane:3x3", shapes.plane_mesh(3.0, 3.0), _pose((-0.9, 0, 0), (0, 0.1, depth + 0.2)), 0.6)
     truth = FrameScene(annotated + clutter, [table], np.eye(4), 0, seed)
-    hits = cast(truth, intrinsics, BASELINE_M, SHADOW_BIAS_M)
-    intr = {"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy}
-    real = measure(hits.depth.astype(np.float64), hits.hit & ~hits.shadow, np.zeros(hits.depth.shape), intr,
-                   BASELINE_M, None, np.random.default_rng([seed, 66]))  # fmt: skip
-    start = []
-    for o in annotated:
-        centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
-        start.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, *START, rng)))
-    return ValidationScene(seed, truth, annotated, start, [int(o.class_name[4:]) for o in annotated], real)
+    return _measured(seed, truth, annotated, intrinsics, 66, rng)
 
 
 def _resting_pose(rng, mesh_path: Path, table_T: np.ndarray, xy, yaw: float):
@@ -175,13 +162,10 @@ def make_packed_scene(seed: int, meshes: list, intrinsics) -> ValidationScene:
     table, each at least 3 mm from the others' footprints; the table is tilted 52 degrees towards the camera, its
     centre 0.75-0.95 m away. Measured by the independent sensor; starts 3 deg / 8 mm off (as :func:`make_scene`).
     """
-    from ddsgen.raycast import cast
     from ddsgen.scene import shapes
     from ddsgen.scene.footprints import polygons_separated
     from ddsgen.scene.sampling import FrameScene, PlacedObject
-    from ddsgen.scene_gradients.poses import perturb_pose
 
-    from independent_sensor import measure
 
     rng = np.random.default_rng([seed, 67])
     depth = rng.uniform(0.75, 0.95)
@@ -212,16 +196,26 @@ def make_packed_scene(seed: int, meshes: list, intrinsics) -> ValidationScene:
             annotated[item[1]] = PlacedObject(item[1] + 1, f"obj_{obj_id:06d}", f"obj_{obj_id:06d}", mesh, T, 0.6)
     table = PlacedObject(0, "table", "plane:3x3", shapes.plane_mesh(3.0, 3.0), table_T, 0.6)
     truth = FrameScene(annotated + clutter, [table], np.eye(4), 0, seed)
+    return _measured(seed, truth, annotated, intrinsics, 68, rng)
+
+
+def _measured(seed: int, truth, annotated: list, intrinsics, noise_stream: int, rng) -> ValidationScene:
+    """The scene ``truth`` measured by the independent sensor (noise from rng([seed, noise_stream])), each annotated
+    object started 3 deg / 8 mm off about its bounding-box centre (drawn from ``rng``), and its visible share."""
+    from ddsgen.raycast import cast
+    from ddsgen.scene_gradients.poses import perturb_pose
+
+    from independent_sensor import measure
+
     hits = cast(truth, intrinsics, BASELINE_M, SHADOW_BIAS_M)
     intr = {"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy}
     real = measure(hits.depth.astype(np.float64), hits.hit & ~hits.shadow, np.zeros(hits.depth.shape), intr,
-                   BASELINE_M, None, np.random.default_rng([seed, 68]))  # fmt: skip
+                   BASELINE_M, None, np.random.default_rng([seed, noise_stream]))  # fmt: skip
     start = []
     for o in annotated:
         centre = o.world_T_obj[:3, :3] @ o.mesh.bounds.mean(0) + o.world_T_obj[:3, 3]
         start.append(dataclasses.replace(o, world_T_obj=perturb_pose(o.world_T_obj, centre, *START, rng)))
-    visible = [float((hits.instance == o.id).sum()) / max(hits.coverage.get(o.id, 0), 1)
-               for o in annotated]
+    visible = [float((hits.instance == o.id).sum()) / max(hits.coverage.get(o.id, 0), 1) for o in annotated]
     return ValidationScene(seed, truth, annotated, start, [int(o.class_name[4:]) for o in annotated], real, visible)
 
 
