@@ -289,10 +289,10 @@ def run(seeds, settings, verbose: bool = True, layout: str = "grid") -> list[dic
             row["visible"] = seen
         rows += found
         if verbose:
+            seen = [f" ({100 * r['visible']:.0f} % visible)" if "visible" in r else "" for r in found]
             print(f"  scene {seed}: " + ", ".join(f"obj_id {r['obj_id']} {r['deg']:.2f} deg {r['mm']:.2f} mm"
-                                                    f"{' kept' if r['kept'] else ' start'}"
-                                                    + (f" ({100 * r['visible']:.0f} % visible)" if "visible" in r else "")
-                                                    for r in found), flush=True)  # fmt: skip
+                                                    f"{' kept' if r['kept'] else ' start'}{v}"
+                                                    for r, v in zip(found, seen)), flush=True)  # fmt: skip
     return rows
 
 

@@ -334,7 +334,8 @@ def test_a_ctrl_c_while_the_folder_is_put_in_place_waits_for_the_renames(signal_
         return result
 
     handling = _sigterm_raises() if signal_name == "SIGTERM" else contextlib.nullcontext()
-    # Ctrl-C as Python's own, whatever handler an earlier test in this worker left (a no-op one never raises)
+    # Ctrl-C as Python's own, whatever the process started with: a suite started in the background of a shell
+    # without job control inherits SIGINT ignored, and an ignored signal is not deferred or raised
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt), handling:

@@ -244,11 +244,13 @@ def frame_heldout_gaps(sensor, views, occluder_m: float, absence_cap_m: float) -
     for v, (cost_start, owner_start) in zip(views, start):
         cost_now, owner_now = _view_cost(sensor, v, occluder_m, absence_cap_m)
         n_objects = v.scene.n_objects
-        judged = v.heldout & (((owner_start >= 0) & (owner_start < n_objects)) | ((owner_now >= 0) & (owner_now < n_objects)))
+        on_object = ((owner_start >= 0) & (owner_start < n_objects)) | ((owner_now >= 0) & (owner_now < n_objects))
+        judged = v.heldout & on_object
         if not bool(judged.any()):
             gaps.append((float("nan"), float("nan")))
             continue
-        gaps.append((float(cost_start[judged].double().mean()) * 1000.0, float(cost_now[judged].double().mean()) * 1000.0))
+        start_mm, now_mm = (float(cost[judged].double().mean()) * 1000.0 for cost in (cost_start, cost_now))
+        gaps.append((start_mm, now_mm))
     return gaps
 
 

@@ -17,7 +17,8 @@ def frame_summary(refinement) -> dict:
         "frame": refinement.name, "crop": list(refinement.crop),
         "gap_before_mm": r.gap_before_mm, "gap_after_mm": r.gap_after_mm, "gap_optimised_mm": r.gap_optimised_mm,
         "kept_start": bool(r.kept_start),
-        "heldout_gap_before_mm": _number(r.heldout_gap_before_mm), "heldout_gap_after_mm": _number(r.heldout_gap_after_mm),
+        "heldout_gap_before_mm": _number(r.heldout_gap_before_mm),
+        "heldout_gap_after_mm": _number(r.heldout_gap_after_mm),
         "objects": refinement.object_changes(),
         "loss_mm": [round(h["loss_mm"], 4) for h in r.history],
     }  # fmt: skip
