@@ -110,6 +110,8 @@ class RefineResult:
         With the hold-out on, the gap that decides is the held-out one (``heldout_gap_*``), else ``gap_*``.
     heldout_gap_before_mm, heldout_gap_after_mm: the mean per-pixel cost (:func:`.acceptance.pixel_cost`, mm) over the
         held-out pixels an object owns at the start or at the kept poses, at each (nan without the hold-out).
+    heldout_gap_refined_mm: the same at the poses the acceptance kept, before the frame's own rule (equal to
+        ``heldout_gap_after_mm`` unless ``kept_start``).
     gap_optimised_mm: the gap at the optimiser's poses, before any was reverted.
     identifiability: per object, its :class:`~ddsgen.scene_gradients.identifiability.Identifiability` (empty: not
         assessed); its undetermined directions stayed at the start.
@@ -132,6 +134,7 @@ class RefineResult:
     visible_fraction: list = dataclasses.field(default_factory=list)
     heldout_gap_before_mm: float = float("nan")
     heldout_gap_after_mm: float = float("nan")
+    heldout_gap_refined_mm: float = float("nan")
 
 
 def compared_pixels(valid, clean_depth, real_depth, band_m: float, max_depth_m: float = math.inf,
@@ -437,7 +440,7 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
                                     depth_before=depth_before, depth_after=depth_after, decisions=decisions[k],
                                     kept_start=kept_start, gap_optimised_mm=optimised[k],
                                     identifiability=v.identifiability, visible_fraction=v.visible_fraction,
-                                    heldout_gap_before_mm=heldout[k][0],
+                                    heldout_gap_before_mm=heldout[k][0], heldout_gap_refined_mm=heldout[k][1],
                                     heldout_gap_after_mm=heldout[k][0] if kept_start else heldout[k][1]))  # fmt: skip
     return results
 

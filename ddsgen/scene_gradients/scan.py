@@ -54,9 +54,9 @@ class FrameRefinement:
                 change["heldout_refined_mm"] = round(decision.heldout_refined_mm, 4)
             r = self.result
             if r.kept_start and (decision is None or decision.kept):  # (an object's own rejection says more)
-                frame = r.heldout_gap_before_mm, r.heldout_gap_after_mm
-                if frame[0] == frame[0]:
-                    why = f"held-out gap {frame[0]:.2f} mm at the start"
+                if r.heldout_gap_before_mm == r.heldout_gap_before_mm:
+                    why = (f"held-out gap {r.heldout_gap_before_mm:.2f} mm at the start, "
+                           f"{r.heldout_gap_refined_mm:.2f} mm at the refined poses")
                 else:
                     why = f"gap {r.gap_before_mm:.2f} mm at the start, {r.gap_optimised_mm:.2f} mm refined"
                 change["kept"], change["decision"] = False, f"start kept: the frame's gap is not lower ({why})"
