@@ -225,20 +225,21 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
     return decisions
 
 
-def frame_heldout_gaps(sensor, views, occluder_m: float, absence_cap_m: float) -> list[tuple[float, float]]:
+def frame_heldout_gaps(sensor, views, corrections: list, occluder_m: float,
+                       absence_cap_m: float) -> list[tuple[float, float]]:  # fmt: skip
     """Per view, (held-out gap at the start, at the current poses) in mm: the mean :func:`pixel_cost` over the view's
     held-out pixels that an object owns at either pose (one pixel set for both, so the two compare fairly; a mean
     over each pose's own in-band pixels would favour the pose that leaves its worst pixels out of the band).
 
-    The views' corrections are set to zero for the start and restored afterwards."""
-    tensors = _distinct_corrections(views)
-    current = [t.detach().clone() for t in tensors]
+    ``corrections``: every correction tensor of the views' poses (each once); set to zero for the start and restored
+    afterwards."""
+    current = [t.detach().clone() for t in corrections]
     with torch.no_grad():
-        for t in tensors:
+        for t in corrections:
             t.zero_()
     start = [_view_cost(sensor, v, occluder_m, absence_cap_m) for v in views]
     with torch.no_grad():
-        for t, values in zip(tensors, current):
+        for t, values in zip(corrections, current):
             t.copy_(values)
     gaps = []
     for v, (cost_start, owner_start) in zip(views, start):
@@ -252,18 +253,6 @@ def frame_heldout_gaps(sensor, views, occluder_m: float, absence_cap_m: float) -
         start_mm, now_mm = (float(cost[judged].double().mean()) * 1000.0 for cost in (cost_start, cost_now))
         gaps.append((start_mm, now_mm))
     return gaps
-
-
-def _distinct_corrections(views) -> list:
-    """Every correction tensor (rotations, translations; shared ones once) of the views' poses."""
-    out = []
-    for v in views:
-        poses = v.scene.poses
-        candidates = [poses.rotation, poses.translation]
-        if poses.shared is not None:
-            candidates += [poses.shared.rotation, poses.shared.translation]
-        out += [t for t in candidates if all(t is not o for o in out)]
-    return out
 
 
 def _set(rows, refined) -> None:

@@ -419,7 +419,7 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
     heldout = [(float("nan"), float("nan"))] * len(views)
     if s.holdout_block_px > 0:
         decisions = accept_parts(sensor, views, s.occluder_m, s.band_m)
-        heldout = frame_heldout_gaps(sensor, views, s.occluder_m, s.band_m)
+        heldout = frame_heldout_gaps(sensor, views, rotations + translations, s.occluder_m, s.band_m)
     after = []
     for v in views:
         v.recast()
