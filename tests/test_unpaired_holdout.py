@@ -40,6 +40,37 @@ def test_the_judgement_compares_the_held_out_frames_with_each_presets_renders():
     assert not judge(real, stock_features=near, fitted_features=far)["fitted_better"]
     assert judge([], near, far) == {"stock": None, "fitted": None, "fitted_better": False, "terms": {}}
     assert verdict["terms"]["fitted"]["noise"] < verdict["terms"]["stock"]["noise"]  # the noise is what differs
+    assert verdict["groups"]["noise"] == "closer" and verdict["farther"] == []
+
+
+def test_a_fit_closer_in_total_but_farther_beyond_the_spread_in_one_group_is_not_written():
+    """The fitted renders match the held-out frames' noise (the total falls) but drop 0.2 % of their pixels where
+    the frames drop none, in every frame: the holes group is farther by far more than the frames' spread, so the
+    judgement keeps the input, and says which group stood against it. The same dropouts in only one frame of four
+    are within the spread: a group that one frame moves does not stop a fit."""
+    from ddsgen.fit.unpaired.features import frame_features
+
+    rng = np.random.default_rng(1)
+    fb = 572.41 * 0.075
+    v, u = np.mgrid[0:240, 0:320]
+
+    def plane(sigma_px: float, dropout_share: float = 0.0) -> dict:  # a tilted plane; dropouts of single pixels
+        disparity = fb / (1.0 + 0.002 * u + 0.001 * v) + rng.normal(0.0, sigma_px, (240, 320))
+        depth = (fb / (np.round(disparity * 8) / 8)).astype(np.float32)
+        depth[rng.random(depth.shape) < dropout_share] = 0.0
+        return frame_features(depth, fb)
+
+    real = [plane(0.08) for _ in range(4)]
+    stock = [plane(0.3) for _ in range(4)]
+    fitted = [plane(0.08, 0.002) for _ in range(4)]
+    verdict = judge(real, stock, fitted)
+    assert verdict["fitted"] < verdict["stock"]  # closer in total: the noise gain outweighs the holes
+    assert verdict["groups"]["holes"] == "farther" and verdict["farther"] == ["holes"]
+    assert not verdict["fitted_better"]
+    assert verdict["terms"]["fitted"]["holes"] - verdict["terms"]["stock"]["holes"] > 3 * verdict["spread"]["holes"]
+    once = [plane(0.08, 0.002), plane(0.08), plane(0.08), plane(0.08)]
+    verdict = judge(real, stock, once)
+    assert verdict["groups"]["holes"] == "within noise" and verdict["fitted_better"]
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from ddsgen.errors import InputError
 from ddsgen.fit.fitted_preset import assemble_preset, write_preset
 from ddsgen.fit.unpaired.device_window import UNREGISTERED, choose_window_model
 from ddsgen.fit.unpaired.features import frame_features, pool
-from ddsgen.fit.unpaired.holdout import HOLDOUT_MEANING, judge, split_frames
+from ddsgen.fit.unpaired.holdout import GROUPS, HOLDOUT_MEANING, judge, split_frames
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.report import write_report
 from ddsgen.fit.unpaired.search import (
@@ -96,13 +96,13 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     rendered_features = {label: [frame_features(d, fb) for d in depths[label]] for label in ("stock", "fitted")}
     # The judgement: the held-out real frames against fresh renders of the input and of the fitted preset.
     held_features = [real_features[i] for i in held_indices]
-    verdict = judge(held_features, rendered_features["stock"], rendered_features["fitted"])
+    verdict = judge(held_features, rendered_features["stock"], rendered_features["fitted"], seed=seed)
     # The registration reading is a change like any other. The fit frames choose one (device_window.py); a reading
     # other than the input's is written only if the held-out frames confirm it: the fitted values read that way are
     # closer to them than the same values read the input's way (each reading with the output window measured under
-    # it). Unpaired features tell the readings apart weakly -- on hidden devices of ddsgen's own family each set of
-    # frames alone chose wrongly once in three -- so one set's word is not enough. (An explicit --registration is
-    # the user's: one reading, not judged.)
+    # it), and no feature group is farther beyond its spread. Unpaired features tell the readings apart weakly -- on
+    # hidden devices of ddsgen's own family each set of frames alone chose wrongly once in three -- so one set's word
+    # is not enough. (An explicit --registration is the user's: one reading, not judged.)
     structure = {"chosen": model.name}
     stock_reading = next((m for m in candidates if m.registration_keys == stock_keys), None)
     if stock_reading is not None and stock_reading is not model and held_features:
@@ -110,10 +110,12 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
                     for d in render_depths(stock_reading.camera.replace(**result.after), stock_reading.geometries,
                                            seed + 1)]  # fmt: skip
         features = [frame_features(d, fb) for d in rendered]
-        as_input = judge(held_features, rendered_features["stock"], features)
+        as_input = judge(held_features, rendered_features["stock"], features, seed=seed)
+        readings = judge(held_features, features, rendered_features["fitted"], seed=seed)  # input's reading -> fit's
         structure.update(fit_choice=model.name, heldout={model.name: verdict["fitted"],
-                                                         stock_reading.name: as_input["fitted"]})  # fmt: skip
-        if not verdict["fitted"] < as_input["fitted"]:  # not confirmed: the input's reading
+                                                         stock_reading.name: as_input["fitted"]},
+                         groups=readings["groups"], farther=readings["farther"])  # fmt: skip
+        if not readings["fitted_better"]:  # not confirmed: the input's reading
             depths["fitted"], rendered_features["fitted"], verdict = rendered, features, as_input
             model = stock_reading
             camera, geometries, window = model.camera, model.geometries, model.window.as_keys()
@@ -155,6 +157,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
             f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}",
             f"held out: {verdict['meaning']}; feature distance on the held-out frames "
             f"{verdict['stock']:.4f} (input) -> {verdict['fitted']:.4f} (this preset)",
+            "by feature group: " + group_verdicts(verdict),
             reading,
             "changed: " + ("; ".join(changed) if changed else "none of the searched keys"),
             "kept (the input's value fits as well): " + (", ".join(kept) if kept else "none"),
@@ -165,7 +168,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
             f"ddsgen fit --unpaired to {real_dir} from {preset_ref}: the input's values, kept",
             f"held out: {verdict['meaning']}" + ("" if verdict["stock"] is None else
             f"; the fit was not closer to the held-out frames (feature distance {verdict['stock']:.4f} input, "
-            f"{verdict['fitted']:.4f} fitted)")]))  # fmt: skip
+            f"{verdict['fitted']:.4f} fitted; by feature group: {group_verdicts(verdict)})")]))  # fmt: skip
     return content
 
 
@@ -206,8 +209,11 @@ def summary_lines(content: dict) -> list[str]:
                  f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
     heldout = window.get("judged", {}).get("heldout", {})
     if heldout:
+        farther = judged.get("farther") or []
         lines.append("    held out, the fitted values read each way: "
-                     + ", ".join(f"{name} {value:.4f}" for name, value in heldout.items()))
+                     + ", ".join(f"{name} {value:.4f}" for name, value in heldout.items())
+                     + (f"; read the fit frames' way, {', '.join(farther)} farther beyond the spread" if farther
+                        else ""))  # fmt: skip
     lines.append(f"  not identifiable from unpaired depth, left at the input's values: {NOT_IDENTIFIABLE}")
     held = content["held_out"]
     lines.append(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
@@ -215,12 +221,27 @@ def summary_lines(content: dict) -> list[str]:
     if held["stock"] is not None:
         lines.append(f"  feature distance on the held-out frames: {held['stock']:.4f} (input) -> {held['fitted']:.4f} "
                      f"(fitted)")  # fmt: skip
-        by_group = ", ".join(f"{group} {held['terms']['stock'][group]:.4f} -> {held['terms']['fitted'][group]:.4f}"
-                             for group in ("noise", "holes", "radius", "grain"))  # fmt: skip
-        lines.append(f"  by feature group (input -> fitted): {by_group}")
+        lines.append(f"  by feature group (input -> fitted, the difference +- its spread over draws of frames): "
+                     f"{group_verdicts(held)}")  # fmt: skip
     if content["written"] == "input":
-        lines.append("the fit is not closer to frames it did not see: the input preset's values are written, unchanged")
+        farther = held.get("farther") or []
+        lines.append("the fit is not closer to frames it did not see"
+                     + (f" ({', '.join(farther)} farther beyond the spread)" if farther else "")
+                     + ": the input preset's values are written, unchanged")  # fmt: skip
     return lines
+
+
+def group_verdicts(verdict: dict) -> str:
+    """Each feature group's held-out distance, input -> fitted, the difference with its spread and what it means
+    (:func:`~.holdout.judge`), in one line."""
+    terms, spread = verdict["terms"], verdict.get("spread", {})
+    parts = []
+    for group in GROUPS:
+        before, after = terms["stock"][group], terms["fitted"][group]
+        plus_minus = f" +- {spread[group]:.4f}" if group in spread else ""
+        meaning = f", {verdict['groups'][group]}" if "groups" in verdict else ""
+        parts.append(f"{group} {before:.4f} -> {after:.4f} ({after - before:+.4f}{plus_minus}{meaning})")
+    return "; ".join(parts)
 
 
 def print_summary(content: dict) -> None:
