@@ -561,6 +561,13 @@ def test_cli_registration_unregistered_fits_unregistered_but_reports_the_stock_a
     own = measure_output_window([f.depth > 0 for f in real if f.name in seen]).as_keys()
     assert {key: getattr(fitted, key) for key in own} == own
     assert report["output_window"]["model"] == "unregistered"
+    # The preset says what changed, from what, and on what held-out evidence, group by group.
+    header = [line for line in out.read_text().splitlines() if line.startswith("#")]
+    reading = next(line for line in header if "depth registration: unregistered" in line)
+    window_values = tuple(own.values())
+    assert reading.endswith(f"{tuple(getattr(stock, key) for key in own)} -> {window_values}")
+    groups = next(line for line in header if line.startswith("# by feature group:"))
+    assert all(f"{group} " in groups for group in ("noise", "holes", "radius", "grain")) and "+-" in groups
     depths = render_depths(stock, cast_scenes(stock, load_scene_list(None), DEFAULT_SIM_FRAMES, 0), 1)
     isolated = np.median([realism_statistics(round_like(d, 0.001))["isolated_dropouts"] for d in depths])
     assert report["realism_statistics"]["stock"]["isolated_dropouts"] == isolated

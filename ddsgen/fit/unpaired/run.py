@@ -145,13 +145,15 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     # The window in the preset's own pixels (the fit ran at the real frames' size).
     in_preset_px = model.window.rescaled(width, height, original.width_px, original.height_px)
     registration = UNREGISTERED if model.name == "unregistered" else {}  # registered: the preset's own, unscaled
-    reading = f"depth registration: {model.name}; output window: {tuple(in_preset_px.as_keys().values())}"
+    input_window = tuple(getattr(original, key) for key in in_preset_px.as_keys())
+    reading = (f"depth registration: {model.name}; output window (px without depth at the left, right, top, bottom): "
+               f"{input_window} -> {tuple(in_preset_px.as_keys().values())}")  # fmt: skip
     if structure.get("fit_choice", model.name) != model.name:
         reading += f" (the input's: the held-out frames did not confirm the fit frames' {structure['fit_choice']})"
     if verdict["fitted_better"]:
         fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
-        changed = [f"{key}: {content['before'][key]:.6g} -> {value:.6g}" for key, value in result.after.items()
-                   if value != content["before"][key]]  # fmt: skip
+        changed = [f"{key}: {content['before'][key]:.6g} -> {value:.6g} ({spread_text(content, key)})"
+                   for key, value in result.after.items() if value != content["before"][key]]  # fmt: skip
         kept = [key for key, value in result.after.items() if value == content["before"][key]]
         write_preset(fitted, out, "\n".join([
             f"fitted by ddsgen fit --unpaired to {real_dir} from {preset_ref}",
@@ -188,14 +190,8 @@ def summary_lines(content: dict) -> list[str]:
                  f"{content['frames_rendered']} frames rendered")  # fmt: skip
     for key, value in content["after"].items():
         scene = content["bootstrap"][key]["scene_content"]
-        if content["bootstrap"][key]["lower_bound"]:  # the resamples did not bound it: no spread to quote
-            spread = f"not determined by these frames ({scene['low']:.3g}..{scene['high']:.3g} fit as well)"
-        elif UNPAIRED_PARAMETERS[key].log:  # a log-scale key is known within a factor
-            spread = f"known within a factor {math.exp(content['uncertainty_search'][key]):.2g}"
-        else:
-            spread = f"+- {content['uncertainty'][key]:.2g}"
         note = "; kept: the input's value fits as well" if scene["kept_input_value"] else ""
-        lines.append(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g}, {spread}{note}")
+        lines.append(f"  {key:20s} {content['before'][key]:.6g} -> {value:.6g}, {spread_text(content, key)}{note}")
     stock, measured = content["output_window"]["stock"], content["output_window"]["measured"]
     window = content["output_window"]
     distances = ", ".join(f"{name} {d:.4f}" for name, d in window["stock_radius_distance"].items() if d is not None)
@@ -229,6 +225,17 @@ def summary_lines(content: dict) -> list[str]:
                      + (f" ({', '.join(farther)} farther beyond the spread)" if farther else "")
                      + ": the input preset's values are written, unchanged")  # fmt: skip
     return lines
+
+
+def spread_text(content: dict, key: str) -> str:
+    """How well the fit determined ``key``, in words: +- one standard deviation, a factor (log-scale keys), or the
+    range that fits as well when the resamples did not bound it."""
+    scene = content["bootstrap"][key]["scene_content"]
+    if content["bootstrap"][key]["lower_bound"]:  # the resamples did not bound it: no spread to quote
+        return f"not determined by these frames ({scene['low']:.3g}..{scene['high']:.3g} fit as well)"
+    if UNPAIRED_PARAMETERS[key].log:  # a log-scale key is known within a factor
+        return f"known within a factor {math.exp(content['uncertainty_search'][key]):.2g}"
+    return f"+- {content['uncertainty'][key]:.2g}"
 
 
 def group_verdicts(verdict: dict) -> str:
