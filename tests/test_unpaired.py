@@ -514,6 +514,47 @@ def test_the_fit_reads_registered_frames_with_the_registration_and_plain_frames_
     assert candidates[0].distance < candidates[1].distance
 
 
+def test_a_reading_the_held_out_frames_do_not_confirm_is_not_written_nor_fitted_under(registered_device, tmp_path,
+                                                                                       monkeypatch, capsys):  # fmt: skip
+    """The fit frames of a registered device made to choose the unregistered reading (as they did on a hidden device):
+    the keys are fitted under both readings, the held-out sequence does not confirm the unregistered one beyond its
+    spread, so the preset keeps the device's registration and the values fitted under it, and the terminal says so."""
+    from ddsgen.cli import main
+    from ddsgen.fit.unpaired import run
+    from ddsgen.io.png import write_depth_png
+    from ddsgen.preset import load_preset, save_preset
+
+    stock, window, real = registered_device
+    for i, frame in enumerate(real):
+        write_depth_png(tmp_path / "real" / f"seq{i % 2 + 1}" / frame.name, frame.depth)
+    save_preset(stock, tmp_path / "stock.yaml")
+    real_choice, real_fit = run.choose_window_model, run.fit_unpaired
+    fitted_under = []
+
+    def wrong_reading(*args, **kwargs):
+        chosen, candidates = real_choice(*args, **kwargs)
+        return next(m for m in candidates if m.name == "unregistered"), candidates
+
+    def recording_fit(camera, *args, **kwargs):
+        fitted_under.append(camera.registration_ir_offset_m)
+        return real_fit(camera, *args, **kwargs)
+
+    monkeypatch.setattr(run, "choose_window_model", wrong_reading)
+    monkeypatch.setattr(run, "fit_unpaired", recording_fit)
+    out = tmp_path / "fitted.yaml"
+    assert main(["fit", str(tmp_path / "stock.yaml"), str(tmp_path / "real"), "--unpaired", "--out", str(out),
+                 "--quiet", "--report", str(tmp_path / "report"), "--params", "subpixel_level"]) == 0  # fmt: skip
+    assert fitted_under == [0.0, stock.registration_ir_offset_m]  # the fit frames' reading, then the input's
+    report = json.loads((tmp_path / "report" / "unpaired_report.json").read_text())
+    judged = report["output_window"]["judged"]
+    assert judged["fit_choice"] == "unregistered" and judged["chosen"] == "registered"
+    assert judged["groups"]["total"] != "closer"
+    written = load_preset(str(out))
+    assert written.registration_ir_offset_m == stock.registration_ir_offset_m
+    assert written.registration_shift_px == pytest.approx(stock.registration_shift_px)
+    assert "did not confirm it beyond the spread" in capsys.readouterr().out
+
+
 def test_the_reading_can_be_given_instead_of_measured(registered_device):
     """--registration registered / unregistered: one candidate, no measurement; registered needs a registered
     preset (one clear line)."""
