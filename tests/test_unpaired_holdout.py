@@ -143,3 +143,46 @@ def test_the_camera_of_a_folder_is_given_and_kept(small_real_folder, tmp_path):
     assert main(["fit", str(small_real_folder / "stock.yaml"), str(small_real_folder / "real"), "--camera",
                  "150,151,80,60", "--out", str(tmp_path / "bad.yaml"), "--quiet"]) == 2  # fmt: skip
     assert not (tmp_path / "bad.yaml").exists()
+
+
+def test_the_camera_is_read_from_a_bop_file_given_or_found_in_the_folder(small_real_folder, tmp_path, capsys):
+    """--camera FILE reads a BOP camera.json; without --camera the sequences' own scene_camera.json are used (they
+    agree) and the terminal says where the camera came from; sequences whose cameras differ are refused in one line
+    with exit 2 and nothing written."""
+    import shutil
+
+    from ddsgen.cli import main
+    from ddsgen.preset import load_preset
+
+    stock = tmp_path / "stock.yaml"
+    shutil.copy(small_real_folder / "stock.yaml", stock)
+    args = ["--unpaired", "--params", "subpixel_level", "--quiet"]
+    camera_json = tmp_path / "camera.json"
+    camera_json.write_text(json.dumps({"fx": 150.0, "fy": 151.0, "cx": 80.0, "cy": 60.0, "width": 160, "height": 120,
+                                       "depth_scale": 1.0}))  # fmt: skip
+    out = tmp_path / "given.yaml"
+    assert main(["fit", str(stock), str(small_real_folder / "real"), "--camera", str(camera_json), "--out", str(out),
+                 "--report", str(tmp_path / "given_report"), *args]) == 0  # fmt: skip
+    written = load_preset(str(out))
+    assert (written.focal_px, written.focal_y_px, written.cx_px, written.cy_px) == pytest.approx((150, 151, 80, 60))
+    assert f"read from {camera_json}" in capsys.readouterr().out
+
+    real = tmp_path / "real"
+    shutil.copytree(small_real_folder / "real", real)
+    for sequence in ("seq1", "seq2"):
+        images = {str(i): {"cam_K": [148.0, 0, 79.0, 0, 149.0, 59.0, 0, 0, 1], "depth_scale": 1.0} for i in range(3)}
+        (real / sequence / "scene_camera.json").write_text(json.dumps(images))
+    out = tmp_path / "found.yaml"
+    assert main(["fit", str(stock), str(real), "--out", str(out), "--report", str(tmp_path / "found_report"),
+                 *args]) == 0  # fmt: skip
+    written = load_preset(str(out))
+    assert (written.focal_px, written.focal_y_px, written.cx_px, written.cy_px) == pytest.approx((148, 149, 79, 59))
+    assert "read from the folder's" in capsys.readouterr().out
+
+    images["1"]["cam_K"] = [200.0, 0, 79.0, 0, 149.0, 59.0, 0, 0, 1]
+    (real / "seq2" / "scene_camera.json").write_text(json.dumps(images))
+    out = tmp_path / "refused.yaml"
+    assert main(["fit", str(stock), str(real), "--out", str(out), *args]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "seq2/scene_camera.json: 1.cam_K" in error[0] and "differs" in error[0]
+    assert not out.exists()

@@ -16,7 +16,7 @@ from ddsgen.fit.parameters import COMMAND_DEFAULT_PARAMS
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.run import print_summary as print_unpaired_summary
 from ddsgen.fit.unpaired.run import run_unpaired_fit
-from ddsgen.runner import parse_camera
+from ddsgen.realscan.folder_camera import folder_camera
 
 
 @click.command("fit")
@@ -88,10 +88,12 @@ from ddsgen.runner import parse_camera
                    "registration), as unregistered (the bands measured as they are, registration switched off in "
                    "the fitted preset), or auto: render both at the stock values and take the one whose validity "
                    "by image radius is closer to the real frames'.")
-@click.option("--camera", default=None, metavar="FX,FY,CX,CY",
+@click.option("--camera", default=None, metavar="FX,FY,CX,CY|FILE.json",
               help="With --unpaired: the real frames' camera, focal lengths and principal point in px of the frames' "
                    "own size, for a device whose optics differ from PRESET's (e.g. an Asus Xtion in cropped mode, "
-                   "f ~ 1066 px at 640x480); the fit renders with it and the written preset keeps it.")
+                   "f ~ 1066 px at 640x480); or a BOP camera.json / scene_camera.json holding it. Without it a BOP "
+                   "camera file in REAL_DIR (or scene_camera.json in its sequence folders) is used, else PRESET's "
+                   "camera. The fit renders with it and the written preset keeps it.")
 @threads_option(None, REPRODUCIBLE_THREADS_HELP)
 @common_options
 def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, no_search, prior_mm, keep_all, refine_poses,
@@ -133,14 +135,15 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     if camera is not None and not unpaired:
         raise click.BadParameter("is for --unpaired (a paired fit reads the camera of the scans)",
                                  param_hint="--camera")
-    camera = parse_camera(camera)
+    camera, camera_source = folder_camera(camera, real_dir) if unpaired else (None, None)
     check_can_create_folder(out_path.parent, "the fitted preset")
     check_can_create_folder(report, "the report")
     use_threads(threads)
     if unpaired:
         content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
                                    report_dir=report_dir, seed=seed, keys=split_names(params) or None,
-                                   registration=registration, camera=camera, progress=not quiet)  # fmt: skip
+                                   registration=registration, camera=camera, camera_source=camera_source,
+                                   progress=not quiet)  # fmt: skip
         print_unpaired_summary(content)
         return
     settings = PairedFitSettings(params=split_names(params) or list(COMMAND_DEFAULT_PARAMS), steps=steps, tile_px=tile_px,

@@ -40,14 +40,16 @@ DEFAULT_SIM_FRAMES = 8
 def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Path | None = None,
                      depth_scale: float = 0.001, out: str | Path = "fitted.yaml", report_dir: str | Path | None = None,
                      seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200, keys=None,
-                     registration: str = "auto", camera=None, progress: bool = True) -> dict:  # fmt: skip
+                     registration: str = "auto", camera=None, camera_source: str | None = None,
+                     progress: bool = True) -> dict:  # fmt: skip
     """Fit the preset to the real depth frames below ``real_dir``; write OUT and the report.
 
     ``keys``: fit only these keys of the table (default: all; see :mod:`.parameters`); another name is an
     InputError, raised before anything is read or rendered.
     ``registration``: how to read the frames' depth (:data:`~.device_window.READINGS`; "auto" measures it).
     ``camera``: (fx, fy, cx, cy) px of the real frames' size, replacing the preset's camera scaled to that size
-    (:func:`ddsgen.runner.apply_camera`); the written preset keeps it, in its own pixels.
+    (:func:`ddsgen.runner.apply_camera`); the written preset keeps it, in its own pixels. ``camera_source``: where
+    it came from (:func:`ddsgen.realscan.folder_camera.folder_camera`), for the summary.
     Returns the report's JSON content.
     """
     out = Path(out)
@@ -133,7 +135,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     content = {
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
-        "assumed_intrinsics": camera.intrinsics.as_dict(), "sim_frames": sim_frames, **result.to_dict(), **work,
+        "assumed_intrinsics": camera.intrinsics.as_dict(), "camera_source": camera_source or NO_CAMERA,
+        "sim_frames": sim_frames, **result.to_dict(), **work,
         "held_out": verdict, "written": "fitted" if verdict["fitted_better"] else "input",
         "output_window": {"stock": {key: getattr(stock_camera, key) for key in (*window, *UNREGISTERED)},
                           "measured": {**window, **model.registration_keys},
@@ -156,7 +159,8 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     reading = (f"depth registration: {model.name}; output window (px without depth at the left, right, top, bottom): "
                f"{input_window} -> {tuple(in_preset_px.as_keys().values())}")  # fmt: skip
     if structure.get("fit_choice", model.name) != model.name:
-        reading += f" (the input's: the held-out frames did not confirm the fit frames' {structure['fit_choice']} beyond the spread)"
+        reading += (f" (the input's: the held-out frames did not confirm the fit frames' {structure['fit_choice']} "
+                    "beyond the spread)")
     if verdict["fitted_better"]:
         fitted = assemble_preset(original, {**registration, **in_preset_px.as_keys(), **result.after}, "unpaired")
         changed = [f"{key}: {content['before'][key]:.6g} -> {value:.6g} ({spread_text(content, key)})"
@@ -180,6 +184,9 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
             f"{verdict['fitted']:.4f} fitted; by feature group: {group_verdicts(verdict)})")]))  # fmt: skip
     return content
 
+
+#: Where the camera comes from when neither --camera nor the folder gives one.
+NO_CAMERA = "the preset's, scaled to the frames (no --camera, no BOP camera file in the folder)"
 
 #: What depth statistics cannot show, and what would show it (said in every summary).
 NOT_IDENTIFIABLE = ("a global disparity offset or scale and the focal length (they move every depth alike, which a "
@@ -205,8 +212,8 @@ def summary_lines(content: dict) -> list[str]:
     judged = window.get("judged", {})
     switched = judged.get("fit_choice", window["model"]) != window["model"]
     lines.append(f"  depth registration: {window['model']}"
-                 + (f" (the fit frames chose {judged.get('fit_choice')}; the held-out frames did not confirm it beyond the spread)"
-                    if switched else "")
+                 + (f" (the fit frames chose {judged.get('fit_choice')}; the held-out frames did not confirm it "
+                    "beyond the spread)" if switched else "")
                  + (f" (validity by radius, stock values: {distances})" if distances else ""))
     lines.append("  output window (measured; px without depth at the left, right, top, bottom): "
                  f"{tuple(stock.values())[:4]} -> {tuple(measured.values())[:4]}")  # fmt: skip
@@ -217,6 +224,9 @@ def summary_lines(content: dict) -> list[str]:
                      + ", ".join(f"{name} {value:.4f}" for name, value in heldout.items())
                      + (f"; read the fit frames' way, {', '.join(farther)} farther beyond the spread" if farther
                         else ""))  # fmt: skip
+    camera = content["assumed_intrinsics"]
+    lines.append(f"  camera of the frames: fx {camera['fx']:.6g}, fy {camera['fy']:.6g}, cx {camera['cx']:.6g}, "
+                 f"cy {camera['cy']:.6g} px, {content.get('camera_source', NO_CAMERA)}")  # fmt: skip
     lines.append(f"  not identifiable from unpaired depth, left at the input's values: {NOT_IDENTIFIABLE}")
     held = content["held_out"]
     lines.append(f"held out: {held['meaning']} ({len(held['held_out_frames'])} of "
