@@ -147,8 +147,8 @@ def test_the_camera_of_a_folder_is_given_and_kept(small_real_folder, tmp_path):
 
 def test_the_camera_is_read_from_a_bop_file_given_or_found_in_the_folder(small_real_folder, tmp_path, capsys):
     """--camera FILE reads a BOP camera.json; without --camera the sequences' own scene_camera.json are used (they
-    agree) and the terminal says where the camera came from; sequences whose cameras differ are refused in one line
-    with exit 2 and nothing written."""
+    agree), with their depth scale, and the terminal says where the camera came from; images whose cameras or depth
+    scales differ are refused in one line with exit 2 and nothing written."""
     import shutil
 
     from ddsgen.cli import main
@@ -178,6 +178,14 @@ def test_the_camera_is_read_from_a_bop_file_given_or_found_in_the_folder(small_r
     written = load_preset(str(out))
     assert (written.focal_px, written.focal_y_px, written.cx_px, written.cy_px) == pytest.approx((148, 149, 79, 59))
     assert "read from the folder's" in capsys.readouterr().out
+    assert json.loads((tmp_path / "found_report" / "unpaired_report.json").read_text())["depth_scale_m"] == 0.001
+
+    images["1"]["depth_scale"] = 0.1  # 0.1 mm per unit in one image of one sequence
+    (real / "seq2" / "scene_camera.json").write_text(json.dumps(images))
+    assert main(["fit", str(stock), str(real), "--out", str(tmp_path / "scales.yaml"), *args]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "seq2/scene_camera.json: 1.depth_scale" in error[0] and "--depth-scale" in error[0]
+    images["1"]["depth_scale"] = 1.0
 
     images["1"]["cam_K"] = [200.0, 0, 79.0, 0, 149.0, 59.0, 0, 0, 1]
     (real / "seq2" / "scene_camera.json").write_text(json.dumps(images))

@@ -16,7 +16,8 @@ from ddsgen.fit.parameters import COMMAND_DEFAULT_PARAMS
 from ddsgen.fit.unpaired.parameters import UNPAIRED_PARAMETERS
 from ddsgen.fit.unpaired.run import print_summary as print_unpaired_summary
 from ddsgen.fit.unpaired.run import run_unpaired_fit
-from ddsgen.realscan.folder_camera import folder_camera
+from ddsgen.realscan.folder_camera import FolderCamera, folder_camera
+from ddsgen.realscan.realfolder import DEFAULT_DEPTH_SCALE_M
 
 
 @click.command("fit")
@@ -79,8 +80,9 @@ from ddsgen.realscan.folder_camera import folder_camera
                    "For a preset registered to an RGB camera see --registration.")
 @click.option("--scenes", type=click.Path(dir_okay=False), default=None,
               help="With --unpaired: scene list resembling the real scenes (default: the built-in list).")
-@click.option("--depth-scale", type=POSITIVE, default=0.001, show_default=True,
-              help="With --unpaired: metres per PNG unit of the real depth images.")
+@click.option("--depth-scale", type=POSITIVE, default=None,
+              help="With --unpaired: metres per PNG unit of the real depth images [default: a BOP camera file's "
+                   "depth_scale (see --camera), else 0.001].")
 @click.option("--registration", type=click.Choice(["auto", "registered", "unregistered"]), default="auto",
               show_default=True,
               help="With --unpaired and a preset whose depth is registered to an RGB camera (kinect_v1): read the "
@@ -135,14 +137,16 @@ def fit(preset, real_dir, out, params, steps, tile_px, lr, holdout, report_dir, 
     if camera is not None and not unpaired:
         raise click.BadParameter("is for --unpaired (a paired fit reads the camera of the scans)",
                                  param_hint="--camera")
-    camera, camera_source = folder_camera(camera, real_dir) if unpaired else (None, None)
+    folder = folder_camera(camera, real_dir) if unpaired else FolderCamera()
+    if depth_scale is None:
+        depth_scale = folder.depth_scale_m or DEFAULT_DEPTH_SCALE_M
     check_can_create_folder(out_path.parent, "the fitted preset")
     check_can_create_folder(report, "the report")
     use_threads(threads)
     if unpaired:
         content = run_unpaired_fit(preset, real_dir, scenes=scenes, depth_scale=depth_scale, out=out,
                                    report_dir=report_dir, seed=seed, keys=split_names(params) or None,
-                                   registration=registration, camera=camera, camera_source=camera_source,
+                                   registration=registration, camera=folder.intrinsics, camera_source=folder.source,
                                    progress=not quiet)  # fmt: skip
         print_unpaired_summary(content)
         return

@@ -19,6 +19,8 @@ from ddsgen.io.exr import read_exr
 from ddsgen.io.png import read_depth_png
 
 DEPTH_SUFFIXES = (".png", ".exr")
+#: Metres per PNG unit of a folder's depth images unless told (millimetres, as most devices write).
+DEFAULT_DEPTH_SCALE_M = 0.001
 
 
 @dataclass
@@ -43,7 +45,7 @@ def depth_files(folder: str | Path) -> list[Path]:
     return [p for p in images if p.suffix.lower() == ".exr" or p.with_suffix("") not in exr_stems]
 
 
-def read_depth_folder(folder: str | Path, depth_scale: float = 0.001) -> list[RealDepthFrame]:
+def read_depth_folder(folder: str | Path, depth_scale: float = DEFAULT_DEPTH_SCALE_M) -> list[RealDepthFrame]:
     """All depth frames below ``folder``; they must share one image size.
 
     Raises:

@@ -30,7 +30,7 @@ from ddsgen.fit.unpaired.search import (
 from ddsgen.preset import load_preset
 from ddsgen.runner import apply_camera
 from ddsgen.realscan.pictures import write_index
-from ddsgen.realscan.realfolder import read_depth_folder, round_like
+from ddsgen.realscan.realfolder import DEFAULT_DEPTH_SCALE_M, read_depth_folder, round_like
 from ddsgen.scene.scenelist import load_scene_list
 
 #: Frames of the scene list rendered per evaluation.
@@ -38,7 +38,8 @@ DEFAULT_SIM_FRAMES = 8
 
 
 def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Path | None = None,
-                     depth_scale: float = 0.001, out: str | Path = "fitted.yaml", report_dir: str | Path | None = None,
+                     depth_scale: float = DEFAULT_DEPTH_SCALE_M, out: str | Path = "fitted.yaml",
+                     report_dir: str | Path | None = None,
                      seed: int = 0, sim_frames: int = DEFAULT_SIM_FRAMES, bootstrap: int = 200, keys=None,
                      registration: str = "auto", camera=None, camera_source: str | None = None,
                      progress: bool = True) -> dict:  # fmt: skip
@@ -135,6 +136,7 @@ def run_unpaired_fit(preset_ref: str, real_dir: str | Path, *, scenes: str | Pat
     content = {
         "preset": str(preset_ref), "real_dir": str(real_dir), "fitted_preset": str(out), "report": str(report),
         "scenes": str(scenes) if scenes else "built-in default", "real_frames": [f.name for f in real],
+        "depth_scale_m": depth_scale,
         "assumed_intrinsics": camera.intrinsics.as_dict(), "camera_source": camera_source or NO_CAMERA,
         "sim_frames": sim_frames, **result.to_dict(), **work,
         "held_out": verdict, "written": "fitted" if verdict["fitted_better"] else "input",
