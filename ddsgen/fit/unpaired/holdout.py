@@ -12,9 +12,10 @@ use), in total and by feature group. Each group's difference has a spread: a boo
 held-out real frames and the rendered scenes resampled (the two presets' renders of one scene stay paired), which
 is what another draw of frames of these kinds would move it by. The fitted preset is written only if its total
 distance is lower and no group is farther by more than :data:`GROUP_SIGMAS` of its spread; otherwise the input's
-values are kept and the summary says which group stood against it. The fit's structural choices (registration,
-output window) are judged the same way: the fitted values read the way the fit frames chose against the same values
-read the input's way (``run.py``).
+values are kept and the summary says which group stood against it. The registration reading the fit frames chose,
+when it is not the input's, is judged the same way, more strictly: the keys fitted under it against the keys fitted
+under the input's reading, kept only if the total is closer by more than :data:`GROUP_SIGMAS` of its spread
+(``run.py``).
 
 Why a spread per group: measured on IC-BIN (seq2 held out, three render seeds of one preset), the holes group
 moves by up to 40 % between renders, the noise group by under 1 %; a total can fall while one group rises beyond
