@@ -164,7 +164,20 @@ class _Unit:
     part: int
 
 
-def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list[list]:
+def start_costs(sensor, views, occluder_m: float, absence_cap_m: float) -> list:
+    """Per view, (cost (H, W) m, owner image) at the start poses (every part's correction zero), for
+    :func:`accept_parts` and :func:`frame_heldout_gaps`; the refined corrections are restored afterwards."""
+    units = _units(views)
+    refined = {id(p): p.detach().clone() for u in units for p, _ in u.rows}
+    for u in units:
+        _set(u.rows, None)
+    start = [_view_cost(sensor, v, occluder_m, absence_cap_m) for v in views]
+    for u in units:
+        _set(u.rows, refined)
+    return start
+
+
+def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float, start: list | None = None) -> list[list]:
     """Keep each part's refined correction only if it lowers the part's held-out cost; reset the others.
 
     Args:
@@ -172,18 +185,17 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
         views: the refinement loop's views (``scene``, ``real``, ``heldout``, ``blocks`` (H, W, 2) block (row, column)
             of every pixel, ``index``, ``recast()``,
             ``render(sensor)`` -> (depth, valid, clean), ``resolved_depth_m(sensor)``), at the refined poses.
+        start: :func:`start_costs` of the views, when the caller has them (computed here otherwise).
 
     Returns:
         per view, per part: a :class:`PartDecision` (None for a part that does not move).
     """
+    if start is None:
+        start = start_costs(sensor, views, occluder_m, absence_cap_m)
     units = _units(views)
     refined = {id(p): p.detach().clone() for u in units for p, _ in u.rows}
     for u in units:
         _set(u.rows, None)
-    start = []
-    for v in views:
-        with frame_camera(sensor, v.scene.intrinsics):
-            start.append(_cost(v, sensor, occluder_m, absence_cap_m))
     decisions = [[None] * len(v.scene.parts) for v in views]
     chosen = []  # the rows to set to their refined values
     for u in units:
@@ -225,22 +237,13 @@ def accept_parts(sensor, views, occluder_m: float, absence_cap_m: float) -> list
     return decisions
 
 
-def frame_heldout_gaps(sensor, views, corrections: list, occluder_m: float,
+def frame_heldout_gaps(sensor, views, start: list, occluder_m: float,
                        absence_cap_m: float) -> list[tuple[float, float]]:  # fmt: skip
     """Per view, (held-out gap at the start, at the current poses) in mm: the mean :func:`pixel_cost` over the view's
     held-out pixels that an object owns at either pose (one pixel set for both, so the two compare fairly; a mean
     over each pose's own in-band pixels would favour the pose that leaves its worst pixels out of the band).
 
-    ``corrections``: every correction tensor of the views' poses (each once); set to zero for the start and restored
-    afterwards."""
-    current = [t.detach().clone() for t in corrections]
-    with torch.no_grad():
-        for t in corrections:
-            t.zero_()
-    start = [_view_cost(sensor, v, occluder_m, absence_cap_m) for v in views]
-    with torch.no_grad():
-        for t, values in zip(corrections, current):
-            t.copy_(values)
+    ``start``: :func:`start_costs` of the views."""
     gaps = []
     for v, (cost_start, owner_start) in zip(views, start):
         cost_now, owner_now = _view_cost(sensor, v, occluder_m, absence_cap_m)

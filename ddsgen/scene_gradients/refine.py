@@ -31,7 +31,7 @@ import torch
 from ddsgen.realscan.losses import resolved_depth_m
 from ddsgen.realscan.simulate import frame_camera
 from ddsgen.scene_gradients.acceptance import (accept_parts, block_cells, frame_heldout_gaps, heldout_blocks,
-                                               owner_image)
+                                               owner_image, start_costs)
 from ddsgen.scene_gradients.edges import edge_loss, outline_points, real_edge_distance
 from ddsgen.scene_gradients.hits import posed_geometry
 from ddsgen.scene_gradients.identifiability import object_identifiability
@@ -418,8 +418,9 @@ def _refine_loop(sensor, scenes, reals, s, progress, callback) -> list:
     decisions = [[] for _ in views]
     heldout = [(float("nan"), float("nan"))] * len(views)
     if s.holdout_block_px > 0:
-        decisions = accept_parts(sensor, views, s.occluder_m, s.band_m)
-        heldout = frame_heldout_gaps(sensor, views, rotations + translations, s.occluder_m, s.band_m)
+        start = start_costs(sensor, views, s.occluder_m, s.band_m)  # one cast and render of each view, for both
+        decisions = accept_parts(sensor, views, s.occluder_m, s.band_m, start=start)
+        heldout = frame_heldout_gaps(sensor, views, start, s.occluder_m, s.band_m)
     after = []
     for v in views:
         v.recast()
