@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ddsgen.atomic import atomic_path, atomic_write_text
+from ddsgen.realscan.gap_report import round_or_none
 
 
 def frame_summary(refinement) -> dict:
@@ -17,8 +18,8 @@ def frame_summary(refinement) -> dict:
         "frame": refinement.name, "crop": list(refinement.crop),
         "gap_before_mm": r.gap_before_mm, "gap_after_mm": r.gap_after_mm, "gap_optimised_mm": r.gap_optimised_mm,
         "kept_start": bool(r.kept_start),
-        "heldout_gap_before_mm": _number(r.heldout_gap_before_mm),
-        "heldout_gap_after_mm": _number(r.heldout_gap_after_mm),
+        "heldout_gap_before_mm": round_or_none(r.heldout_gap_before_mm),
+        "heldout_gap_after_mm": round_or_none(r.heldout_gap_after_mm),
         "objects": refinement.object_changes(),
         "loss_mm": [round(h["loss_mm"], 4) for h in r.history],
     }  # fmt: skip
@@ -29,11 +30,6 @@ def frame_summary(refinement) -> dict:
         summary["support_plane"] = {"tilt_deg": round(float(np.degrees(np.arccos(np.clip(n0 @ n1, -1, 1)))), 4),
                                     "offset_mm": round(shift, 4)}  # fmt: skip
     return summary
-
-
-def _number(value: float) -> float | None:
-    """A measured value for JSON: None where it was not measured (nan)."""
-    return None if value != value else round(float(value), 4)
 
 
 def save_side_by_side(refinement, path: Path) -> None:
